@@ -1,0 +1,101 @@
+"""`rotonly` command-line entry point: a thin click group.
+
+Subcommands live one per module (``rotonly_cli.cli.<name>``, each exposing ``command``)
+and are imported lazily, so ``rotonly --help`` stays fast and a broken optional module
+never breaks the others.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import sys
+
+import click
+
+from rotonly_cli import __version__
+from rotonly_cli.errors import RotonlyError
+
+# name -> module; the order is the order shown in --help.
+COMMANDS: dict[str, str] = {
+    "run": "rotonly_cli.cli.run",
+    "identify": "rotonly_cli.cli.stages",
+    "refine": "rotonly_cli.cli.refine",
+    "average": "rotonly_cli.cli.stages",
+    "optimize": "rotonly_cli.cli.stages",
+    "translate": "rotonly_cli.cli.stages",
+    "triangulate": "rotonly_cli.cli.stages",
+    "eval": "rotonly_cli.cli.eval",
+    "convert": "rotonly_cli.cli.convert",
+    "simulate": "rotonly_cli.cli.simulate",
+    "bench": "rotonly_cli.cli.bench",
+}
+
+
+class LazyGroup(click.Group):
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return [name for name in COMMANDS if self._load(name) is not None]
+
+    def get_command(self, ctx: click.Context, cmd_name: str):
+        return self._load(cmd_name)
+
+    @staticmethod
+    def _load(name: str):
+        module_name = COMMANDS.get(name)
+        if module_name is None:
+            return None
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:  # a subcommand not built yet
+            if exc.name == module_name:
+                return None
+            raise
+        commands = getattr(module, "commands", None)
+        if commands is not None:
+            return commands.get(name)
+        return getattr(module, "command", None)
+
+
+def setup_logging(verbosity: int) -> None:
+    level = {-1: logging.WARNING, 0: logging.INFO}.get(verbosity, logging.DEBUG)
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+                        datefmt="%H:%M:%S", stream=sys.stderr, force=True)
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="rotonly")
+@click.option("-v", "--verbose", count=True, help="More log output (-v debug).")
+@click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
+@click.pass_context
+def cli(ctx: click.Context, verbose: int, quiet: bool) -> None:
+    """rotonly: rotation-only SfM (TRRM two-view and GRRM multi-view rotation estimation).
+
+    Reads OpenMVG projects or COLMAP databases, writes OpenMVG sfm_data.json and COLMAP models.
+    """
+    ctx.ensure_object(dict)
+    ctx.obj["verbosity"] = -1 if quiet else verbose
+    setup_logging(ctx.obj["verbosity"])
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console-script entry: maps rotonly's typed errors to one line and an exit code."""
+    try:
+        cli.main(args=argv, prog_name="rotonly", standalone_mode=False)
+    except click.exceptions.Abort:
+        click.echo("Aborted.", err=True)
+        sys.exit(1)
+    except click.exceptions.Exit as exc:
+        sys.exit(exc.exit_code)
+    except click.ClickException as exc:
+        exc.show()
+        sys.exit(2)
+    except RotonlyError as exc:
+        click.echo(f"error: {exc}", err=True)
+        sys.exit(exc.exit_code)
+    except (MemoryError, KeyboardInterrupt):
+        raise
+    sys.exit(0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()
