@@ -25,7 +25,7 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[
     if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3:
         raise ValueError(f"umeyama needs two (n, 3) arrays, got {src.shape} and {dst.shape}")
     n = src.shape[0]
-    if n < 2 or (with_scale and n < 2):
+    if n < 2:
         raise ValueError("umeyama needs at least 2 points")
     mean_src = src.mean(axis=0)
     mean_dst = dst.mean(axis=0)
