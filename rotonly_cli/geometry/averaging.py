@@ -1,0 +1,268 @@
+"""Robust rotation averaging (Chatterjee & Govindu L1RA + IRLS), algorithms.md §2.
+
+Pure numpy/scipy. Model: ``R_j_from_i ≈ R_j R_iᵀ`` with ``R_k = R_cam_from_world``.
+
+1. Start: maximum spanning tree of the view graph on the edge weights (COLMAP/GLOMAP use
+   ``num_matches``; algorithms.md §2.1 step 1), rotations chained from ``fixed_view``.
+2. Tangent residual per edge ``Δr_ij = Log(R_jᵀ R_ij R_i)`` and the linearised update
+   ``R_k ← R_k Exp(Δω_k)``, ``Δr_ij ≈ Δω_j − Δω_i`` (§2.1 steps 2–3). The fixed view's
+   columns are dropped. The incidence structure is the same for the three tangent axes, so
+   ``A = incidence ⊗ I₃`` and every normal matrix is the (weighted) graph Laplacian applied
+   to a (n−1, 3) right-hand side: one sparse factorisation serves all three axes.
+3. L1RA (§2.1 step 4): ``min ‖AΔω − Δr‖₁`` by ADMM (Boyd et al. 2011, least absolute
+   deviations; Theia's/COLMAP's ``L1Solver``). ``AᵀA`` is factorised once (SuperLU) and
+   reused for all L1 steps; the ADMM iteration cap starts at ``admm_initial_iterations``
+   and doubles each L1 step up to ``admm_max_iterations`` (COLMAP: 10 → 100).
+4. IRLS (§2.1 step 5) with Geman–McClure ``w = σ²/(e²+σ²)²`` (σ = 5°, ICCV 2013) or ℓ½
+   ``w = e^{−3/2}`` (HALF_NORM, TPAMI 2018, the seed/ROBA setting), multiplied by the
+   normalised edge weights; ``(AᵀWA) Δω = AᵀWΔr`` solved with a sparse LU.
+5. Per-edge residual angle after convergence; edges above ``max_inlier_residual_deg`` are
+   flagged as outliers (they keep a small IRLS weight but are reported).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+from scipy.sparse.linalg import splu
+
+from rotonly_cli.errors import AlgorithmError
+from rotonly_cli.geometry import so3
+
+__all__ = ["RobustWeight", "AveragingOptions", "AveragingResult", "average_rotations",
+           "spanning_tree_rotations", "edge_residuals"]
+
+
+class RobustWeight(str, Enum):
+    """IRLS kernel (algorithms.md §2.1 step 5)."""
+
+    GEMAN_MCCLURE = "geman_mcclure"  # ICCV 2013; COLMAP default
+    HALF_NORM = "half_norm"  # ℓ½, TPAMI 2018 / ROBA / the seed's Chatterjee baseline
+    L2 = "l2"  # no robustness (for tests and ablations)
+
+
+@dataclass(frozen=True, kw_only=True)
+class AveragingOptions:
+    """Options of :func:`average_rotations`; defaults follow COLMAP/Theia (algorithms.md §2.2)."""
+
+    # L1RA outer steps and stop rule: mean ‖Δω_k‖ (rad) below the threshold (§2.1 step 4).
+    max_num_l1_iterations: int = 5
+    l1_step_convergence_threshold: float = 1e-3
+    skip_l1: bool = False
+    # ADMM for each L1 step: ρ = 1 (PoSDK/OpenMVG L1ADMM.h), iteration cap doubling from
+    # 10 up to 100 per L1 step (COLMAP), tolerances abs 1e-4 / rel 1e-2 (PoSDK, Boyd §3.3).
+    admm_rho: float = 1.0
+    admm_initial_iterations: int = 10
+    admm_max_iterations: int = 100
+    admm_absolute_tolerance: float = 1e-4
+    admm_relative_tolerance: float = 1e-2
+    # IRLS (§2.1 step 5). Stop rule as Theia/COLMAP ``ComputeAverageStepSize``: mean over
+    # the free views of ‖Δω_k‖ (rad) below the threshold.
+    weight_type: RobustWeight = RobustWeight.GEMAN_MCCLURE
+    irls_loss_parameter_sigma_deg: float = 5.0  # GM σ in degrees (COLMAP header "in degrees")
+    max_num_irls_iterations: int = 100
+    irls_step_convergence_threshold: float = 1e-3
+    # residual floor for ℓ½ weights (e^{-3/2} blows up at 0); Chatterjee caps the
+    # square-root weight, which is the same thing.
+    half_norm_min_residual_deg: float = 1e-4
+    ridge_regularization: float = 1e-9  # COLMAP ridge_regularization
+    # Edges whose final residual exceeds this are flagged as outliers.
+    max_inlier_residual_deg: float = 5.0
+
+    def validate(self) -> None:
+        if self.max_num_l1_iterations < 0 or self.max_num_irls_iterations < 0:
+            raise ValueError("iteration counts must be >= 0")
+        if self.irls_loss_parameter_sigma_deg <= 0 or self.admm_rho <= 0:
+            raise ValueError("sigma and rho must be positive")
+
+
+@dataclass
+class AveragingResult:
+    R_cam_from_world: np.ndarray  # (n, 3, 3); NaN for views not connected to fixed_view
+    registered: np.ndarray  # (n,) bool: in the connected component of fixed_view
+    edge_residual_deg: np.ndarray  # (E,) angle of R_jᵀ R_ij R_i; NaN for unused edges
+    inlier_mask: np.ndarray  # (E,) residual ≤ max_inlier_residual_deg
+    l1_iterations: int
+    irls_iterations: int
+    irls_converged: bool
+
+    @property
+    def iterations(self) -> int:
+        return self.l1_iterations + self.irls_iterations
+
+
+def edge_residuals(R_cam_from_world: np.ndarray, edges_i: np.ndarray, edges_j: np.ndarray,
+                   R_j_from_i: np.ndarray) -> np.ndarray:
+    """Tangent residuals ``Log(R_jᵀ R_ij R_i)`` (E, 3) in radians."""
+    R = R_cam_from_world
+    return so3.log(np.transpose(R[edges_j], (0, 2, 1)) @ R_j_from_i @ R[edges_i])
+
+
+def spanning_tree_rotations(num_views: int, edges_i: np.ndarray, edges_j: np.ndarray,
+                            R_j_from_i: np.ndarray, weights: np.ndarray, fixed_view: int) -> np.ndarray:
+    """Chain rotations along the maximum spanning tree from ``fixed_view`` (R = I there).
+
+    Views not reached get NaN. Parallel edges: the heaviest of a pair is used.
+    """
+    low, high = np.minimum(edges_i, edges_j), np.maximum(edges_i, edges_j)
+    order = np.lexsort((-weights, high, low))  # heaviest first inside each pair
+    first = np.ones(order.size, dtype=bool)
+    first[1:] = (low[order][1:] != low[order][:-1]) | (high[order][1:] != high[order][:-1])
+    best = order[first]
+    # costs must be positive (scipy drops explicit zeros): max weight -> cost 1
+    cost = weights[best].max() - weights[best] + 1.0
+    graph = sp.coo_matrix((cost, (low[best], high[best])), shape=(num_views, num_views)).tocsr()
+    tree = minimum_spanning_tree(graph)
+    bfs_order, parent = breadth_first_order(tree, fixed_view, directed=False, return_predecessors=True)
+    pair_key = low[best] * num_views + high[best]
+    key_order = np.argsort(pair_key)
+    R = np.full((num_views, 3, 3), np.nan)
+    R[fixed_view] = np.eye(3)
+    for child in bfs_order[1:]:  # one step per view (not per edge or observation)
+        par = parent[child]
+        key = min(par, child) * num_views + max(par, child)
+        edge = best[key_order[np.searchsorted(pair_key, key, sorter=key_order)]]
+        # R_child = R_child_from_par R_par; an edge stored as (child -> par) is inverted
+        R_child_from_par = R_j_from_i[edge] if edges_i[edge] == par else R_j_from_i[edge].T
+        R[child] = R_child_from_par @ R[par]
+    return R
+
+
+def _incidence(edges_i: np.ndarray, edges_j: np.ndarray, column_of_view: np.ndarray, num_free: int
+               ) -> sp.csr_matrix:
+    """Scalar incidence (E × num_free): −1 at i, +1 at j, the fixed view's column dropped."""
+    num_edges = edges_i.size
+    rows = np.concatenate([np.arange(num_edges), np.arange(num_edges)])
+    cols = np.concatenate([column_of_view[edges_i], column_of_view[edges_j]])
+    vals = np.concatenate([-np.ones(num_edges), np.ones(num_edges)])
+    keep = cols >= 0
+    return sp.csr_matrix((vals[keep], (rows[keep], cols[keep])), shape=(num_edges, num_free))
+
+
+def _l1_admm(A: sp.csr_matrix, AtA_lu, b: np.ndarray, max_iterations: int,
+             options: AveragingOptions) -> np.ndarray:
+    """ADMM for ``min_x ‖A x − b‖₁`` column-wise (b: (E, 3)); returns x (num_free, 3)."""
+    rho = options.admm_rho
+    z = np.zeros_like(b)
+    u = np.zeros_like(b)
+    x = np.zeros((A.shape[1], b.shape[1]))
+    sqrt_size_primal = np.sqrt(b.size)
+    sqrt_size_dual = np.sqrt(x.size)
+    for _ in range(max_iterations):
+        x = AtA_lu.solve(A.T @ (b + z - u))
+        Ax = A @ x
+        z_old = z
+        v = Ax - b + u
+        z = np.sign(v) * np.maximum(np.abs(v) - 1.0 / rho, 0.0)
+        u = u + Ax - z - b
+        primal = np.linalg.norm(Ax - z - b)
+        dual = np.linalg.norm(rho * (A.T @ (z - z_old)))
+        eps_primal = sqrt_size_primal * options.admm_absolute_tolerance + options.admm_relative_tolerance * max(
+            np.linalg.norm(Ax), np.linalg.norm(z), np.linalg.norm(b))
+        eps_dual = sqrt_size_dual * options.admm_absolute_tolerance + options.admm_relative_tolerance * np.linalg.norm(
+            rho * (A.T @ u))
+        if primal < eps_primal and dual < eps_dual:
+            break
+    return x
+
+
+def _average_step(step: np.ndarray) -> float:
+    """Theia/COLMAP ``ComputeAverageStepSize``: mean over free views of ‖Δω_k‖ (rad)."""
+    return float(np.linalg.norm(step, axis=1).mean()) if step.size else 0.0
+
+
+def _irls_weights(residual_norm: np.ndarray, options: AveragingOptions) -> np.ndarray:
+    if options.weight_type == RobustWeight.GEMAN_MCCLURE:
+        sigma = np.radians(options.irls_loss_parameter_sigma_deg)
+        # COLMAP's σ²/(e²+σ²)², rescaled by σ² so weights are ~1 for inliers
+        return (sigma**2 / (residual_norm**2 + sigma**2)) ** 2
+    if options.weight_type == RobustWeight.HALF_NORM:
+        e = np.maximum(residual_norm, np.radians(options.half_norm_min_residual_deg))
+        return e ** -1.5
+    return np.ones_like(residual_norm)
+
+
+def average_rotations(num_views: int, edges_i: np.ndarray, edges_j: np.ndarray, R_j_from_i: np.ndarray,
+                      weights: np.ndarray | None = None, fixed_view: int = 0,
+                      options: AveragingOptions | None = None) -> AveragingResult:
+    """Global rotations ``R_cam_from_world`` from relative rotations ``R_j_from_i = R_j R_iᵀ``.
+
+    Args:
+        num_views: n.
+        edges_i, edges_j: (E,) view indices of each edge.
+        R_j_from_i: (E, 3, 3) relative rotations.
+        weights: (E,) edge quality (e.g. inlier counts) for the spanning tree and as IRLS
+            multipliers; default all 1.
+        fixed_view: gauge view, R = I.
+    """
+    options = options or AveragingOptions()
+    options.validate()
+    edges_i = np.asarray(edges_i, dtype=np.int64)
+    edges_j = np.asarray(edges_j, dtype=np.int64)
+    R_j_from_i = np.asarray(R_j_from_i, dtype=float)
+    num_edges = edges_i.size
+    if edges_j.shape != (num_edges,) or R_j_from_i.shape != (num_edges, 3, 3):
+        raise ValueError("edges_i, edges_j (E,) and R_j_from_i (E, 3, 3) disagree")
+    weights = np.ones(num_edges) if weights is None else np.asarray(weights, dtype=float)
+    if weights.shape != (num_edges,) or np.any(~np.isfinite(weights)) or np.any(weights <= 0):
+        raise ValueError("weights must be (E,) positive and finite")
+    if num_edges and (min(edges_i.min(), edges_j.min()) < 0 or max(edges_i.max(), edges_j.max()) >= num_views):
+        raise ValueError("edge view index out of range")
+    if np.any(edges_i == edges_j):
+        raise ValueError("self-loop edge (i == j)")
+    if not 0 <= fixed_view < num_views:
+        raise ValueError("fixed_view out of range")
+
+    graph = sp.coo_matrix((np.ones(num_edges), (edges_i, edges_j)), shape=(num_views, num_views))
+    _, component = connected_components(graph, directed=False)
+    registered = component == component[fixed_view]
+    if registered.sum() < 2:
+        raise AlgorithmError(f"rotation averaging: fixed view {fixed_view} has no edges")
+    used = registered[edges_i] & registered[edges_j]
+    e_i, e_j, R_ij = edges_i[used], edges_j[used], R_j_from_i[used]
+    edge_weight = weights[used] / weights[used].mean()
+
+    R = spanning_tree_rotations(num_views, e_i, e_j, R_ij, edge_weight, fixed_view)
+    free_views = np.flatnonzero(registered & (np.arange(num_views) != fixed_view))
+    column_of_view = np.full(num_views, -1, dtype=np.int64)
+    column_of_view[free_views] = np.arange(free_views.size)
+    A = _incidence(e_i, e_j, column_of_view, free_views.size)
+
+    def apply_step(step: np.ndarray) -> None:
+        R[free_views] = R[free_views] @ so3.exp(step)
+
+    l1_iterations = 0
+    if not options.skip_l1 and options.max_num_l1_iterations > 0:
+        AtA_lu = splu((A.T @ A).tocsc())  # the graph Laplacian, factorised once
+        admm_iterations = options.admm_initial_iterations
+        for _ in range(options.max_num_l1_iterations):
+            l1_iterations += 1
+            step = _l1_admm(A, AtA_lu, edge_residuals(R, e_i, e_j, R_ij), admm_iterations, options)
+            apply_step(step)
+            admm_iterations = min(2 * admm_iterations, options.admm_max_iterations)
+            if _average_step(step) < options.l1_step_convergence_threshold:
+                break
+
+    irls_iterations, converged = 0, options.max_num_irls_iterations == 0
+    ridge = sp.identity(free_views.size, format="csc") * options.ridge_regularization
+    for _ in range(options.max_num_irls_iterations):
+        irls_iterations += 1
+        residual = edge_residuals(R, e_i, e_j, R_ij)
+        w = _irls_weights(np.linalg.norm(residual, axis=1), options) * edge_weight
+        AtW = A.T.multiply(w[None, :]).tocsr()
+        step = splu((AtW @ A).tocsc() + ridge).solve(AtW @ residual)
+        apply_step(step)
+        if _average_step(step) < options.irls_step_convergence_threshold:
+            converged = True
+            break
+
+    residual_deg = np.full(num_edges, np.nan)
+    residual_deg[used] = np.degrees(np.linalg.norm(edge_residuals(R, e_i, e_j, R_ij), axis=1))
+    inlier = np.zeros(num_edges, dtype=bool)
+    inlier[used] = residual_deg[used] <= options.max_inlier_residual_deg
+    R[~registered] = np.nan
+    return AveragingResult(R, registered, residual_deg, inlier, l1_iterations, irls_iterations, converged)

@@ -1,0 +1,247 @@
+"""LiGT: linear global translation from known rotations and tracks (Cai et al., TPAMI 2023).
+
+Pure numpy/scipy, the paper/OpenMVG form of algorithms.md §1.1–1.2, batched over all
+tracks. Conventions: ``R_i = R_cam_from_world``, ``t_i`` = camera **centre**; normalized
+observations ``x = (x, y, 1)``.
+
+Per track k with views V_k:
+
+* base views ``(l, r) = argmax_{a<b} ‖θ_ab‖``, ``θ_lr = [x_r]_× R_lr x_l`` (TPAMI eq. 29;
+  OpenMVG ``SelectBaseViews`` scans a < b in track order and keeps the first maximum).
+  ``‖θ_ab‖ = ‖(R_bᵀ x_b) × (R_aᵀ x_a)‖`` so it is computed on world rays.
+* ``a_lrᵀ = ([R_lr x_l]_× x_r)ᵀ [x_r]_×``.
+* for every other view i ≠ l (i = r included): ``B t_r + C t_i + D t_l = 0`` with
+  ``B = [x_i]_× R_li x_l a_lrᵀ R_r``, ``C = ‖θ_lr‖² [x_i]_× R_i``, ``D = −(B + C)``.
+
+``LᵀL`` (3n × 3n) is accumulated from the 3×9 row blocks ``[B | C | D]`` without forming
+L (chunked, scipy.sparse sums duplicates). Gauge: the fixed view's centre is 0 (its columns
+are dropped). Solution: eigenvector of the smallest eigenvalue (dense ``eigh`` for small
+problems, shift-invert ``eigsh`` otherwise). Sign: chirality vote ``a_lrᵀ R_r (t_l − t_r) > 0``
+per track (TPAMI "Step 5", OpenMVG ``IdentifySign``).
+
+**Output scale**: centres are returned translated so the centroid of the solved centres is
+0 and scaled so their mean distance to that centroid is 1.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import eigsh
+
+from rotonly_cli.errors import AlgorithmError
+from rotonly_cli.geometry.so3 import hat
+from rotonly_cli.geometry.tracks import pairs_within_tracks
+
+__all__ = ["LiGTOptions", "LiGTResult", "ligt_translations", "ligt_normal_matrix"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class LiGTOptions:
+    """Options of :func:`ligt_translations`."""
+
+    # Tracks whose best base pair has ‖θ_lr‖ below this carry no translation information
+    # (pure rotation / infinitely far points, seed §6.1: all θ = 0 for PR/B/I).
+    min_base_theta_norm: float = 1e-10
+    # Up to this many free unknowns (3(n−1)) the dense eigh is used (O(n³), exact and
+    # robust); above it the sparse shift-invert Lanczos (OpenMVG/pyTheia use Spectra's
+    # shift-invert with shift 0, algorithms.md §1.2).
+    max_dense_unknowns: int = 1500
+    # Constraint rows assembled per chunk (bounds the 81-entries-per-row COO memory).
+    chunk_size: int = 100_000
+    # Tracks longer than this select their base pair among their first views only
+    # (the exhaustive pair scan costs Σ L²).
+    max_base_search_views: int = 64
+    # Views needing at least this many constraint rows to be solved.
+    min_constraints_per_view: int = 1
+
+
+@dataclass
+class LiGTResult:
+    centers: np.ndarray  # (n, 3) camera centres; NaN for views without constraints
+    has_translation: np.ndarray  # (n,) bool: view was solved
+    fixed_view: int  # gauge view (centre 0 before the final centring)
+    smallest_eigenvalues: np.ndarray  # smallest (and second, if computed) eigenvalues of LᵀL
+    num_constraints_per_view: np.ndarray  # (n,) constraint blocks touching the view
+    num_tracks_used: int
+    sign_votes: tuple[int, int]  # (positive, negative) chirality votes after the sign fix
+
+
+def _select_base_views(world_rays: np.ndarray, offsets: np.ndarray,
+                       max_views: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per track the observation indices (l, r) with max ‖θ‖, and that norm."""
+    length = np.diff(offsets)
+    num_tracks = length.size
+    track_of_obs = np.repeat(np.arange(num_tracks), length)
+    position = np.arange(offsets[-1]) - offsets[track_of_obs]
+    use = np.flatnonzero(position < max_views)
+    capped = np.zeros(num_tracks + 1, dtype=np.int64)
+    np.cumsum(np.minimum(length, max_views), out=capped[1:])
+    a, b = pairs_within_tracks(capped)
+    a, b = use[a], use[b]
+    theta_norm = np.linalg.norm(np.cross(world_rays[b], world_rays[a]), axis=1)
+    pair_track = track_of_obs[a]
+    # first maximum per track: sort by (track, -norm, pair index) and take the group heads
+    order = np.lexsort((np.arange(a.size), -theta_norm, pair_track))
+    head = np.ones(order.size, dtype=bool)
+    head[1:] = pair_track[order][1:] != pair_track[order][:-1]
+    best = order[head]
+    base_l = np.full(num_tracks, -1, dtype=np.int64)
+    base_r = np.full(num_tracks, -1, dtype=np.int64)
+    best_norm = np.zeros(num_tracks)
+    base_l[pair_track[best]] = a[best]
+    base_r[pair_track[best]] = b[best]
+    best_norm[pair_track[best]] = theta_norm[best]
+    return base_l, base_r, best_norm
+
+
+def ligt_normal_matrix(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_view: np.ndarray,
+                       obs_xy: np.ndarray, num_views: int, options: LiGTOptions | None = None
+                       ) -> tuple[sp.csr_matrix, dict[str, np.ndarray]]:
+    """Assemble LᵀL (3n × 3n, CSR) and the per-track sign rows.
+
+    Observations must be grouped by track (``obs_track`` non-decreasing). Returns the
+    matrix and a dict with ``sign_l, sign_r`` (view of each used track's base pair),
+    ``sign_row`` (T_used, 3) = ``a_lrᵀ R_r`` and ``constraints_per_view`` (n,).
+    """
+    options = options or LiGTOptions()
+    R = np.asarray(R_cam_from_world, dtype=float)
+    obs_track = np.asarray(obs_track, dtype=np.int64)
+    obs_view = np.asarray(obs_view, dtype=np.int64)
+    x = np.concatenate([np.asarray(obs_xy, dtype=float), np.ones((len(obs_track), 1))], axis=1)
+    num_tracks = int(obs_track.max()) + 1 if obs_track.size else 0
+    counts = np.bincount(obs_track, minlength=num_tracks)
+    offsets = np.zeros(num_tracks + 1, dtype=np.int64)
+    np.cumsum(counts, out=offsets[1:])
+
+    world_rays = np.einsum("nji,nj->ni", R[obs_view], x)  # R_iᵀ x_i
+    base_l, base_r, theta_norm = _select_base_views(world_rays, offsets, options.max_base_search_views)
+    track_used = (base_l >= 0) & (theta_norm > options.min_base_theta_norm)
+
+    # per used track: a_lrᵀ R_r (row), ‖θ_lr‖²
+    tl, tr = base_l[track_used], base_r[track_used]
+    view_l, view_r = obs_view[tl], obs_view[tr]
+    R_l, R_r = R[view_l], R[view_r]
+    R_lr_x_l = np.einsum("nij,njk,nk->ni", R_r, np.transpose(R_l, (0, 2, 1)), x[tl])
+    theta = np.cross(x[tr], R_lr_x_l)  # [x_r]_× R_lr x_l
+    a_row = np.einsum("ni,nij->nj", np.cross(R_lr_x_l, x[tr]), hat(x[tr]))  # a_lrᵀ
+    sign_row = np.einsum("ni,nij->nj", a_row, R_r)  # a_lrᵀ R_r
+    theta_sq = np.einsum("ni,ni->n", theta, theta)
+
+    # constraint rows: every observation i of a used track except its base l
+    used_index = np.full(num_tracks, -1, dtype=np.int64)
+    used_index[track_used] = np.arange(track_used.sum())
+    obs_used = used_index[obs_track]
+    is_constraint = obs_used >= 0
+    is_constraint[base_l[track_used]] = False
+    constraint_obs = np.flatnonzero(is_constraint)
+    constraint_track = obs_used[constraint_obs]
+
+    num_cols = 3 * num_views
+    LTL = sp.csr_matrix((num_cols, num_cols))
+    constraints_per_view = np.zeros(num_views, dtype=np.int64)
+    block_offsets = np.arange(3)
+    for start in range(0, constraint_obs.size, options.chunk_size):
+        obs_i = constraint_obs[start:start + options.chunk_size]
+        trk = constraint_track[start:start + options.chunk_size]
+        view_i = obs_view[obs_i]
+        R_i = R[view_i]
+        # B = [x_i]_× R_i R_lᵀ x_l (a_lrᵀ R_r): rank one, outer product of two 3-vectors
+        x_l_in_i = np.einsum("nij,nkj,nk->ni", R_i, R_l[trk], x[tl[trk]])
+        B = np.cross(x[obs_i], x_l_in_i)[:, :, None] * sign_row[trk][:, None, :]
+        C = theta_sq[trk][:, None, None] * (hat(x[obs_i]) @ R_i)
+        D = -(B + C)
+        M = np.concatenate([B, C, D], axis=2)  # (K, 3, 9): columns of views r, i, l
+        MtM = np.einsum("kpa,kpb->kab", M, M)  # (K, 9, 9)
+        col_view = np.stack([view_r[trk], view_i, view_l[trk]], axis=1)  # (K, 3)
+        col_index = (3 * col_view[:, :, None] + block_offsets).reshape(-1, 9)  # (K, 9)
+        rows = np.broadcast_to(col_index[:, :, None], MtM.shape).ravel()
+        cols = np.broadcast_to(col_index[:, None, :], MtM.shape).ravel()
+        LTL = LTL + sp.coo_matrix((MtM.ravel(), (rows, cols)), shape=(num_cols, num_cols)).tocsr()
+        constraints_per_view += np.bincount(col_view.ravel(), minlength=num_views)
+    extras = {"sign_l": view_l, "sign_r": view_r, "sign_row": sign_row,
+              "constraints_per_view": constraints_per_view}
+    return LTL.tocsr(), extras
+
+
+def _smallest_eigenvector(matrix: sp.csr_matrix, options: LiGTOptions) -> tuple[np.ndarray, np.ndarray]:
+    size = matrix.shape[0]
+    if size <= options.max_dense_unknowns:
+        values, vectors = np.linalg.eigh(matrix.toarray())
+        return vectors[:, 0], values[: min(2, size)]
+    # shift slightly below 0 so (LᵀL − σI) stays positive definite even when noise-free
+    scale = matrix.diagonal().mean()
+    sigma = -1e-8 * scale
+    values, vectors = eigsh(matrix, k=2, sigma=sigma, which="LM", v0=np.ones(size), tol=1e-12)
+    order = np.argsort(values)
+    return vectors[:, order[0]], values[order]
+
+
+def ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_view: np.ndarray,
+                      obs_xy: np.ndarray, view_mask: np.ndarray | None = None,
+                      fixed_view: int | None = None, options: LiGTOptions | None = None) -> LiGTResult:
+    """Camera centres from global rotations and tracks (LiGT, algorithms.md §1).
+
+    Args:
+        R_cam_from_world: (n, 3, 3) world -> camera rotations.
+        obs_track: (N_obs,) track id per observation, non-decreasing (``Tracks.track_id``).
+        obs_view: (N_obs,) view per observation (``Tracks.view``).
+        obs_xy: (N_obs, 2) normalized coordinates.
+        view_mask: (n,) bool; False views are ignored (their observations dropped).
+        fixed_view: gauge view; default the first view with constraints.
+
+    Views without any constraint (e.g. only pure-rotation tracks, or masked out) are
+    reported via ``has_translation = False`` with NaN centres.
+    """
+    options = options or LiGTOptions()
+    R = np.asarray(R_cam_from_world, dtype=float)
+    num_views = R.shape[0]
+    obs_track = np.asarray(obs_track, dtype=np.int64)
+    obs_view = np.asarray(obs_view, dtype=np.int64)
+    obs_xy = np.asarray(obs_xy, dtype=float)
+    if R.ndim != 3 or R.shape[1:] != (3, 3):
+        raise ValueError("R_cam_from_world must be (n, 3, 3)")
+    if obs_view.shape != obs_track.shape or obs_xy.shape != (obs_track.size, 2):
+        raise ValueError("obs_track, obs_view (N_obs,) and obs_xy (N_obs, 2) disagree")
+    if obs_track.size and np.any(np.diff(obs_track) < 0):
+        raise ValueError("obs_track must be sorted (observations grouped by track)")
+    if view_mask is not None:
+        keep = np.asarray(view_mask, dtype=bool)[obs_view]
+        obs_track, obs_view, obs_xy = obs_track[keep], obs_view[keep], obs_xy[keep]
+        _, obs_track = np.unique(obs_track, return_inverse=True)
+    LTL, extras = ligt_normal_matrix(R, obs_track, obs_view, obs_xy, num_views, options)
+    constraints_per_view = extras["constraints_per_view"]
+    solved = constraints_per_view >= max(options.min_constraints_per_view, 1)
+    if view_mask is not None:
+        solved &= np.asarray(view_mask, dtype=bool)
+    if solved.sum() < 2:
+        raise AlgorithmError(f"LiGT needs at least 2 constrained views, got {int(solved.sum())}")
+    if fixed_view is None:
+        fixed_view = int(np.flatnonzero(solved)[0])
+    elif not solved[fixed_view]:
+        raise AlgorithmError(f"LiGT gauge view {fixed_view} has no translation constraint")
+    free_views = np.flatnonzero(solved & (np.arange(num_views) != fixed_view))
+    free_cols = (3 * free_views[:, None] + np.arange(3)).ravel()
+    reduced = LTL[free_cols][:, free_cols]
+    vector, eigenvalues = _smallest_eigenvector(reduced, options)
+
+    translations = np.zeros((num_views, 3))
+    translations[free_views] = vector.reshape(-1, 3)
+    # chirality vote: a_lrᵀ R_r (t_l − t_r) > 0 for every used track (algorithms.md §1.2)
+    votes = np.einsum("ni,ni->n", extras["sign_row"],
+                      translations[extras["sign_l"]] - translations[extras["sign_r"]])
+    positive, negative = int((votes > 0).sum()), int((votes < 0).sum())
+    if positive < negative:
+        translations = -translations
+        positive, negative = negative, positive
+    centers = np.full((num_views, 3), np.nan)
+    solved_centers = translations[solved]
+    solved_centers = solved_centers - solved_centers.mean(axis=0)
+    mean_distance = np.linalg.norm(solved_centers, axis=1).mean()
+    if not np.isfinite(mean_distance) or mean_distance <= 0:
+        raise AlgorithmError("LiGT solution collapsed to a single point")
+    centers[solved] = solved_centers / mean_distance
+    return LiGTResult(centers, solved, fixed_view, np.asarray(eigenvalues), constraints_per_view,
+                      int(extras["sign_row"].shape[0]), (positive, negative))

@@ -1,0 +1,155 @@
+"""Feature tracks from pairwise matches (union-find over (view, keypoint) nodes).
+
+Pure numpy/scipy. A track is a connected component of the observation graph whose
+nodes are ``(view, keypoint)`` and whose edges are the pairwise matches. Components that
+contain two different keypoints of the same view are inconsistent and dropped (OpenMVG
+``TracksBuilder::Filter`` does the same). The union-find is done in one call to
+``scipy.sparse.csgraph.connected_components``, not with a Python loop per match.
+
+Layout of :class:`Tracks`: flat observation arrays sorted by ``(track_id, view)``;
+observations of track ``t`` are ``offsets[t]:offsets[t+1]``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+__all__ = ["Tracks", "build_tracks", "tracks_from_arrays", "gather_observations", "pairs_within_tracks"]
+
+
+@dataclass(frozen=True)
+class Tracks:
+    """Flat track storage; all observation arrays are (N_obs,) and sorted by (track, view)."""
+
+    track_id: np.ndarray  # (N_obs,) int64, 0..num_tracks-1, non-decreasing
+    view: np.ndarray  # (N_obs,) int64 view index
+    feature: np.ndarray  # (N_obs,) int64 keypoint index inside that view
+    offsets: np.ndarray  # (num_tracks + 1,) int64 start of each track in the flat arrays
+    length: np.ndarray  # (num_tracks,) int64 number of observations (= distinct views)
+    num_inconsistent: int = 0  # components dropped because they saw one view twice
+
+    @property
+    def num_tracks(self) -> int:
+        return int(self.length.shape[0])
+
+    @property
+    def num_observations(self) -> int:
+        return int(self.track_id.shape[0])
+
+    def subset(self, keep_track: np.ndarray) -> Tracks:
+        """Tracks where ``keep_track`` (num_tracks,) bool is True, renumbered 0..k-1."""
+        keep_track = np.asarray(keep_track, dtype=bool)
+        keep_obs = keep_track[self.track_id]
+        new_id = np.cumsum(keep_track) - 1
+        return tracks_from_arrays(new_id[self.track_id[keep_obs]], self.view[keep_obs],
+                                  self.feature[keep_obs], num_inconsistent=self.num_inconsistent)
+
+
+def tracks_from_arrays(track_id: np.ndarray, view: np.ndarray, feature: np.ndarray,
+                       num_inconsistent: int = 0) -> Tracks:
+    """Build :class:`Tracks` from unsorted observation arrays (track ids must be 0..T-1 dense)."""
+    track_id = np.asarray(track_id, dtype=np.int64)
+    view = np.asarray(view, dtype=np.int64)
+    feature = np.asarray(feature, dtype=np.int64)
+    if not (track_id.shape == view.shape == feature.shape) or track_id.ndim != 1:
+        raise ValueError("track_id, view and feature must be 1-D arrays of one length")
+    order = np.lexsort((view, track_id))
+    track_id, view, feature = track_id[order], view[order], feature[order]
+    num_tracks = int(track_id[-1]) + 1 if track_id.size else 0
+    length = np.bincount(track_id, minlength=num_tracks).astype(np.int64)
+    offsets = np.zeros(num_tracks + 1, dtype=np.int64)
+    np.cumsum(length, out=offsets[1:])
+    return Tracks(track_id, view, feature, offsets, length, int(num_inconsistent))
+
+
+def build_tracks(pair_keys: Sequence[tuple[int, int]], pair_matches: Sequence[np.ndarray],
+                 min_length: int = 2) -> Tracks:
+    """Tracks from pairwise matches.
+
+    Args:
+        pair_keys: ``(i, j)`` view indices per pair (any order; ``matches[:, 0]`` is in view i).
+        pair_matches: per pair an ``(m, 2)`` int array of keypoint indices (view i, view j).
+        min_length: drop tracks with fewer observations.
+
+    Returns:
+        :class:`Tracks`; track ids are ordered by their smallest (view, feature) node.
+        Components that contain two keypoints of one view are dropped
+        (counted in ``num_inconsistent``).
+    """
+    if len(pair_keys) != len(pair_matches):
+        raise ValueError("pair_keys and pair_matches differ in length")
+    views_a, feats_a, views_b, feats_b = [], [], [], []
+    for (i, j), matches in zip(pair_keys, pair_matches):
+        matches = np.asarray(matches, dtype=np.int64).reshape(-1, 2)
+        views_a.append(np.full(len(matches), i, dtype=np.int64))
+        views_b.append(np.full(len(matches), j, dtype=np.int64))
+        feats_a.append(matches[:, 0])
+        feats_b.append(matches[:, 1])
+    if not views_a or sum(len(v) for v in views_a) == 0:
+        empty = np.zeros(0, dtype=np.int64)
+        return Tracks(empty, empty, empty, np.zeros(1, dtype=np.int64), empty, 0)
+    view_end = np.concatenate(views_a + views_b)
+    feat_end = np.concatenate(feats_a + feats_b)
+    if np.any(feat_end < 0) or np.any(view_end < 0):
+        raise ValueError("negative view or keypoint index in matches")
+    # one int64 key per (view, feature) node; the node list is sorted by (view, feature)
+    node_key = view_end * (int(feat_end.max()) + 1) + feat_end
+    unique_keys, node_of_end = np.unique(node_key, return_inverse=True)
+    num_nodes = unique_keys.shape[0]
+    num_edges = view_end.shape[0] // 2
+    graph = coo_matrix((np.ones(num_edges, dtype=np.int8),
+                        (node_of_end[:num_edges], node_of_end[num_edges:])),
+                       shape=(num_nodes, num_nodes))
+    _, label = connected_components(graph, directed=False)
+    node_view = unique_keys // (int(feat_end.max()) + 1)
+    node_feat = unique_keys % (int(feat_end.max()) + 1)
+    # inconsistent component: two nodes with one view (duplicates after sorting by label, view)
+    order = np.lexsort((node_view, label))
+    same = (label[order][1:] == label[order][:-1]) & (node_view[order][1:] == node_view[order][:-1])
+    bad_label = np.unique(label[order][1:][same])
+    component_size = np.bincount(label)
+    keep_label = component_size >= max(min_length, 1)
+    keep_label[bad_label] = False
+    keep_node = keep_label[label]
+    # dense renumbering in order of first node (labels already follow node order)
+    new_id = np.cumsum(keep_label) - 1
+    return tracks_from_arrays(new_id[label[keep_node]], node_view[keep_node], node_feat[keep_node],
+                              num_inconsistent=int(bad_label.size))
+
+
+def gather_observations(tracks: Tracks, per_view_points: Sequence[np.ndarray]) -> np.ndarray:
+    """Per observation the row ``per_view_points[view][feature]``, batched: (N_obs, d)."""
+    sizes = np.array([len(p) for p in per_view_points], dtype=np.int64)
+    start = np.zeros(len(sizes) + 1, dtype=np.int64)
+    np.cumsum(sizes, out=start[1:])
+    if np.any(tracks.view >= len(sizes)) or np.any(tracks.feature >= sizes[tracks.view]):
+        raise ValueError("track observation refers to a keypoint that does not exist")
+    stacked = np.concatenate([np.asarray(p, dtype=float).reshape(len(p), -1) for p in per_view_points])
+    return stacked[start[tracks.view] + tracks.feature]
+
+
+def pairs_within_tracks(offsets: np.ndarray, max_pairs: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """All ordered observation pairs ``(a, b)``, ``a < b``, inside each track; vectorised.
+
+    ``offsets``: (T+1,) track starts. Returns flat observation indices ``(a, b)``, ordered
+    by track then a then b (OpenMVG's ``i < j`` scan order). The count is Σ L(L-1)/2.
+    """
+    offsets = np.asarray(offsets, dtype=np.int64)
+    length = np.diff(offsets)
+    num_obs = int(offsets[-1])
+    track_of_obs = np.repeat(np.arange(length.size), length)
+    position = np.arange(num_obs) - offsets[track_of_obs]
+    num_partners = length[track_of_obs] - 1 - position  # obs a pairs with the ones after it
+    total = int(num_partners.sum())
+    if max_pairs is not None and total > max_pairs:
+        raise ValueError(f"{total} observation pairs exceed max_pairs={max_pairs}")
+    a = np.repeat(np.arange(num_obs), num_partners)
+    first = np.zeros(num_obs + 1, dtype=np.int64)
+    np.cumsum(num_partners, out=first[1:])
+    b = a + 1 + (np.arange(total) - np.repeat(first[:-1], num_partners))
+    return a, b

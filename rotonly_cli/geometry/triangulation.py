@@ -1,0 +1,199 @@
+"""Multi-view triangulation of all tracks at once (linear start + Gauss-Newton refinement).
+
+Pure numpy. Conventions (architecture.md): ``R_i = R_cam_from_world``, centre ``c_i``,
+``x_cam = R_i (X - c_i)``; observations are normalized image coordinates ``(x, y)`` (z = 1).
+
+Steps (the paper triangulates with known poses after LiGT, seed §7 "Global Pipeline",
+citing Hartley & Sturm 1995):
+
+1. Linear least squares ("midpoint"/LinearLS): minimise Σ_k ‖(I − d_k d_kᵀ)(X − c_k)‖²
+   over the rays with unit world directions ``d_k = R_kᵀ x_k / ‖x_k‖``. Normal equations
+   are 3×3 per point, summed over observations with ``np.bincount`` (segment sums).
+2. A few Gauss–Newton iterations on the reprojection error in normalized coordinates,
+   again one batched 3×3 system per point; a step is kept per point only if it lowers
+   that point's cost (otherwise the damping of that point grows, Levenberg style).
+3. Rejection: any depth ≤ ``min_depth`` (behind a camera), mean reprojection error above
+   ``max_reprojection_error`` (normalized units: pixels / focal length, e.g. 4e-3 ≈ 4 px at
+   f = 1000), or a maximum angle between the rays of the track below
+   ``min_parallax_deg``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rotonly_cli.geometry.tracks import pairs_within_tracks
+
+__all__ = ["TriangulationOptions", "TriangulationResult", "triangulate_tracks", "max_ray_angle_deg"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class TriangulationOptions:
+    """Options of :func:`triangulate_tracks`."""
+
+    # Gauss-Newton iterations of the reprojection error (3 is plenty from the linear start).
+    num_refinement_iterations: int = 5
+    # Mean reprojection error threshold in normalized units (≈ pixels / f). 4 px is
+    # OpenMVG's 4th-BA outlier rule (algorithms.md §7a); at f = 1000 that is 4e-3.
+    max_reprojection_error: float = 4e-3
+    # Minimum over-track max ray angle. OpenMVG's 4th BA drops < 2° (algorithms.md §7a);
+    # 1° keeps more points and is COLMAP's min_tri_angle-like default (1.5°) rounded down.
+    min_parallax_deg: float = 1.0
+    # Points must have positive depth in every observing camera.
+    min_depth: float = 1e-9
+    # Tracks longer than this use only their first ``max_parallax_views`` rays for the
+    # parallax test (the exact max over all pairs costs Σ L² memory).
+    max_parallax_views: int = 64
+
+    def validate(self) -> None:
+        if self.num_refinement_iterations < 0 or self.max_reprojection_error <= 0:
+            raise ValueError("num_refinement_iterations >= 0 and max_reprojection_error > 0 needed")
+        if self.min_parallax_deg < 0 or self.max_parallax_views < 2:
+            raise ValueError("min_parallax_deg >= 0 and max_parallax_views >= 2 needed")
+
+
+@dataclass
+class TriangulationResult:
+    points_in_world: np.ndarray  # (N, 3); NaN where the track had < 2 usable rays
+    valid: np.ndarray  # (N,) bool: passed depth, reprojection and parallax tests
+    mean_reprojection_error: np.ndarray  # (N,) normalized units
+    max_parallax_deg: np.ndarray  # (N,) max angle between two rays of the track
+    in_front: np.ndarray  # (N,) bool: positive depth in every camera
+
+
+def _segment_sum(values: np.ndarray, segment: np.ndarray, num_segments: int) -> np.ndarray:
+    """Sum rows of ``values`` (N_obs, ...) per segment id -> (num_segments, ...)."""
+    flat = values.reshape(values.shape[0], -1)
+    out = np.empty((num_segments, flat.shape[1]))
+    for c in range(flat.shape[1]):  # loop over ≤ 9 components, not over observations
+        out[:, c] = np.bincount(segment, weights=flat[:, c], minlength=num_segments)
+    return out.reshape((num_segments,) + values.shape[1:])
+
+
+def _solve_3x3(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batched solve; rows whose matrix is singular get NaN. Returns (x, ok)."""
+    det = np.linalg.det(A)
+    scale = np.einsum("nii->n", A) ** 3
+    ok = np.isfinite(det) & (np.abs(det) > 1e-14 * np.maximum(np.abs(scale), 1e-300))
+    x = np.full(b.shape, np.nan)
+    if np.any(ok):
+        x[ok] = np.linalg.solve(A[ok], b[ok][..., None])[..., 0]
+    return x, ok
+
+
+def max_ray_angle_deg(world_rays: np.ndarray, offsets: np.ndarray, max_views: int = 64) -> np.ndarray:
+    """Per track the max angle (deg) between two unit rays; only the first ``max_views`` rays."""
+    length = np.diff(offsets)
+    num_tracks = length.size
+    track_of_obs = np.repeat(np.arange(num_tracks), length)
+    position = np.arange(offsets[-1]) - offsets[track_of_obs]
+    use = position < max_views
+    capped_offsets = np.zeros(num_tracks + 1, dtype=np.int64)
+    np.cumsum(np.minimum(length, max_views), out=capped_offsets[1:])
+    rays = world_rays[use]
+    a, b = pairs_within_tracks(capped_offsets)
+    cos_angle = np.clip(np.einsum("ij,ij->i", rays[a], rays[b]), -1.0, 1.0)
+    min_cos = np.full(num_tracks, 1.0)
+    np.minimum.at(min_cos, track_of_obs[use][a], cos_angle)
+    return np.degrees(np.arccos(min_cos))
+
+
+def triangulate_tracks(R_cam_from_world: np.ndarray, centers: np.ndarray, obs_point: np.ndarray,
+                       obs_view: np.ndarray, obs_xy: np.ndarray, num_points: int | None = None,
+                       options: TriangulationOptions | None = None) -> TriangulationResult:
+    """Triangulate every point from its observations, batched.
+
+    Args:
+        R_cam_from_world: (n, 3, 3) world -> camera rotations.
+        centers: (n, 3) camera centres.
+        obs_point: (N_obs,) point index per observation, sorted (non-decreasing), e.g.
+            ``Tracks.track_id``.
+        obs_view: (N_obs,) view index per observation.
+        obs_xy: (N_obs, 2) normalized image coordinates.
+        num_points: number of points (default ``obs_point.max() + 1``).
+    """
+    options = options or TriangulationOptions()
+    options.validate()
+    R = np.asarray(R_cam_from_world, dtype=float)
+    C = np.asarray(centers, dtype=float)
+    obs_point = np.asarray(obs_point, dtype=np.int64)
+    obs_view = np.asarray(obs_view, dtype=np.int64)
+    obs_xy = np.asarray(obs_xy, dtype=float)
+    if R.ndim != 3 or R.shape[1:] != (3, 3) or C.shape != (R.shape[0], 3):
+        raise ValueError("R_cam_from_world must be (n, 3, 3) and centers (n, 3)")
+    if obs_xy.shape != (obs_point.shape[0], 2) or obs_view.shape != obs_point.shape:
+        raise ValueError("obs_point, obs_view (N_obs,) and obs_xy (N_obs, 2) disagree")
+    if obs_point.size and np.any(np.diff(obs_point) < 0):
+        raise ValueError("obs_point must be sorted (observations grouped by point)")
+    if num_points is None:
+        num_points = int(obs_point.max()) + 1 if obs_point.size else 0
+    counts = np.bincount(obs_point, minlength=num_points)
+    offsets = np.zeros(num_points + 1, dtype=np.int64)
+    np.cumsum(counts, out=offsets[1:])
+
+    R_obs = R[obs_view]
+    C_obs = C[obs_view]
+    x_h = np.concatenate([obs_xy, np.ones((obs_xy.shape[0], 1))], axis=1)
+    rays = np.einsum("nji,nj->ni", R_obs, x_h)  # R^T x : ray direction in world
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+
+    # 1. linear LS: Σ (I - d dᵀ) X = Σ (I - d dᵀ) c
+    projector = np.eye(3)[None] - rays[:, :, None] * rays[:, None, :]
+    A = _segment_sum(projector, obs_point, num_points)
+    b = _segment_sum(np.einsum("nij,nj->ni", projector, C_obs), obs_point, num_points)
+    points, solvable = _solve_3x3(A, b)
+    solvable &= counts >= 2
+
+    # 2. Gauss-Newton (Levenberg damped per point) on normalized reprojection error
+    def residual_and_depth(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        p_cam = np.einsum("nij,nj->ni", R_obs, P[obs_point] - C_obs)
+        depth = p_cam[:, 2]
+        safe = np.where(np.abs(depth) > 1e-300, depth, 1e-300)
+        return p_cam[:, :2] / safe[:, None] - obs_xy, p_cam, depth
+
+    def point_cost(res: np.ndarray) -> np.ndarray:
+        return np.bincount(obs_point, weights=np.einsum("ij,ij->i", res, res), minlength=num_points)
+
+    res, p_cam, depth = residual_and_depth(np.where(solvable[:, None], points, 0.0))
+    cost = point_cost(res)
+    damping = np.full(num_points, 1e-6)
+    for _ in range(options.num_refinement_iterations):
+        z = p_cam[:, 2]
+        z = np.where(np.abs(z) > 1e-12, z, 1e-12)
+        d_proj = np.zeros((z.shape[0], 2, 3))  # d(p_xy/p_z)/d p_cam
+        d_proj[:, 0, 0] = 1.0 / z
+        d_proj[:, 1, 1] = 1.0 / z
+        d_proj[:, 0, 2] = -p_cam[:, 0] / z**2
+        d_proj[:, 1, 2] = -p_cam[:, 1] / z**2
+        J = d_proj @ R_obs  # (N_obs, 2, 3)
+        JtJ = _segment_sum(np.einsum("nki,nkj->nij", J, J), obs_point, num_points)
+        Jtr = _segment_sum(np.einsum("nki,nk->ni", J, res), obs_point, num_points)
+        JtJ += (damping * np.einsum("nii->n", JtJ) / 3.0)[:, None, None] * np.eye(3)
+        step, ok = _solve_3x3(JtJ, -Jtr)
+        ok &= solvable
+        trial = np.where(ok[:, None], points + np.nan_to_num(step), points)
+        new_res, new_p_cam, _ = residual_and_depth(np.where(solvable[:, None], trial, 0.0))
+        new_cost = point_cost(new_res)
+        better = ok & (new_cost <= cost)
+        points = np.where(better[:, None], trial, points)
+        damping = np.where(better, damping * 0.1, damping * 10.0)
+        cost = np.where(better, new_cost, cost)
+        take_obs = better[obs_point]
+        res = np.where(take_obs[:, None], new_res, res)
+        p_cam = np.where(take_obs[:, None], new_p_cam, p_cam)
+    depth = p_cam[:, 2]
+
+    # 3. tests
+    error = np.linalg.norm(res, axis=1)
+    mean_error = np.bincount(obs_point, weights=error, minlength=num_points) / np.maximum(counts, 1)
+    min_depth = np.full(num_points, np.inf)
+    np.minimum.at(min_depth, obs_point, depth)
+    in_front = solvable & (min_depth > options.min_depth)
+    parallax = max_ray_angle_deg(rays, offsets, options.max_parallax_views)
+    valid = (in_front & (mean_error <= options.max_reprojection_error)
+             & (parallax >= options.min_parallax_deg))
+    points = np.where(solvable[:, None], points, np.nan)
+    mean_error = np.where(solvable, mean_error, np.nan)
+    return TriangulationResult(points, valid, mean_error, parallax, in_front)
