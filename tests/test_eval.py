@@ -238,3 +238,71 @@ def test_report_files_and_contract_fields(tmp_path):
     with pytest.raises(InputError):
         write_report(report, foreign)
     assert (foreign / "sfm_data.json").read_text() == "{}"
+
+
+# ---------------------------------------------------------------- `rotonly eval` CLI
+
+def _run_cli(argv: list[str], capsys) -> tuple[int, str, str]:
+    from rotonly_cli.cli import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    out, err = capsys.readouterr()
+    return exit_info.value.code, out, err
+
+
+@pytest.fixture
+def minimal_readers(monkeypatch):
+    """Route the CLI's lazy reader look-up to this file's minimal parsers (format detection,
+    exit codes and output handling are what these CLI tests check; the real readers have their
+    own tests and the end-to-end test below)."""
+    from rotonly_cli.cli import eval as eval_cli
+
+    readers = {("strecha", "read_ground_truth"): lambda p: _read_strecha_minimal(
+                   Path(p) if (Path(p) / "gt_dense_cameras").is_dir() else Path(p).parent),
+               ("openmvg", "read_sfm_data"): lambda p: _read_sfm_data_minimal(Path(p))}
+    monkeypatch.setattr(eval_cli, "_reader", lambda module, name: readers[(module, name)])
+
+
+def test_cli_writes_report_and_prints_table(tmp_path, capsys, minimal_readers):
+    scene_dir = FIXTURES / "entry-P10"
+    out = tmp_path / "rep"
+    code, stdout, _ = _run_cli(["eval", "--gt", str(scene_dir), str(scene_dir / "openmvg/global/sfm_data.json"),
+                                "-o", str(out)], capsys)
+    assert code == 0
+    assert "matched 10" in stdout and "0.0873" in stdout  # evalQuality mean angle of the README
+    assert json.loads((out / "report.json").read_text())["num_matched"] == 10
+    # gt_dense_cameras/ itself is accepted as GT too; --json puts exactly the JSON on stdout
+    code, stdout, stderr = _run_cli(["eval", "--gt", str(scene_dir / "gt_dense_cameras"),
+                                     str(scene_dir / "openmvg/global/sfm_data.json"), "-o", str(out), "--json"], capsys)
+    assert code == 0
+    data = json.loads(stdout)
+    assert data["rotation_error_deg"]["mean"] == pytest.approx(0.0438, abs=5e-5)
+    assert "matched 10" in stderr
+
+
+@pytest.mark.parametrize("case", ["missing_gt", "missing_estimate", "no_common", "bad_folder"])
+def test_cli_bad_input_exits_2_with_one_line_and_no_output(tmp_path, capsys, minimal_readers, case):
+    scene_dir = FIXTURES / "fountain-P11"
+    estimate = scene_dir / "openmvg/global/sfm_data.json"
+    gt = scene_dir
+    if case == "missing_gt":
+        gt = tmp_path / "nope"
+    elif case == "missing_estimate":
+        estimate = tmp_path / "nope.json"
+    elif case == "no_common":
+        data = json.loads(estimate.read_text())
+        for entry in data["views"]:
+            entry["value"]["ptr_wrapper"]["data"]["filename"] = "other_" + entry["value"]["ptr_wrapper"]["data"]["filename"]
+        estimate = tmp_path / "renamed.json"
+        estimate.write_text(json.dumps(data))
+    elif case == "bad_folder":
+        estimate = tmp_path / "empty_dir"
+        estimate.mkdir()
+    out = tmp_path / "rep"
+    code, stdout, stderr = _run_cli(["eval", "--gt", str(gt), str(estimate), "-o", str(out)], capsys)
+    assert code == 2
+    assert len(stderr.strip().splitlines()) == 1 and stderr.startswith("error: ")
+    assert "Traceback" not in stderr
+    assert not out.exists()
+    assert not any(p.name.startswith(".rep.") for p in tmp_path.iterdir())
