@@ -1,0 +1,86 @@
+"""Track building from pairwise matches (geometry/tracks.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rotonly_cli.geometry.tracks import build_tracks, gather_observations, pairs_within_tracks
+from multiview_scene import make_street_scene
+
+
+def matches_from_scene(obs_point, obs_view, num_views, rng, chain_only: bool):
+    """Per view a random keypoint order; pairwise matches of every (or consecutive) pair of a track."""
+    feature = np.empty(obs_point.size, dtype=np.int64)
+    for v in range(num_views):  # per-view shuffle, a loop over views only
+        idx = np.flatnonzero(obs_view == v)
+        feature[idx] = rng.permutation(idx.size)
+    pairs: dict[tuple[int, int], list] = {}
+    starts = np.flatnonzero(np.r_[True, obs_point[1:] != obs_point[:-1]])
+    ends = np.r_[starts[1:], obs_point.size]
+    for s, e in zip(starts, ends):
+        members = list(range(s, e))
+        links = zip(members[:-1], members[1:]) if chain_only else (
+            (a, b) for k, a in enumerate(members) for b in members[k + 1:])
+        for a, b in links:
+            pairs.setdefault((int(obs_view[a]), int(obs_view[b])), []).append((feature[a], feature[b]))
+    keys = list(pairs)
+    return keys, [np.array(pairs[k]) for k in keys], feature
+
+
+def canonical_partition(view, feature, group):
+    """Set of frozensets of (view, feature) per group, for comparing partitions."""
+    out: dict[int, set] = {}
+    for v, f, g in zip(view.tolist(), feature.tolist(), group.tolist()):
+        out.setdefault(g, set()).add((v, f))
+    return {frozenset(s) for s in out.values()}
+
+
+def test_tracks_reproduce_generating_tracks_from_chains():
+    scene = make_street_scene(12, 300, seed=3)
+    rng = np.random.default_rng(0)
+    keys, matches, feature = matches_from_scene(scene.obs_point, scene.obs_view, 12, rng, chain_only=True)
+    tracks = build_tracks(keys, matches)
+    assert tracks.num_tracks == len(scene.points)
+    assert tracks.num_inconsistent == 0
+    assert canonical_partition(tracks.view, tracks.feature, tracks.track_id) == \
+        canonical_partition(scene.obs_view, feature, scene.obs_point)
+    # layout: sorted by (track, view), offsets/length consistent
+    assert np.all(np.diff(tracks.track_id) >= 0)
+    assert np.array_equal(np.diff(tracks.offsets), tracks.length)
+    assert np.array_equal(np.bincount(tracks.track_id), tracks.length)
+
+
+def test_all_pairs_matches_give_same_tracks():
+    scene = make_street_scene(8, 120, seed=4)
+    rng = np.random.default_rng(1)
+    keys, matches, feature = matches_from_scene(scene.obs_point, scene.obs_view, 8, rng, chain_only=False)
+    tracks = build_tracks(keys, matches)
+    assert tracks.num_tracks == len(scene.points)
+    assert tracks.num_observations == scene.obs_point.size
+
+
+def test_inconsistent_track_dropped_and_min_length():
+    # track A: (0,1)-(1,4)-(2,7); track B: (0,2)-(1,5)-(2,9)-(0,3)  (view 0 twice: dropped)
+    # track C: (3,0)-(4,0) has length 2
+    keys = [(0, 1), (1, 2), (2, 0), (3, 4)]
+    matches = [np.array([[1, 4], [2, 5]]), np.array([[4, 7], [5, 9]]), np.array([[9, 3]]), np.array([[0, 0]])]
+    tracks = build_tracks(keys, matches)
+    assert tracks.num_inconsistent == 1
+    assert tracks.num_tracks == 2
+    assert tracks.view.tolist() == [0, 1, 2, 3, 4]
+    assert tracks.feature.tolist() == [1, 4, 7, 0, 0]
+    assert build_tracks(keys, matches, min_length=3).num_tracks == 1
+
+
+def test_empty_and_gather():
+    empty = build_tracks([], [])
+    assert empty.num_tracks == 0 and empty.offsets.tolist() == [0]
+    tracks = build_tracks([(0, 1)], [np.array([[2, 0], [0, 1]])])
+    points = [np.array([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]]), np.array([[5.0, 5.0], [6.0, 6.0]])]
+    # track 0 = node (0, 0) + (1, 1); track 1 = (0, 2) + (1, 0)
+    assert gather_observations(tracks, points)[:, 0].tolist() == [0.0, 6.0, 2.0, 5.0]
+
+
+def test_pairs_within_tracks():
+    a, b = pairs_within_tracks(np.array([0, 3, 4, 6]))
+    assert list(zip(a.tolist(), b.tolist())) == [(0, 1), (0, 2), (1, 2), (4, 5)]
