@@ -106,9 +106,24 @@ def test_relative_rotation_errors_need_no_alignment():
     B = so3.random_rotations(1, rng)[0]
     noise = so3.exp(np.array([[0.0, 0.0, np.radians(1.0)], [0, 0, 0], [0, 0, 0], [0, 0, 0]]))
     R_est = noise @ R_gt @ B  # camera 0 rotated by 1 deg in its own frame
-    pairs, errors = alignment.relative_rotation_errors(R_est, R_gt)
-    assert pairs.tolist() == [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]
+    errors = alignment.relative_rotation_errors(R_est, R_gt)
+    assert alignment.pair_from_flat_index(4, np.arange(6)).tolist() == [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]
     np.testing.assert_allclose(errors, [1.0, 1.0, 1.0, 0.0, 0.0, 0.0], atol=1e-9)
+
+
+def test_relative_rotation_errors_blocks_match_direct_formula():
+    """Tiny blocks (many chunks) give the same numbers as R_ij = R_j R_iᵀ computed pair by pair."""
+    rng = np.random.default_rng(7)
+    n = 23
+    R_gt = so3.random_rotations(n, rng)
+    R_est = R_gt @ so3.exp(rng.normal(scale=0.05, size=(n, 3))) @ so3.random_rotations(1, rng)[0]
+    i, j = np.triu_indices(n, k=1)
+    direct = np.degrees(so3.geodesic_angle(R_gt[j] @ np.swapaxes(R_gt[i], -1, -2),
+                                           R_est[j] @ np.swapaxes(R_est[i], -1, -2)))
+    for max_block in (1, 7, 50, 10_000):
+        np.testing.assert_allclose(alignment.relative_rotation_errors(R_est, R_gt, max_block=max_block),
+                                   direct, rtol=1e-9)
+    np.testing.assert_array_equal(alignment.pair_from_flat_index(n, np.arange(len(i))), np.stack([i, j], 1))
 
 
 @pytest.mark.parametrize("theta_deg, expected", [(1.0, 0.81649), (5.0, 4.08205), (10.0, 8.1615),

@@ -176,10 +176,12 @@ def evaluate(gt: SfMScene, estimate: SfMScene) -> QualityReport:
     R_gt = so3.project_to_so3(R_gt_raw)
     R_est_rot = so3.project_to_so3(R_est)
     rotation_errors, S = alignment.rotation_errors_after_alignment(R_est_rot, R_gt)
-    pair_index, relative_errors = alignment.relative_rotation_errors(R_est_rot, R_gt)
-    worst = np.argsort(-relative_errors, kind="stable")[:20]
-    worst_pairs = [{"i": names[pair_index[k, 0]], "j": names[pair_index[k, 1]],
-                    "error_deg": float(relative_errors[k])} for k in worst]
+    relative_errors = alignment.relative_rotation_errors(R_est_rot, R_gt)
+    num_worst = min(20, relative_errors.size)
+    worst = np.argpartition(-relative_errors, num_worst - 1)[:num_worst] if num_worst else np.zeros(0, int)
+    worst = worst[np.argsort(-relative_errors[worst], kind="stable")]
+    worst_pairs = [{"i": names[i], "j": names[j], "error_deg": float(relative_errors[k])}
+                   for k, (i, j) in zip(worst, alignment.pair_from_flat_index(len(names), worst))]
 
     # --- similarity on centres: the paper-style position error (GT centres as given) ...
     n = len(matched)

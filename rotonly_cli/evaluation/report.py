@@ -86,7 +86,10 @@ def _make_figures(report: QualityReport, directory: Path) -> None:
         present = [(v, lab) for v, lab in zip(values, labels) if v is not None]
         width = 0.8 / max(1, len(present))
         for k, (v, lab) in enumerate(present):
-            ax.bar(x + (k - (len(present) - 1) / 2) * width, v, width=width, label=lab)
+            if len(cams) <= 150:
+                ax.bar(x + (k - (len(present) - 1) / 2) * width, v, width=width, label=lab)
+            else:  # thousands of bars are slow to draw and unreadable: markers instead
+                ax.plot(x, v, ".", markersize=3, label=lab)
         if not present:
             ax.text(0.5, 0.5, "not available (see notes)", ha="center", va="center", transform=ax.transAxes)
         ax.set_xticks(x[::label_step])
@@ -234,6 +237,9 @@ def write_report(report: QualityReport, out_dir: str | os.PathLike) -> Path:
                              path=str(out_dir), field="-o")
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp_dir = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".tmp", dir=out_dir.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    tmp_dir.chmod(0o777 & ~umask)  # mkdtemp makes 0700; the report is an ordinary folder
     try:
         (tmp_dir / "report.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
         _make_figures(report, tmp_dir)

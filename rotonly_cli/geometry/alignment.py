@@ -80,18 +80,44 @@ def rotation_errors_after_alignment(R_est: np.ndarray, R_gt: np.ndarray) -> tupl
     return errors, S
 
 
-def relative_rotation_errors(R_est: np.ndarray, R_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def relative_rotation_errors(R_est: np.ndarray, R_gt: np.ndarray, max_block: int = 500_000) -> np.ndarray:
     """Geodesic error (deg) of every relative rotation ``R_j R_iᵀ`` (i < j); gauge-free.
 
-    Returns ``(pairs (m, 2) int, errors_deg (m,))`` with pairs indexing the input stacks.
+    Returned in ``np.triu_indices(n, 1)`` order (see :func:`pair_from_flat_index`). With
+    ``Q_k = R_gt_kᵀ R_est_k``, ``R_ij_gtᵀ R_ij_est`` is conjugate to ``Q_iᵀ Q_j``, so the angle is
+    that of ``Q_iᵀ Q_j``; rows are processed in blocks of about ``max_block`` pairs so thousands of
+    cameras (millions of pairs) do not need (pairs, 3, 3) temporaries.
     """
     R_est = np.asarray(R_est, dtype=float).reshape(-1, 3, 3)
     R_gt = np.asarray(R_gt, dtype=float).reshape(-1, 3, 3)
-    i, j = np.triu_indices(R_est.shape[0], k=1)
-    R_j_from_i_est = R_est[j] @ np.swapaxes(R_est[i], -1, -2)
-    R_j_from_i_gt = R_gt[j] @ np.swapaxes(R_gt[i], -1, -2)
-    errors = np.degrees(so3.geodesic_angle(R_j_from_i_gt, R_j_from_i_est)) if len(i) else np.zeros(0)
-    return np.stack([i, j], axis=1), errors
+    n = R_est.shape[0]
+    Q = np.swapaxes(R_gt, -1, -2) @ R_est
+    errors = np.empty(n * (n - 1) // 2)
+    rows_per_block = max(1, max_block // max(n, 1))
+    offset = 0
+    for first in range(0, n - 1, rows_per_block):
+        i, j = _block_pairs(n, first, min(n - 1, first + rows_per_block))
+        errors[offset:offset + len(i)] = np.degrees(so3.geodesic_angle(Q[i], Q[j]))
+        offset += len(i)
+    return errors
+
+
+def _block_pairs(n: int, first_row: int, end_row: int) -> tuple[np.ndarray, np.ndarray]:
+    """(i, j) with first_row <= i < end_row, i < j < n, in triu order."""
+    counts = n - 1 - np.arange(first_row, end_row)
+    i = np.repeat(np.arange(first_row, end_row), counts)
+    starts = np.cumsum(counts) - counts
+    j = np.arange(counts.sum()) - np.repeat(starts, counts) + i + 1
+    return i, j
+
+
+def pair_from_flat_index(n: int, flat: np.ndarray) -> np.ndarray:
+    """(m, 2) pairs (i, j) of flat indices into the ``np.triu_indices(n, 1)`` order."""
+    flat = np.asarray(flat, dtype=np.int64)
+    row_starts = np.concatenate([[0], np.cumsum(n - 1 - np.arange(n - 1))])
+    i = np.searchsorted(row_starts, flat, side="right") - 1
+    j = flat - row_starts[i] + i + 1
+    return np.stack([i, j], axis=1)
 
 
 def trace_over_3_angle_deg(M: np.ndarray) -> np.ndarray:
