@@ -206,19 +206,19 @@ code {{ background: #f4f4f4; padding: 0 0.2em; }}
 GT images without an estimated pose: {e(missing)}.<br>Estimated images not in the GT: {e(extra)}.</p>
 <h2>Summary</h2>
 <table><tr><th>metric</th><th>min</th><th>mean</th><th>median</th><th>max</th><th>unit</th></tr>
-{''.join(rows)}
+{chr(10).join(rows)}
 </table>
 <p>Rotation error: geodesic angle of R_gt<sup>T</sup> R_est S<sup>T</sup> after the best single global rotation S
 (chordal L2 mean projected to SO(3)); the paper's metric. evalQuality rows reproduce
 <code>openMVG_main_evalQuality</code>: Umeyama similarity on camera centres, angular residual
-acos(clamp(trace/3)) (not a geodesic angle). Median: {e(report.median_convention)}.</p>
+acos(clamp(trace/3)) (not a geodesic angle). Median convention: {e(report.median_convention)}.</p>
 {'<ul>' + notes + '</ul>' if notes else ''}
 <h2>Figures</h2>
 {figures}
 <h2>Per camera</h2>
 <table><tr><th>image</th><th>rotation error [deg]</th><th>position error [GT]</th>
 <th>evalQuality angle [deg]</th><th>evalQuality distance [GT]</th></tr>
-{''.join(camera_rows)}
+{chr(10).join(camera_rows)}
 </table>
 </body></html>
 """
