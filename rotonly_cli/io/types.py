@@ -42,6 +42,10 @@ class View:
     name: str  # image file name relative to the image root
     intrinsics_id: int
     pose_id: int | None = None  # OpenMVG keeps a separate pose id; None -> same as ``id``
+    # Image size as the source stored it per view (OpenMVG ``View.width/height``); None ->
+    # take it from the intrinsics. Needed for views whose intrinsic is undefined.
+    width: int | None = None
+    height: int | None = None
 
 
 @dataclass
@@ -74,6 +78,9 @@ class Structure:
     points: np.ndarray  # (N, 3) float64
     colors: np.ndarray | None = None  # (N, 3) uint8
     observations: list[list[tuple[int, int]]] = field(default_factory=list)
+    # Optional per point (k, 2) pixel positions of its observations (COLMAP convention),
+    # aligned with ``observations``: OpenMVG stores them in each landmark (``x``).
+    observation_pixels: list[np.ndarray] | None = None
 
 
 @dataclass
