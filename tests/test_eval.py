@@ -57,6 +57,24 @@ def _read_sfm_data_minimal(path: Path) -> SfMScene:
     return _scene(names, np.array(rotations), np.array(centers), "openmvg", ids)
 
 
+def _read_sfm_data(path: Path) -> SfMScene:
+    """The project's OpenMVG reader when it is there (io/openmvg.py), else the minimal parser."""
+    try:
+        from rotonly_cli.io.openmvg import read_sfm_data
+    except ImportError:
+        return _read_sfm_data_minimal(path)
+    return read_sfm_data(path)
+
+
+def _read_strecha(scene_dir: Path) -> SfMScene:
+    """The project's Strecha reader when it is there (io/strecha.py), else the minimal parser."""
+    try:
+        from rotonly_cli.io.strecha import read_ground_truth
+    except ImportError:
+        return _read_strecha_minimal(scene_dir)
+    return read_ground_truth(scene_dir)
+
+
 def _random_scene(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     return so3.random_rotations(n, rng), rng.normal(scale=3.0, size=(n, 3))
 
@@ -182,8 +200,8 @@ def test_reproduces_openmvg_evalquality_blob(scene):
     """Per-camera residuals of the real openMVG_main_evalQuality (gt_eval_stats_blob.json)."""
     scene_dir = FIXTURES / scene
     blob = json.loads((scene_dir / "openmvg" / "eval" / "gt_eval_stats_blob.json").read_text())
-    report = quality.evaluate(_read_strecha_minimal(scene_dir),
-                              _read_sfm_data_minimal(scene_dir / "openmvg" / "global" / "sfm_data.json"))
+    report = quality.evaluate(_read_strecha(scene_dir),
+                              _read_sfm_data(scene_dir / "openmvg" / "global" / "sfm_data.json"))
     assert report.num_gt == blob["gt_num_poses"] and report.num_estimated == blob["eval_num_poses"]
     np.testing.assert_allclose(report.evalquality.rotation_angular_residuals,
                                blob["rotation_angular_residuals"], rtol=0, atol=1e-4)
@@ -214,7 +232,7 @@ def _console_stats(path: Path) -> dict[str, dict[str, float]]:
 ])
 def test_reproduces_openmvg_console_statistics(gt_scene, estimate, eval_dir):
     """min/mean/median/max as the real tool printed them; n = 8 checks the upper median."""
-    report = quality.evaluate(_read_strecha_minimal(FIXTURES / gt_scene), _read_sfm_data_minimal(FIXTURES / estimate))
+    report = quality.evaluate(_read_strecha(FIXTURES / gt_scene), _read_sfm_data(FIXTURES / estimate))
     blob = json.loads((FIXTURES / eval_dir / "gt_eval_stats_blob.json").read_text())
     np.testing.assert_allclose(report.evalquality.rotation_angular_residuals,
                                blob["rotation_angular_residuals"], rtol=0, atol=1e-4)
@@ -234,8 +252,8 @@ README_MEANS = {"fountain-P11": (0.0364, 0.0471), "Herz-Jesus-P8": (0.0258, 0.07
 @pytest.mark.parametrize("scene", SCENES)
 def test_matches_readme_table_means(scene):
     scene_dir = FIXTURES / scene
-    report = quality.evaluate(_read_strecha_minimal(scene_dir),
-                              _read_sfm_data_minimal(scene_dir / "openmvg" / "global" / "sfm_data.json"))
+    report = quality.evaluate(_read_strecha(scene_dir),
+                              _read_sfm_data(scene_dir / "openmvg" / "global" / "sfm_data.json"))
     geodesic, evalquality = README_MEANS[scene]
     assert report.rotation_error_deg.mean == pytest.approx(geodesic, abs=5e-5)
     assert report.evalquality.angular_residual_deg.mean == pytest.approx(evalquality, abs=5e-5)
@@ -245,8 +263,8 @@ def test_matches_readme_table_means(scene):
 
 def test_report_files_and_contract_fields(tmp_path):
     scene_dir = FIXTURES / "Herz-Jesus-P8"
-    report = quality.evaluate(_read_strecha_minimal(scene_dir),
-                              _read_sfm_data_minimal(scene_dir / "openmvg" / "global" / "sfm_data.json"))
+    report = quality.evaluate(_read_strecha(scene_dir),
+                              _read_sfm_data(scene_dir / "openmvg" / "global" / "sfm_data.json"))
     report.gt_path, report.estimate_path = "gt/dir", "est/sfm_data.json"
     out = write_report(report, tmp_path / "report")
     data = json.loads((out / "report.json").read_text())
@@ -340,3 +358,21 @@ def test_cli_bad_input_exits_2_with_one_line_and_no_output(tmp_path, capsys, min
     assert "Traceback" not in stderr
     assert not out.exists()
     assert not any(p.name.startswith(".rep.") for p in tmp_path.iterdir())
+
+
+def test_cli_end_to_end_with_project_readers(tmp_path, capsys):
+    """`rotonly eval` through the real readers (io/strecha.py, io/openmvg.py)."""
+    pytest.importorskip("rotonly_cli.io.strecha")
+    pytest.importorskip("rotonly_cli.io.openmvg")
+    scene_dir = FIXTURES / "fountain-P11"
+    blob = json.loads((scene_dir / "openmvg/eval/gt_eval_stats_blob.json").read_text())
+    out = tmp_path / "rep"
+    code, stdout, _ = _run_cli(["eval", "--gt", str(scene_dir), str(scene_dir / "openmvg/global/sfm_data.json"),
+                                "-o", str(out), "--json"], capsys)
+    assert code == 0
+    data = json.loads(stdout)
+    np.testing.assert_allclose(data["evalquality"]["rotation_angular_residuals"], blob["rotation_angular_residuals"],
+                               rtol=0, atol=1e-4)
+    np.testing.assert_allclose(data["evalquality"]["distance_residuals"], blob["distance_residuals"], rtol=1e-3)
+    assert data["rotation_error_deg"]["mean"] == pytest.approx(0.0364, abs=5e-5)
+    assert (out / "report.html").is_file()
