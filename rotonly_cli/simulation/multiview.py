@@ -1,0 +1,310 @@
+"""The paper's multi-view simulation set-ups (rotation_only.tex §"Multi-view Rotation
+Estimation", Fig. GRRM_scene): ``circular``, ``square``, ``linear`` and ``outward``.
+
+* n cameras (default 100) with a fixed distance (10 m) between adjacent centres, centred at
+  the world origin, in the plane z = 0.
+* ``circular`` / ``square`` / ``linear``: cameras look straight up (+z, heading along the
+  trajectory) with a small random tilt (``max_tilt_deg``); points are "directly above the
+  cameras within a range of 0 to 400 m": uniform in z ∈ (0, 400] over the cameras' xy
+  bounding box grown by ``0.3 · 400`` m (the footprint of the 62° field of view).
+* ``outward``: cameras on the circle look horizontally outwards; points fill the cylindrical
+  ring r ∈ [200, 3000] m, z ∈ [-200, 200] m (uniform in area).
+* ``num_points`` (10 000) points are kept that are in front of and inside the 960×960 image
+  (focal 800 px, algorithms.md §6) of at least two cameras.
+* Every observation gets one pixel-noise draw (same models as the two-view simulation, default
+  magnitude U(0, n) px), shared by all pairs, so tracks are consistent.
+* Pairs: cameras at most ``window`` apart along the trajectory (cyclic for the closed ones)
+  that share at least ``min_shared`` points; matches index the per-view keypoints.
+* Initial relative poses (``init``): ``"ransac"`` = OpenCV 5-point RANSAC on the noisy
+  matches (rotonly_cli.simulation.fivepoint; the paper's initialiser), ``"perturbed"`` = the
+  ground truth rotated by ``init_noise_deg`` about a random axis, ``"truth"`` = exact.
+* ``corrupt_fraction`` of the pairs get a uniformly random rotation and direction instead
+  (repeated-structure outliers); they are listed in ``MultiViewProblem.corrupted_pairs``.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rotonly_cli.errors import AlgorithmError, InputError
+from rotonly_cli.geometry import so3
+from rotonly_cli.io.types import Intrinsics, PairMatches, Pose, SfMScene, Structure, View
+from rotonly_cli.simulation.fivepoint import five_point_ransac, perturbed_rotation
+from rotonly_cli.simulation.twoview import NOISE_MODELS, add_pixel_noise, bounded_rotation, normalized_to_pixels
+
+SETUPS: tuple[str, ...] = ("circular", "square", "linear", "outward")
+INITS: tuple[str, ...] = ("ransac", "perturbed", "truth")
+
+
+@dataclass
+class MultiViewProblem:
+    scene: SfMScene  # views, intrinsics, keypoints, normalized (noisy), pairs with initial R_j_from_i; no poses
+    gt_poses: dict[int, Pose]
+    points_in_world: np.ndarray  # (N, 3)
+    visibility: np.ndarray  # (n_views, N) bool
+    corrupted_pairs: list[tuple[int, int]]
+    setup: str
+    noise_px: float
+    focal: float
+    image_size: tuple[int, int]
+    parameters: dict = field(default_factory=dict)
+
+    def gt_scene(self) -> SfMScene:
+        """The scene with ground-truth poses and the true points as structure (for sfm_data.json)."""
+        gt = copy.copy(self.scene)
+        gt.poses = {k: Pose(p.R_cam_from_world.copy(), p.center.copy()) for k, p in self.gt_poses.items()}
+        kp_index = np.cumsum(self.visibility, axis=1) - 1
+        observations = [[(int(v), int(kp_index[v, k])) for v in np.flatnonzero(self.visibility[:, k])]
+                        for k in range(self.visibility.shape[1])]
+        gt.structure = Structure(point_ids=np.arange(len(self.points_in_world), dtype=np.int64),
+                                 points=self.points_in_world.copy(), observations=observations)
+        gt.pairs = {key: copy.copy(pair) for key, pair in self.scene.pairs.items()}
+        for (i, j), pair in gt.pairs.items():  # GT relative poses in the GT scene
+            R_i, R_j = self.gt_poses[i].R_cam_from_world, self.gt_poses[j].R_cam_from_world
+            pair.R_j_from_i = R_j @ R_i.T
+            t = R_j @ (self.gt_poses[i].center - self.gt_poses[j].center)
+            pair.t_j_from_i = t / np.linalg.norm(t)
+        gt.source = "simulation-gt"
+        return gt
+
+    def gt_relative_rotation(self, i: int, j: int) -> np.ndarray:
+        return self.gt_poses[j].R_cam_from_world @ self.gt_poses[i].R_cam_from_world.T
+
+
+# ----------------------------------------------------------------------------- cameras
+def _look_up(heading: np.ndarray) -> np.ndarray:
+    """R_cam_from_world of a camera looking along +z world, image x-axis along ``heading``."""
+    z = np.array([0.0, 0.0, 1.0])
+    x = np.array([heading[0], heading[1], 0.0])
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z])  # rows are the camera axes in world coordinates
+
+
+def _look_out(direction: np.ndarray) -> np.ndarray:
+    """R_cam_from_world of a camera looking horizontally along ``direction``, image y down."""
+    z = np.array([direction[0], direction[1], 0.0])
+    z /= np.linalg.norm(z)
+    y = np.array([0.0, 0.0, -1.0])
+    return np.stack([np.cross(y, z), y, z])
+
+
+def camera_layout(setup: str, num_views: int, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Centres (n, 3) and headings (n, 3): tangent of the trajectory, or the outward radial."""
+    k = np.arange(num_views)
+    if setup in ("circular", "outward"):
+        radius = spacing / (2.0 * np.sin(np.pi / num_views))  # chord between neighbours = spacing
+        phi = 2.0 * np.pi * k / num_views
+        centers = np.column_stack([radius * np.cos(phi), radius * np.sin(phi), np.zeros(num_views)])
+        radial = np.column_stack([np.cos(phi), np.sin(phi), np.zeros(num_views)])
+        tangent = np.column_stack([-np.sin(phi), np.cos(phi), np.zeros(num_views)])
+        return centers, (radial if setup == "outward" else tangent)
+    if setup == "square":
+        side = num_views * spacing / 4.0
+        s = k * spacing  # arc length along the perimeter, counter-clockwise from (-side/2, -side/2)
+        corners = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1], [-1, -1]], dtype=float) * side / 2
+        edge = np.minimum((s // side).astype(int), 3)
+        frac = (s - edge * side) / side
+        xy = corners[edge] + frac[:, None] * (corners[edge + 1] - corners[edge])
+        headings = corners[edge + 1] - corners[edge]
+        return (np.column_stack([xy, np.zeros(num_views)]),
+                np.column_stack([headings / side, np.zeros(num_views)]))
+    if setup == "linear":
+        x = (k - (num_views - 1) / 2.0) * spacing
+        return (np.column_stack([x, np.zeros(num_views), np.zeros(num_views)]),
+                np.tile([1.0, 0.0, 0.0], (num_views, 1)))
+    raise InputError(f"unknown set-up {setup!r} (choose from {', '.join(SETUPS)})", field="setup")
+
+
+def _point_sampler(setup: str, centers: np.ndarray, rng: np.random.Generator, max_height: float,
+                   ring: tuple[float, float], ring_height: float):
+    if setup == "outward":
+        r_in, r_out = ring
+
+        def sample(n: int) -> np.ndarray:
+            r = np.sqrt(rng.uniform(r_in**2, r_out**2, size=n))  # uniform in area
+            phi = rng.uniform(0.0, 2.0 * np.pi, size=n)
+            return np.column_stack([r * np.cos(phi), r * np.sin(phi), rng.uniform(-ring_height, ring_height, n)])
+        return sample
+    margin = 0.3 * max_height
+    lo = centers[:, :2].min(axis=0) - margin
+    hi = centers[:, :2].max(axis=0) + margin
+
+    def sample(n: int) -> np.ndarray:
+        return np.column_stack([rng.uniform(lo, hi, size=(n, 2)), rng.uniform(0.0, max_height, n)])
+    return sample
+
+
+def _window_pairs(num_views: int, window: int, cyclic: bool) -> np.ndarray:
+    i, j = np.triu_indices(num_views, k=1)
+    gap = j - i
+    if cyclic:
+        gap = np.minimum(gap, num_views - gap)
+    keep = gap <= window
+    return np.column_stack([i[keep], j[keep]])
+
+
+# ----------------------------------------------------------------------------- main entry
+def simulate_multiview(setup: str = "circular", *, num_views: int = 100, num_points: int = 10_000,
+                       noise_px: float = 1.0, focal: float = 800.0, image_size: tuple[int, int] | int = (960, 960),
+                       rng: np.random.Generator | int | None = None, spacing: float = 10.0,
+                       window: int = 10, min_shared: int = 30, init: str = "ransac",
+                       init_noise_deg: float = 0.5, corrupt_fraction: float = 0.0,
+                       noise_model: str = "uniform", max_tilt_deg: float = 5.0, max_height: float = 400.0,
+                       ring: tuple[float, float] = (200.0, 3000.0), ring_height: float = 200.0,
+                       ransac_threshold_px: float | None = None) -> MultiViewProblem:
+    """Draw one multi-view problem (module docstring)."""
+    if setup not in SETUPS:
+        raise InputError(f"unknown set-up {setup!r} (choose from {', '.join(SETUPS)})", field="setup")
+    if init not in INITS:
+        raise InputError(f"unknown init {init!r} (choose from {', '.join(INITS)})", field="init")
+    if noise_model not in NOISE_MODELS:
+        raise InputError(f"unknown noise model {noise_model!r}", field="noise_model")
+    if num_views < 3 or num_points < 1 or window < 1:
+        raise InputError("need num_views >= 3, num_points >= 1, window >= 1", field="num_views/num_points/window")
+    if not 0.0 <= corrupt_fraction <= 1.0:
+        raise InputError("must be in [0, 1]", field="corrupt_fraction")
+    if isinstance(image_size, (int, np.integer)):
+        image_size = (int(image_size), int(image_size))
+    image_size = (int(image_size[0]), int(image_size[1]))
+    rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+
+    centers, headings = camera_layout(setup, num_views, spacing)
+    orient = _look_out if setup == "outward" else _look_up
+    tilt = np.deg2rad(max_tilt_deg)
+    R_cam_from_world = np.stack([bounded_rotation(rng, tilt) @ orient(h) for h in headings])
+
+    # --- points seen by >= 2 cameras, in batches (all cameras x batch projected at once)
+    sample = _point_sampler(setup, centers, rng, max_height, ring, ring_height)
+    half = 0.5 * np.asarray(image_size, dtype=float) / focal
+    kept_points, kept_vis, have = [], [], 0
+    batch = max(2 * num_points, 2000)
+    for _ in range(200):
+        X = sample(batch)
+        X_cam = np.einsum("vab,vnb->vna", R_cam_from_world, X[None] - centers[:, None])  # (n, B, 3)
+        depth = X_cam[..., 2]
+        safe = np.where(depth > 1e-9, depth, 1.0)
+        x = X_cam[..., :2] / safe[..., None]
+        vis = (depth > 1e-9) & (np.abs(x[..., 0]) < half[0]) & (np.abs(x[..., 1]) < half[1])
+        ok = vis.sum(axis=0) >= 2
+        kept_points.append(X[ok])
+        kept_vis.append(vis[:, ok])
+        have += int(ok.sum())
+        if have >= num_points:
+            break
+    if have < num_points:
+        raise AlgorithmError(f"could only place {have} of {num_points} points seen by two cameras ({setup})")
+    points = np.concatenate(kept_points)[:num_points]
+    visibility = np.concatenate(kept_vis, axis=1)[:, :num_points]
+
+    # --- per-view keypoints (noise drawn once per observation)
+    X_cam = np.einsum("vab,vnb->vna", R_cam_from_world, points[None] - centers[:, None])
+    x_true = X_cam[..., :2] / X_cam[..., 2:3]
+    scene = SfMScene(source="simulation")
+    scene.intrinsics[0] = Intrinsics(id=0, model="PINHOLE", width=image_size[0], height=image_size[1],
+                                     params=np.array([focal, focal, image_size[0] / 2, image_size[1] / 2]))
+    gt_poses: dict[int, Pose] = {}
+    for v in range(num_views):
+        scene.views[v] = View(id=v, name=f"sim_{v:04d}.jpg", intrinsics_id=0)
+        x_noisy = add_pixel_noise(x_true[v, visibility[v]], noise_px, focal, rng, noise_model)
+        scene.normalized[v] = x_noisy
+        scene.keypoints[v] = normalized_to_pixels(x_noisy, focal, image_size)
+        gt_poses[v] = Pose(R_cam_from_world[v].copy(), centers[v].copy())
+
+    # --- pairs, matches and initial relative poses
+    kp_index = np.cumsum(visibility, axis=1) - 1  # keypoint index of point k in view v (where visible)
+    candidates = _window_pairs(num_views, window, cyclic=setup != "linear")
+    threshold = ransac_threshold_px if ransac_threshold_px is not None else max(1.0, 2.0 * noise_px)
+    for i, j in candidates:
+        shared = np.flatnonzero(visibility[i] & visibility[j])
+        if len(shared) < min_shared:
+            continue
+        matches = np.column_stack([kp_index[i, shared], kp_index[j, shared]]).astype(np.int64)
+        R_true = R_cam_from_world[j] @ R_cam_from_world[i].T
+        t_true = R_cam_from_world[j] @ (centers[i] - centers[j])
+        t_true /= np.linalg.norm(t_true)
+        pair = PairMatches(i=int(i), j=int(j), matches=matches, config="CALIBRATED")
+        if init == "ransac":
+            est = five_point_ransac(scene.normalized[i][matches[:, 0]], scene.normalized[j][matches[:, 1]],
+                                    focal, threshold_px=threshold, seed=int(rng.integers(2**31)))
+            if est.success:
+                pair.R_j_from_i, pair.t_j_from_i = est.R_j_from_i, est.t_direction
+            else:
+                pair.config = "DEGENERATE"
+        elif init == "perturbed":
+            pair.R_j_from_i, pair.t_j_from_i = perturbed_rotation(R_true, init_noise_deg, rng), t_true
+        else:
+            pair.R_j_from_i, pair.t_j_from_i = R_true.copy(), t_true
+        scene.pairs[(int(i), int(j))] = pair
+
+    # --- repeated-structure outliers: random rotations on a fraction of the edges
+    keys = sorted(scene.pairs)
+    num_corrupt = int(round(corrupt_fraction * len(keys)))
+    corrupted = [keys[k] for k in sorted(rng.choice(len(keys), size=num_corrupt, replace=False))] if num_corrupt else []
+    if corrupted:
+        random_R = so3.random_rotations(len(corrupted), rng)
+        random_t = rng.normal(size=(len(corrupted), 3))
+        random_t /= np.linalg.norm(random_t, axis=1, keepdims=True)
+        for key, R, t in zip(corrupted, random_R, random_t):
+            scene.pairs[key].R_j_from_i, scene.pairs[key].t_j_from_i = R, t
+            scene.pairs[key].config = "CALIBRATED"
+
+    parameters = dict(num_views=num_views, num_points=num_points, spacing=spacing, window=window,
+                      min_shared=min_shared, init=init, init_noise_deg=init_noise_deg,
+                      corrupt_fraction=corrupt_fraction, noise_model=noise_model, max_tilt_deg=max_tilt_deg)
+    return MultiViewProblem(scene=scene, gt_poses=gt_poses, points_in_world=points, visibility=visibility,
+                            corrupted_pairs=corrupted, setup=setup, noise_px=float(noise_px), focal=float(focal),
+                            image_size=image_size, parameters=parameters)
+
+
+# ----------------------------------------------------------------------------- files
+def _writer(module: str, name: str):
+    """The COLMAP / OpenMVG writers of ``rotonly_cli.io``, imported lazily."""
+    import importlib
+
+    try:
+        return getattr(importlib.import_module(f"rotonly_cli.io.{module}"), name)
+    except (ModuleNotFoundError, AttributeError) as exc:
+        raise AlgorithmError(f"writer rotonly_cli.io.{module}.{name} is not available: {exc}") from exc
+
+
+def save_multiview(out_dir, problem: MultiViewProblem, formats: tuple[str, ...] = ("colmap", "openmvg")):
+    """Write ``problem`` into ``out_dir`` atomically (temp folder next to it, renamed at the end).
+
+    Layout: ``database.db`` (COLMAP: cameras, images, keypoints, matches and two-view
+    geometries with the initial relative poses), ``openmvg/sfm_data.json`` + ``openmvg/matches``
+    (OpenMVG project without poses), ``gt/sfm_data.json`` (OpenMVG, ground-truth poses and
+    points), and ``simulation.json`` (set-up parameters and the corrupted pairs).
+    """
+    import json
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    out_dir = Path(out_dir)
+    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
+        raise InputError("exists and is not an empty folder", path=out_dir, field="-o")
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    try:
+        if "colmap" in formats:
+            _writer("colmap", "write_database")(tmp / "database.db", problem.scene)
+        if "openmvg" in formats:
+            (tmp / "openmvg").mkdir()
+            _writer("openmvg", "write_project")(tmp / "openmvg", problem.scene)
+        (tmp / "gt").mkdir()
+        _writer("openmvg", "write_sfm_data")(tmp / "gt" / "sfm_data.json", problem.gt_scene())
+        info = dict(setup=problem.setup, noise_px=problem.noise_px, focal=problem.focal,
+                    image_size=list(problem.image_size), num_pairs=len(problem.scene.pairs),
+                    corrupted_pairs=[list(map(int, key)) for key in problem.corrupted_pairs],
+                    **{k: (v if not isinstance(v, tuple) else list(v)) for k, v in problem.parameters.items()})
+        (tmp / "simulation.json").write_text(json.dumps(info, indent=2))
+        if out_dir.exists():
+            out_dir.rmdir()
+        tmp.rename(out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out_dir
