@@ -108,3 +108,16 @@ def test_too_few_constrained_views_is_an_error():
     with pytest.raises(AlgorithmError):
         ligt_translations(scene.R_cam_from_world, scene.obs_point, scene.obs_view, scene.obs_xy,
                           view_mask=np.array([True, False, False, False]))
+
+
+def test_base_views_are_the_max_parallax_pair():
+    from rotonly_cli.geometry.ligt import _select_base_views
+
+    # track 0: rays at 0°, 10°, 30°, 5° -> pair (0, 2); track 1: single ray; track 2: two rays
+    def ray(deg):
+        return [np.sin(np.radians(deg)), 0.0, np.cos(np.radians(deg))]
+
+    rays = np.array([ray(0), ray(10), ray(30), ray(5), ray(0), ray(0), ray(20)])
+    base_l, base_r, norm = _select_base_views(rays, np.array([0, 4, 5, 7]), max_views=64)
+    assert base_l.tolist() == [0, -1, 5] and base_r.tolist() == [2, -1, 6]
+    assert np.allclose(norm, [np.sin(np.radians(30)), 0.0, np.sin(np.radians(20))])

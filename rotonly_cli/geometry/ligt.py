@@ -84,18 +84,24 @@ def _select_base_views(world_rays: np.ndarray, offsets: np.ndarray,
     a, b = pairs_within_tracks(capped)
     a, b = use[a], use[b]
     theta_norm = np.linalg.norm(np.cross(world_rays[b], world_rays[a]), axis=1)
-    pair_track = track_of_obs[a]
-    # first maximum per track: sort by (track, -norm, pair index) and take the group heads
-    order = np.lexsort((np.arange(a.size), -theta_norm, pair_track))
-    head = np.ones(order.size, dtype=bool)
-    head[1:] = pair_track[order][1:] != pair_track[order][:-1]
-    best = order[head]
+    # pairs come grouped by track (pairs_within_tracks order): per-track max by reduceat,
+    # then the first pair reaching it (OpenMVG keeps the first maximum of its a<b scan)
+    capped_length = np.diff(capped)
+    pair_count = capped_length * (capped_length - 1) // 2
+    has_pair = np.flatnonzero(pair_count > 0)
+    pair_start = np.zeros(num_tracks + 1, dtype=np.int64)
+    np.cumsum(pair_count, out=pair_start[1:])
     base_l = np.full(num_tracks, -1, dtype=np.int64)
     base_r = np.full(num_tracks, -1, dtype=np.int64)
     best_norm = np.zeros(num_tracks)
-    base_l[pair_track[best]] = a[best]
-    base_r[pair_track[best]] = b[best]
-    best_norm[pair_track[best]] = theta_norm[best]
+    if has_pair.size == 0:
+        return base_l, base_r, best_norm
+    best_norm[has_pair] = np.maximum.reduceat(theta_norm, pair_start[has_pair])
+    pair_track = np.repeat(np.arange(num_tracks), pair_count)
+    reaching = np.flatnonzero(theta_norm == best_norm[pair_track])
+    first = reaching[np.r_[True, pair_track[reaching][1:] != pair_track[reaching][:-1]]]
+    base_l[pair_track[first]] = a[first]
+    base_r[pair_track[first]] = b[first]
     return base_l, base_r, best_norm
 
 

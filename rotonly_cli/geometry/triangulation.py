@@ -95,8 +95,15 @@ def max_ray_angle_deg(world_rays: np.ndarray, offsets: np.ndarray, max_views: in
     rays = world_rays[use]
     a, b = pairs_within_tracks(capped_offsets)
     cos_angle = np.clip(np.einsum("ij,ij->i", rays[a], rays[b]), -1.0, 1.0)
+    # pairs are grouped by track: per-track minimum cosine with reduceat
+    capped_length = np.diff(capped_offsets)
+    pair_count = capped_length * (capped_length - 1) // 2
+    pair_start = np.zeros(num_tracks + 1, dtype=np.int64)
+    np.cumsum(pair_count, out=pair_start[1:])
+    has_pair = np.flatnonzero(pair_count > 0)
     min_cos = np.full(num_tracks, 1.0)
-    np.minimum.at(min_cos, track_of_obs[use][a], cos_angle)
+    if has_pair.size:
+        min_cos[has_pair] = np.minimum.reduceat(cos_angle, pair_start[has_pair])
     return np.degrees(np.arccos(min_cos))
 
 
