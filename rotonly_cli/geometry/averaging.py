@@ -30,7 +30,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 from scipy.sparse.linalg import splu
 
-from rotonly_cli.errors import AlgorithmError
+from rotonly_cli.errors import AlgorithmError, InputError
 from rotonly_cli.geometry import so3
 
 __all__ = ["RobustWeight", "AveragingOptions", "AveragingResult", "average_rotations",
@@ -75,9 +75,9 @@ class AveragingOptions:
 
     def validate(self) -> None:
         if self.max_num_l1_iterations < 0 or self.max_num_irls_iterations < 0:
-            raise ValueError("iteration counts must be >= 0")
+            raise InputError("iteration counts must be >= 0", field="options")
         if self.irls_loss_parameter_sigma_deg <= 0 or self.admm_rho <= 0:
-            raise ValueError("sigma and rho must be positive")
+            raise InputError("sigma and rho must be positive", field="options")
 
 
 @dataclass
@@ -167,10 +167,10 @@ def _l1_admm(A: sp.csr_matrix, AtA_lu, b: np.ndarray, max_iterations: int,
         u = u + Ax - z - b
         primal = _frobenius(Ax - z - b)
         dual = rho * _frobenius(A.T @ (z - z_old))
-        eps_primal = sqrt_size_primal * options.admm_absolute_tolerance + options.admm_relative_tolerance * max(
-            _frobenius(Ax), _frobenius(z), _frobenius(b))
-        eps_dual = sqrt_size_dual * options.admm_absolute_tolerance + options.admm_relative_tolerance * rho * _frobenius(
-            A.T @ u)
+        # Boyd et al. §3.3.1 stopping rule (absolute + relative tolerances)
+        abs_tol, rel_tol = options.admm_absolute_tolerance, options.admm_relative_tolerance
+        eps_primal = sqrt_size_primal * abs_tol + rel_tol * max(_frobenius(Ax), _frobenius(z), _frobenius(b))
+        eps_dual = sqrt_size_dual * abs_tol + rel_tol * rho * _frobenius(A.T @ u)
         if primal < eps_primal and dual < eps_dual:
             break
     return x
@@ -212,16 +212,18 @@ def average_rotations(num_views: int, edges_i: np.ndarray, edges_j: np.ndarray, 
     R_j_from_i = np.asarray(R_j_from_i, dtype=float)
     num_edges = edges_i.size
     if edges_j.shape != (num_edges,) or R_j_from_i.shape != (num_edges, 3, 3):
-        raise ValueError("edges_i, edges_j (E,) and R_j_from_i (E, 3, 3) disagree")
+        raise InputError("edges_i, edges_j (E,) and R_j_from_i (E, 3, 3) disagree", field="R_j_from_i")
+    if not np.all(np.isfinite(R_j_from_i)):
+        raise InputError("non-finite relative rotation", field="R_j_from_i")
     weights = np.ones(num_edges) if weights is None else np.asarray(weights, dtype=float)
     if weights.shape != (num_edges,) or np.any(~np.isfinite(weights)) or np.any(weights <= 0):
-        raise ValueError("weights must be (E,) positive and finite")
+        raise InputError("weights must be (E,) positive and finite", field="weights")
     if num_edges and (min(edges_i.min(), edges_j.min()) < 0 or max(edges_i.max(), edges_j.max()) >= num_views):
-        raise ValueError("edge view index out of range")
+        raise InputError("edge view index out of range", field="edges")
     if np.any(edges_i == edges_j):
-        raise ValueError("self-loop edge (i == j)")
+        raise InputError("self-loop edge (i == j)", field="edges")
     if not 0 <= fixed_view < num_views:
-        raise ValueError("fixed_view out of range")
+        raise InputError("fixed_view out of range", field="fixed_view")
 
     graph = sp.coo_matrix((np.ones(num_edges), (edges_i, edges_j)), shape=(num_views, num_views))
     _, component = connected_components(graph, directed=False)

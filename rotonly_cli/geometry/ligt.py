@@ -32,7 +32,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import eigsh
 
-from rotonly_cli.errors import AlgorithmError
+from rotonly_cli.errors import AlgorithmError, InputError
 from rotonly_cli.geometry.so3 import hat
 from rotonly_cli.geometry.tracks import pairs_within_tracks
 
@@ -212,11 +212,11 @@ def ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_v
     obs_view = np.asarray(obs_view, dtype=np.int64)
     obs_xy = np.asarray(obs_xy, dtype=float)
     if R.ndim != 3 or R.shape[1:] != (3, 3):
-        raise ValueError("R_cam_from_world must be (n, 3, 3)")
+        raise InputError("R_cam_from_world must be (n, 3, 3)", field="R_cam_from_world")
     if obs_view.shape != obs_track.shape or obs_xy.shape != (obs_track.size, 2):
-        raise ValueError("obs_track, obs_view (N_obs,) and obs_xy (N_obs, 2) disagree")
+        raise InputError("obs_track, obs_view (N_obs,) and obs_xy (N_obs, 2) disagree", field="obs_xy")
     if obs_track.size and np.any(np.diff(obs_track) < 0):
-        raise ValueError("obs_track must be sorted (observations grouped by track)")
+        raise InputError("obs_track must be sorted (observations grouped by track)", field="obs_track")
     if view_mask is not None:
         keep = np.asarray(view_mask, dtype=bool)[obs_view]
         obs_track, obs_view, obs_xy = obs_track[keep], obs_view[keep], obs_xy[keep]

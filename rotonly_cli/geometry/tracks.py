@@ -19,6 +19,8 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from rotonly_cli.errors import InputError
+
 __all__ = ["Tracks", "build_tracks", "tracks_from_arrays", "gather_observations", "pairs_within_tracks"]
 
 
@@ -57,7 +59,7 @@ def tracks_from_arrays(track_id: np.ndarray, view: np.ndarray, feature: np.ndarr
     view = np.asarray(view, dtype=np.int64)
     feature = np.asarray(feature, dtype=np.int64)
     if not (track_id.shape == view.shape == feature.shape) or track_id.ndim != 1:
-        raise ValueError("track_id, view and feature must be 1-D arrays of one length")
+        raise InputError("track_id, view and feature must be 1-D arrays of one length", field="track_id")
     order = np.lexsort((view, track_id))
     track_id, view, feature = track_id[order], view[order], feature[order]
     num_tracks = int(track_id[-1]) + 1 if track_id.size else 0
@@ -82,7 +84,7 @@ def build_tracks(pair_keys: Sequence[tuple[int, int]], pair_matches: Sequence[np
         (counted in ``num_inconsistent``).
     """
     if len(pair_keys) != len(pair_matches):
-        raise ValueError("pair_keys and pair_matches differ in length")
+        raise InputError("pair_keys and pair_matches differ in length", field="pair_matches")
     views_a, feats_a, views_b, feats_b = [], [], [], []
     for (i, j), matches in zip(pair_keys, pair_matches):
         matches = np.asarray(matches, dtype=np.int64).reshape(-1, 2)
@@ -96,7 +98,7 @@ def build_tracks(pair_keys: Sequence[tuple[int, int]], pair_matches: Sequence[np
     view_end = np.concatenate(views_a + views_b)
     feat_end = np.concatenate(feats_a + feats_b)
     if np.any(feat_end < 0) or np.any(view_end < 0):
-        raise ValueError("negative view or keypoint index in matches")
+        raise InputError("negative view or keypoint index in matches", field="pair_matches")
     # one int64 key per (view, feature) node; the node list is sorted by (view, feature)
     node_key = view_end * (int(feat_end.max()) + 1) + feat_end
     unique_keys, node_of_end = np.unique(node_key, return_inverse=True)
@@ -128,7 +130,7 @@ def gather_observations(tracks: Tracks, per_view_points: Sequence[np.ndarray]) -
     start = np.zeros(len(sizes) + 1, dtype=np.int64)
     np.cumsum(sizes, out=start[1:])
     if np.any(tracks.view >= len(sizes)) or np.any(tracks.feature >= sizes[tracks.view]):
-        raise ValueError("track observation refers to a keypoint that does not exist")
+        raise InputError("track observation refers to a keypoint that does not exist", field="per_view_points")
     stacked = np.concatenate([np.asarray(p, dtype=float).reshape(len(p), -1) for p in per_view_points])
     return stacked[start[tracks.view] + tracks.feature]
 
@@ -147,7 +149,7 @@ def pairs_within_tracks(offsets: np.ndarray, max_pairs: int | None = None) -> tu
     num_partners = length[track_of_obs] - 1 - position  # obs a pairs with the ones after it
     total = int(num_partners.sum())
     if max_pairs is not None and total > max_pairs:
-        raise ValueError(f"{total} observation pairs exceed max_pairs={max_pairs}")
+        raise InputError(f"{total} observation pairs exceed max_pairs={max_pairs}", field="offsets")
     a = np.repeat(np.arange(num_obs), num_partners)
     first = np.zeros(num_obs + 1, dtype=np.int64)
     np.cumsum(num_partners, out=first[1:])

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rotonly_cli.errors import InputError
 from rotonly_cli.geometry.tracks import pairs_within_tracks
 
 __all__ = ["TriangulationOptions", "TriangulationResult", "triangulate_tracks", "max_ray_angle_deg"]
@@ -49,9 +50,9 @@ class TriangulationOptions:
 
     def validate(self) -> None:
         if self.num_refinement_iterations < 0 or self.max_reprojection_error <= 0:
-            raise ValueError("num_refinement_iterations >= 0 and max_reprojection_error > 0 needed")
+            raise InputError("num_refinement_iterations >= 0 and max_reprojection_error > 0 needed", field="options")
         if self.min_parallax_deg < 0 or self.max_parallax_views < 2:
-            raise ValueError("min_parallax_deg >= 0 and max_parallax_views >= 2 needed")
+            raise InputError("min_parallax_deg >= 0 and max_parallax_views >= 2 needed", field="options")
 
 
 @dataclass
@@ -129,11 +130,11 @@ def triangulate_tracks(R_cam_from_world: np.ndarray, centers: np.ndarray, obs_po
     obs_view = np.asarray(obs_view, dtype=np.int64)
     obs_xy = np.asarray(obs_xy, dtype=float)
     if R.ndim != 3 or R.shape[1:] != (3, 3) or C.shape != (R.shape[0], 3):
-        raise ValueError("R_cam_from_world must be (n, 3, 3) and centers (n, 3)")
+        raise InputError("R_cam_from_world must be (n, 3, 3) and centers (n, 3)", field="centers")
     if obs_xy.shape != (obs_point.shape[0], 2) or obs_view.shape != obs_point.shape:
-        raise ValueError("obs_point, obs_view (N_obs,) and obs_xy (N_obs, 2) disagree")
+        raise InputError("obs_point, obs_view (N_obs,) and obs_xy (N_obs, 2) disagree", field="obs_xy")
     if obs_point.size and np.any(np.diff(obs_point) < 0):
-        raise ValueError("obs_point must be sorted (observations grouped by point)")
+        raise InputError("obs_point must be sorted (observations grouped by point)", field="obs_point")
     if num_points is None:
         num_points = int(obs_point.max()) + 1 if obs_point.size else 0
     counts = np.bincount(obs_point, minlength=num_points)
