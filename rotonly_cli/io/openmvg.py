@@ -16,6 +16,7 @@ import os
 import shutil
 import struct
 import tempfile
+import warnings
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -159,6 +160,31 @@ def _bisection_radius_solve(k: np.ndarray, r2_target: np.ndarray,
     return 0.5 * (lower + upper)
 
 
+def _newton_polish_radius(k: np.ndarray, r2_target: np.ndarray,
+                          r2_estimate: np.ndarray) -> np.ndarray:
+    """Two Newton steps on OpenMVG's own equation D(s) = r2_target, started from its bisection
+    result. The bisection stops at an *absolute* 1e-10 bracket on r^2, i.e. a relative error
+    of ~1e-6 near the image centre (r ~ 0.01); the polish solves the same equation to machine
+    precision and stays within OpenMVG's bracket. Steps that would not reduce the residual
+    (non-monotone D) are not taken."""
+    s = r2_estimate
+    for _ in range(2):
+        poly = np.zeros_like(s)  # P(s) = k1 + s k2 + s^2 k3 and its derivative
+        poly_derivative = np.zeros_like(s)
+        for coefficient in k[::-1]:
+            poly_derivative = poly + s * poly_derivative
+            poly = coefficient + s * poly
+        factor = 1.0 + s * poly
+        residual = s * factor * factor - r2_target
+        derivative = factor * factor + 2.0 * s * factor * (poly + s * poly_derivative)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            candidate = np.where(derivative > 0, s - residual / np.where(
+                derivative > 0, derivative, 1.0), s)
+        better = np.abs(_radial_disto_functor(k, candidate) - r2_target) <= np.abs(residual)
+        s = np.where(better, candidate, s)
+    return s
+
+
 def _brown_displacement(k1: float, k2: float, k3: float, t1: float, t2: float,
                         points: np.ndarray) -> np.ndarray:
     """Brown-Conrady displacement (x_d - x) ([MVG] Camera_Pinhole_Brown.cpp distoFunction;
@@ -203,8 +229,10 @@ def add_distortion(model: str, distortion: np.ndarray, normalized: np.ndarray) -
 
 def remove_distortion(model: str, distortion: np.ndarray, distorted: np.ndarray) -> np.ndarray:
     """OpenMVG ``remove_disto`` on (n, 2) distorted normalized coordinates, with OpenMVG's own
-    iterations: bisection on r^2 (radial), fixed point on the displacement (Brown, stop at
-    L1 change <= 1e-10), 10 fixed-point steps on theta (fisheye)."""
+    iterations: bisection on r^2 (radial, then polished to machine precision, see
+    ``_newton_polish_radius``), fixed point on the displacement (Brown, stop at L1 residual
+    <= 1e-10), exactly 10 fixed-point steps on theta (fisheye: like OpenMVG, not converged for
+    strong distortion near the image border)."""
     points = np.asarray(distorted, dtype=np.float64).reshape(-1, 2)
     if model == "pinhole":
         return points.copy()
@@ -213,7 +241,9 @@ def remove_distortion(model: str, distortion: np.ndarray, distorted: np.ndarray)
         scale = np.ones_like(r2)
         nonzero = r2 != 0
         if nonzero.any():
-            r2_undistorted = _bisection_radius_solve(np.asarray(distortion, float), r2[nonzero])
+            k = np.asarray(distortion, dtype=np.float64)
+            r2_undistorted = _newton_polish_radius(
+                k, r2[nonzero], _bisection_radius_solve(k, r2[nonzero]))
             scale[nonzero] = np.sqrt(r2_undistorted / r2[nonzero])
         return points * scale[:, None]
     if model == "pinhole_brown_t2":
@@ -493,8 +523,10 @@ def _json_floats(values: np.ndarray, where: str) -> list:
     return array.tolist()
 
 
-def _effective_pose_id(view: View) -> int:
-    if view.pose_id is None or view.pose_id == UNDEFINED_INDEX:
+def _effective_pose_id(view: View, has_pose: bool) -> int:
+    """OpenMVG ``id_pose``: ``None`` -> the view id (as SfMInit_ImageListing assigns it); an
+    undefined id stays undefined unless the scene holds a pose for the view."""
+    if view.pose_id is None or (view.pose_id == UNDEFINED_INDEX and has_pose):
         return view.id
     return view.pose_id
 
@@ -555,7 +587,7 @@ def sfm_data_document(scene: SfMScene, include_structure: bool = True) -> dict:
         where = f"views[{view_id}]"
         local_path, _, filename = view.name.replace("\\", "/").rpartition("/")
         width, height = _view_size(scene, view)
-        pose_id = _effective_pose_id(view)
+        pose_id = _effective_pose_id(view, view_id in scene.poses)
         if view_id in scene.poses:
             pose_view_ids.setdefault(pose_id, view_id)
         views_json.append({"key": _json_uint(view_id, where), "value": {
@@ -632,6 +664,12 @@ def sfm_data_document(scene: SfMScene, include_structure: bool = True) -> dict:
     }
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def _atomic_write_bytes(path: PathLike, payload: bytes) -> None:
     """Write next to the target and rename: no partially written outputs."""
     path = Path(path)
@@ -640,6 +678,7 @@ def _atomic_write_bytes(path: PathLike, payload: bytes) -> None:
     try:
         with os.fdopen(handle, "wb") as stream:
             stream.write(payload)
+        os.chmod(temporary, 0o666 & ~_umask())  # mkstemp makes 0600; give normal permissions
         os.replace(temporary, path)
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
@@ -696,16 +735,18 @@ def read_feature_table(path: PathLike) -> np.ndarray:
                          "(x y scale orientation)", path=str(path), field=f"line {line + 1}")
     if num_tokens == 0:
         return np.zeros((0, 4))
-    # np.fromstring(sep=" ") is numpy's C text-to-double parser and treats any whitespace as
-    # a separator; it stops early on a bad token, which the size check turns into an error.
-    import warnings
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        values = np.fromstring(payload.decode("ascii", errors="replace"), dtype=np.float64,
-                               sep=" ")
+    # np.fromstring(sep=" ") is numpy's C text-to-double parser (about 3x faster than
+    # np.array(bytes.split(), float)); any whitespace separates. A bad token raises (numpy 2)
+    # or stops the parse early (older numpy: DeprecationWarning), hence the size check.
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            values = np.fromstring(payload.decode("ascii", errors="replace"), dtype=np.float64,
+                                   sep=" ")
+    except ValueError:
+        values = np.zeros(0)
     if values.size != num_tokens or not np.all(np.isfinite(values)):
-        raise InputError("non-numeric or non-finite value", path=str(path),
-                         field=f"value {values.size + 1}")
+        raise InputError("non-numeric or non-finite value", path=str(path))
     return values.reshape(-1, 4)
 
 
@@ -990,6 +1031,7 @@ def write_project(out_dir: PathLike, scene: SfMScene, include_structure: bool = 
         stems[stem] = view_id
     staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     try:
+        os.chmod(staging, 0o777 & ~_umask())  # mkdtemp makes 0700
         write_sfm_data(staging / "sfm_data.json", scene, include_structure)
         for stem, view_id in stems.items():
             write_features(staging / f"{stem}.feat",
