@@ -1,0 +1,105 @@
+"""Strecha ground truth (``gt_dense_cameras/*.camera``) and ground-truth dispatch.
+
+File layout (formats.md §3.2): K (3 rows), 3 distortion values (ignored), R (3 rows) that is
+**camera -> world**, the camera centre C, then ``width height``. Poses are stored as
+``R_cam_from_world = R_file^T`` with centre C, exactly as OpenMVG's evalQuality does; the
+matrices are kept as written (Strecha's are not exactly orthonormal, and evalQuality uses
+them unchanged). K is in the "top-left pixel centre = (0, 0)" convention (data README), so
+the principal point gets +0.5 here to become COLMAP's.
+
+View ids follow evalQuality's directory mode (§3.3): the index of the file in the sorted
+list of ``.camera`` files; view id = intrinsics id = pose id.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from rotonly_cli.errors import InputError
+from rotonly_cli.io.types import Intrinsics, Pose, SfMScene, View
+
+PathLike = str | os.PathLike
+PIXEL_OFFSET = 0.5  # COLMAP pixel = Strecha/OpenMVG pixel + 0.5
+GT_SUBDIR = "gt_dense_cameras"
+
+
+def read_camera_file(path: PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int] | None]:
+    """(K, R_cam_to_world as written, C, (width, height) or None) of one ``.camera`` file."""
+    path = Path(path)
+    try:
+        values = np.array(path.read_text(encoding="ascii").split(), dtype=np.float64)
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read ({exc})", path=str(path)) from None
+    except ValueError:
+        raise InputError("non-numeric value in a Strecha camera file", path=str(path)) from None
+    # evalQuality accepts 26 values (24 + width/height... minus its extra EOF push); we need
+    # K (9), distortion (3), R (9), C (3); width/height are optional.
+    if values.size < 24:
+        raise InputError(f"{values.size} numbers, a Strecha camera needs at least 24 "
+                         "(K, 3 distortion, R, C)", path=str(path))
+    if not np.all(np.isfinite(values[:24])):
+        raise InputError("non-finite value", path=str(path))
+    K = values[0:9].reshape(3, 3)
+    R_cam_to_world = values[12:21].reshape(3, 3)
+    center = values[21:24].copy()
+    size = (int(values[24]), int(values[25])) if values.size >= 26 else None
+    return K, R_cam_to_world, center, size
+
+
+def _camera_dir(path: Path) -> Path:
+    if (path / GT_SUBDIR).is_dir():
+        return path / GT_SUBDIR
+    return path
+
+
+def read_strecha_dir(path: PathLike) -> SfMScene:
+    """Strecha scene folder (holding ``gt_dense_cameras/``) or that folder itself ->
+    SfMScene with one PINHOLE intrinsic and one pose per ``<image name>.camera``."""
+    path = Path(path)
+    if not path.is_dir():
+        raise InputError("no such folder", path=str(path))
+    camera_dir = _camera_dir(path)
+    camera_files = sorted(p for p in camera_dir.iterdir()
+                          if p.is_file() and p.name.endswith(".camera"))
+    if not camera_files:
+        raise InputError("no .camera files (expected a Strecha gt_dense_cameras folder)",
+                         path=str(camera_dir))
+    scene = SfMScene(source="strecha", root_path=str(path / "images"))
+    for view_id, camera_file in enumerate(camera_files):
+        K, R_cam_to_world, center, size = read_camera_file(camera_file)
+        name = camera_file.name[: -len(".camera")]  # "0000.jpg.camera" -> "0000.jpg"
+        width, height = size if size is not None else (0, 0)
+        if width <= 0 or height <= 0:  # evalQuality reads it from the image; guess from pp
+            width, height = int(round(2 * (K[0, 2] + PIXEL_OFFSET))), int(round(
+                2 * (K[1, 2] + PIXEL_OFFSET)))
+        params = np.array([K[0, 0], K[1, 1], K[0, 2] + PIXEL_OFFSET, K[1, 2] + PIXEL_OFFSET])
+        scene.intrinsics[view_id] = Intrinsics(view_id, "PINHOLE", width, height, params)
+        scene.views[view_id] = View(view_id, name, view_id, pose_id=view_id, width=width,
+                                    height=height)
+        scene.poses[view_id] = Pose(R_cam_from_world=R_cam_to_world.T.copy(), center=center)
+    return scene
+
+
+def read_ground_truth(path: PathLike) -> SfMScene:
+    """Ground truth from a Strecha folder (or its ``gt_dense_cameras``), an OpenMVG
+    ``sfm_data.json`` or a COLMAP model folder."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError("no such file or folder", path=str(path))
+    if path.is_file():
+        if path.suffix.lower() == ".json":
+            from rotonly_cli.io.openmvg import read_sfm_data  # lazy: optional dependency
+
+            return read_sfm_data(path)
+        raise InputError("ground truth must be a Strecha folder, an sfm_data.json or a COLMAP "
+                         "model folder", path=str(path))
+    from rotonly_cli.io.colmap import is_model_dir, read_model
+
+    if is_model_dir(path):
+        return read_model(path)
+    if (path / "sparse").is_dir() and is_model_dir(path / "sparse"):
+        return read_model(path / "sparse")
+    return read_strecha_dir(path)
