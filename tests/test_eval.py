@@ -376,3 +376,22 @@ def test_cli_end_to_end_with_project_readers(tmp_path, capsys):
     np.testing.assert_allclose(data["evalquality"]["distance_residuals"], blob["distance_residuals"], rtol=1e-3)
     assert data["rotation_error_deg"]["mean"] == pytest.approx(0.0364, abs=5e-5)
     assert (out / "report.html").is_file()
+
+
+def test_cli_colmap_model_as_estimate_and_as_gt(tmp_path, capsys):
+    """A COLMAP model (written by io/colmap.py from the OpenMVG fixture) is read on either side."""
+    colmap_io = pytest.importorskip("rotonly_cli.io.colmap")
+    openmvg_io = pytest.importorskip("rotonly_cli.io.openmvg")
+    scene_dir = FIXTURES / "entry-P10"
+    model_dir = tmp_path / "model"
+    colmap_io.write_model(model_dir, openmvg_io.read_sfm_data(scene_dir / "openmvg/global/sfm_data.json"))
+    blob = json.loads((scene_dir / "openmvg/eval/gt_eval_stats_blob.json").read_text())
+    code, stdout, _ = _run_cli(["eval", "--gt", str(scene_dir), str(model_dir), "-o", str(tmp_path / "a"), "--json"],
+                               capsys)
+    assert code == 0
+    np.testing.assert_allclose(json.loads(stdout)["evalquality"]["rotation_angular_residuals"],
+                               blob["rotation_angular_residuals"], rtol=0, atol=1e-4)
+    code, stdout, _ = _run_cli(["eval", "--gt", str(model_dir), str(scene_dir / "openmvg/global/sfm_data.json"),
+                                "-o", str(tmp_path / "b"), "--json"], capsys)
+    assert code == 0
+    assert json.loads(stdout)["rotation_error_deg"]["max"] == pytest.approx(0.0, abs=1e-9)
