@@ -1,0 +1,148 @@
+"""`rotonly convert`: COLMAP database/model <-> OpenMVG project/sfm_data.json.
+
+Formats are recognised by content (SQLite magic, COLMAP model files, ``sfm_data.json``)
+and the output by its name: ``*.db`` -> COLMAP database, ``*.json`` -> OpenMVG sfm_data,
+anything else -> a folder (OpenMVG project for COLMAP input, COLMAP model for OpenMVG input).
+
+Ids: COLMAP ids start at 1, OpenMVG's at 0 (SfMInit_ImageListing). COLMAP -> OpenMVG shifts
+view, intrinsic and landmark ids by -1; the COLMAP writers shift 0-based ids by +1, so a
+round trip restores them. Pair orientation is unchanged (the shift is monotone).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from rotonly_cli.errors import InputError
+from rotonly_cli.io.types import PairMatches, SfMScene, Structure, View
+
+logger = logging.getLogger(__name__)
+PathLike = str | os.PathLike
+
+
+def shift_ids(scene: SfMScene, view_shift: int, intrinsic_shift: int, point_shift: int = 0) -> SfMScene:
+    """A copy of ``scene`` with view (= pose), intrinsic and landmark ids shifted."""
+    if view_shift == 0 and intrinsic_shift == 0 and point_shift == 0:
+        return scene
+    views = {view_id + view_shift: View(
+        view_id + view_shift, view.name, view.intrinsics_id + intrinsic_shift,
+        None if view.pose_id is None else view.pose_id + view_shift, view.width, view.height)
+        for view_id, view in scene.views.items()}
+    intrinsics = {intrinsic_id + intrinsic_shift: replace(intrinsic, id=intrinsic_id + intrinsic_shift)
+                  for intrinsic_id, intrinsic in scene.intrinsics.items()}
+    pairs = {(i + view_shift, j + view_shift): replace(pair, i=i + view_shift, j=j + view_shift)
+             for (i, j), pair in scene.pairs.items()}
+    structure = scene.structure
+    if structure is not None:
+        structure = Structure(
+            point_ids=np.asarray(structure.point_ids, dtype=np.int64) + point_shift,
+            points=structure.points, colors=structure.colors,
+            observations=[[(view_id + view_shift, feature) for view_id, feature in track]
+                          for track in structure.observations],
+            observation_pixels=structure.observation_pixels)
+    return replace(
+        scene, views=views, intrinsics=intrinsics, pairs=pairs, structure=structure,
+        poses={view_id + view_shift: pose for view_id, pose in scene.poses.items()},
+        keypoints={view_id + view_shift: k for view_id, k in scene.keypoints.items()},
+        normalized={view_id + view_shift: x for view_id, x in scene.normalized.items()})
+
+
+def colmap_to_openmvg(scene: SfMScene) -> SfMScene:
+    """COLMAP-read scene -> scene for the OpenMVG writers: 0-based ids, OpenMVG camera models
+    (``io.colmap.to_openmvg_scene``)."""
+    from rotonly_cli.io.colmap import to_openmvg_scene
+
+    def down(ids) -> int:
+        ids = list(ids)
+        return -1 if ids and min(ids) >= 1 else 0
+
+    point_ids = [] if scene.structure is None else np.asarray(scene.structure.point_ids).tolist()
+    shifted = shift_ids(scene, down(scene.views), down(scene.intrinsics), down(point_ids))
+    return to_openmvg_scene(shifted)
+
+
+def detect_input(path: Path) -> str:
+    """"colmap-db", "openmvg" (an sfm_data.json) or "colmap-model"; InputError otherwise."""
+    from rotonly_cli.io.colmap import SQLITE_MAGIC, is_model_dir
+
+    if not path.exists():
+        raise InputError("no such file or folder", path=str(path))
+    if path.is_dir():
+        if is_model_dir(path):
+            return "colmap-model"
+        if (path / "sfm_data.json").is_file():
+            return "openmvg"
+        raise InputError("folder is neither a COLMAP model (cameras/images/points3D .bin|.txt) "
+                         "nor an OpenMVG project (sfm_data.json)", path=str(path))
+    try:
+        with open(path, "rb") as stream:
+            header = stream.read(len(SQLITE_MAGIC))
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc.strerror}", path=str(path)) from None
+    if header == SQLITE_MAGIC:
+        return "colmap-db"
+    if path.suffix.lower() == ".json":
+        return "openmvg"
+    raise InputError("not an SQLite file (COLMAP database) nor an OpenMVG sfm_data .json",
+                     path=str(path))
+
+
+def _output_kind(path: Path) -> str:
+    suffix = path.suffix.lower()
+    return {".db": "colmap-db", ".json": "sfm_data"}.get(suffix, "folder")
+
+
+def convert(input_path: PathLike, output_path: PathLike, matches_dir: PathLike | None = None,
+            text: bool = False) -> str:
+    """Convert ``input_path`` to ``output_path``; returns a one-line summary."""
+    from rotonly_cli.io import colmap, openmvg
+
+    input_path, output_path = Path(input_path), Path(output_path)
+    input_kind = detect_input(input_path)
+    output_kind = _output_kind(output_path)
+    if output_path.exists() and output_path.resolve() == input_path.resolve():
+        raise InputError("output would overwrite the input", path=str(output_path))
+    if output_kind != "folder" and output_path.is_dir():
+        raise InputError("is a folder, expected a file name", path=str(output_path))
+    if output_kind == "folder" and output_path.exists() and not output_path.is_dir():
+        raise InputError("exists and is not a folder", path=str(output_path))
+
+    if input_kind == "openmvg":
+        sfm_data = input_path / "sfm_data.json" if input_path.is_dir() else input_path
+        if output_kind == "colmap-db":
+            scene = openmvg.read_project(sfm_data, matches_dir)
+        else:
+            scene = openmvg.read_sfm_data(sfm_data)
+    elif input_kind == "colmap-db":
+        scene = colmap.read_database(input_path)
+    else:
+        scene = colmap.read_model(input_path)
+
+    def write() -> None:
+        if output_kind == "colmap-db":
+            colmap.write_database(output_path, scene)
+        elif output_kind == "sfm_data":
+            openmvg.write_sfm_data(output_path, colmap_to_openmvg(scene)
+                                   if input_kind != "openmvg" else scene)
+        elif input_kind == "openmvg":
+            if not scene.poses:
+                raise InputError("no poses (extrinsics) to write as a COLMAP model",
+                                 path=str(input_path), field="extrinsics")
+            colmap.write_model(output_path, scene, binary=not text)
+        else:
+            openmvg.write_project(output_path, colmap_to_openmvg(scene))
+
+    try:
+        output_path.parent.mkdir(parents=True, exist_ok=True)
+        write()
+    except OSError as exc:
+        raise InputError(f"cannot write: {exc.strerror or exc}", path=str(output_path)) from None
+    num_verified = sum(1 for pair in scene.pairs.values() if pair.verified)
+    return (f"{input_kind} {input_path} -> {output_kind} {output_path}: {len(scene.views)} views, "
+            f"{len(scene.poses)} poses, {num_verified} verified / {len(scene.pairs)} pairs, "
+            f"{0 if scene.structure is None else len(scene.structure.points)} points")
