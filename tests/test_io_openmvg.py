@@ -301,7 +301,7 @@ def test_unknown_model_rejected():
                                     np.zeros((1, 2)))
 
 
-# =============================================================================== .feat, matches, pairs
+# ========================================================================= .feat, matches, pairs
 
 def test_feat_round_trip(tmp_path):
     rng = np.random.default_rng(6)
@@ -488,3 +488,54 @@ def test_radial_bisection_is_openmvgs_and_polish_stays_inside_its_bracket():
     residual = openmvg._radial_disto_functor(k, polished) - r2_distorted
     assert np.all(np.abs(residual) <= 4 * np.finfo(float).eps * r2_distorted)
     assert np.all(np.abs(openmvg._radial_disto_functor(k, bisection) - r2_distorted) > 0)
+
+
+def _view_json(view_id: int, ptr_id: int, poly: dict) -> dict:
+    return {"key": view_id, "value": {**poly, "ptr_wrapper": {"id": ptr_id, "data": {
+        "local_path": "", "filename": f"{view_id}.jpg", "width": 640, "height": 480,
+        "id_view": view_id, "id_intrinsic": 0, "id_pose": view_id}}}}
+
+
+def test_reader_follows_cereal_polymorphic_tables(tmp_path):
+    """ViewPriors named first take polymorphic id 1; the intrinsic type then gets 2 and its
+    later uses carry only ``2`` (formats.md §1.2); a ptr id without the high bit refers back."""
+    k3 = {"width": 640, "height": 480, "focal_length": 500, "principal_point": [319.5, 239.5],
+          "disto_k3": [0.1, 0, 0]}
+    document = {
+        "sfm_data_version": "0.3", "root_path": "",
+        "views": [
+            _view_json(4, 2147483649, {"polymorphic_id": 2147483649,
+                                       "polymorphic_name": "view_priors"}),
+            _view_json(2, 2147483650, {"polymorphic_id": 1}),
+            _view_json(3, 2147483651, {"polymorphic_id": 1073741824}),
+        ],
+        "intrinsics": [
+            {"key": 0, "value": {"polymorphic_id": 2147483650,
+                                 "polymorphic_name": "pinhole_radial_k3",
+                                 "ptr_wrapper": {"id": 2147483652, "data": k3}}},
+            {"key": 1, "value": {"polymorphic_id": 2, "ptr_wrapper": {
+                "id": 2147483653, "data": {**k3, "focal_length": 600}}}},
+            {"key": 5, "value": {"polymorphic_id": 2, "ptr_wrapper": {"id": 4}}},
+        ],
+        "extrinsics": [], "structure": [], "control_points": []}
+    path = tmp_path / "sfm_data.json"
+    path.write_text(json.dumps(document))
+    scene = openmvg.read_sfm_data(path)
+    assert sorted(scene.views) == [2, 3, 4] and scene.views[4].name == "4.jpg"
+    assert [scene.intrinsics[i].model for i in (0, 1, 5)] == ["pinhole_radial_k3"] * 3
+    np.testing.assert_array_equal(scene.intrinsics[1].params, [600, 320, 240, 0.1, 0, 0])
+    np.testing.assert_array_equal(scene.intrinsics[5].params, scene.intrinsics[0].params)
+    document["intrinsics"][1]["value"]["polymorphic_id"] = 3  # never named
+    path.write_text(json.dumps(document))
+    with pytest.raises(InputError, match=r"intrinsics\[key=1\].polymorphic_id"):
+        openmvg.read_sfm_data(path)
+
+
+def test_reader_accepts_version_0_2_views(tmp_path):
+    document = json.loads((FIXTURES / "sfm_data.json").read_text())
+    document["sfm_data_version"] = "0.2"
+    for item in document["views"]:
+        del item["value"]["polymorphic_id"]
+    path = tmp_path / "sfm_data.json"
+    path.write_text(json.dumps(document))
+    assert len(openmvg.read_sfm_data(path).views) == 8

@@ -292,7 +292,7 @@ def distort_project(intrinsics: Intrinsics, normalized: np.ndarray) -> np.ndarra
     return distorted * focal + principal_point
 
 
-# ============================================================================ sfm_data.json: reading
+# ======================================================================== sfm_data.json: reading
 
 class _JsonFields:
     """Typed access to a parsed JSON object; errors name the file and a field path."""
@@ -505,7 +505,7 @@ def read_sfm_data(path: PathLike) -> SfMScene:
     return scene
 
 
-# ============================================================================ sfm_data.json: writing
+# ======================================================================== sfm_data.json: writing
 
 def _json_uint(value: Any, where: str) -> int:
     integer = int(value)
@@ -867,7 +867,8 @@ def read_matches(path: PathLike) -> MatchesDict:
     return _read_matches_txt(path)
 
 
-def _sorted_match_arrays(matches: Mapping[tuple[int, int], Any]) -> list[tuple[int, int, np.ndarray]]:
+def _sorted_match_arrays(
+        matches: Mapping[tuple[int, int], Any]) -> list[tuple[int, int, np.ndarray]]:
     rows = []
     for (view_i, view_j), value in matches.items():
         array = value.matches if isinstance(value, PairMatches) else value
