@@ -539,3 +539,15 @@ def test_reader_accepts_version_0_2_views(tmp_path):
     path = tmp_path / "sfm_data.json"
     path.write_text(json.dumps(document))
     assert len(openmvg.read_sfm_data(path).views) == 8
+
+
+def test_fast_structure_text_equals_json_dumps():
+    scene = _synthetic_scene(np.random.default_rng(8))
+    structure = scene.structure
+    structure.point_ids = np.append(structure.point_ids, 0)
+    structure.points = np.vstack([structure.points, [1e-5, -0.0, 3e20]])
+    structure.observations.append([])
+    structure.observation_pixels.append(np.zeros((0, 2)))
+    expected = json.dumps(openmvg.sfm_data_document(scene), indent=4, ensure_ascii=False)
+    assert openmvg.sfm_data_bytes(scene) == expected.encode("utf-8")
+    assert '"observations": []' in expected and "1e-05" in expected
