@@ -89,9 +89,15 @@ def _project_jac(Q: np.ndarray) -> np.ndarray:
 
 
 def bundle_adjust_twoview(R_init: np.ndarray, t_init: np.ndarray, x_i: np.ndarray, x_j: np.ndarray,
-                          points_init: np.ndarray | None = None, max_evaluations: int = 100,
-                          tolerance: float = 1e-12) -> TwoViewBAResult:
-    """Minimise the two-view reprojection error over (R_ij, unit t_ij, points)."""
+                          points_init: np.ndarray | None = None, max_evaluations: int = 50,
+                          tolerance: float = 1e-12, max_inner_iterations: int = 300) -> TwoViewBAResult:
+    """Minimise the two-view reprojection error over (R_ij, unit t_ij, points).
+
+    The LSMR sub-problem tolerances are tightened to 1e-12 (scipy's 1e-6 default makes
+    the trust-region steps so inexact that a regular scene needs 100+ evaluations instead
+    of about 6); ``max_inner_iterations`` bounds LSMR on degenerate scenes (Holoplane,
+    pure rotation) where the normal equations are singular.
+    """
     x_i = np.asarray(x_i, dtype=float)[:, :2]
     x_j = np.asarray(x_j, dtype=float)[:, :2]
     m = len(x_i)
@@ -145,6 +151,7 @@ def bundle_adjust_twoview(R_init: np.ndarray, t_init: np.ndarray, x_i: np.ndarra
     params0 = np.concatenate([np.zeros(5), P0.ravel()])
     r0 = residuals(params0)
     sol = least_squares(residuals, params0, jac=jacobian, method="trf", tr_solver="lsmr", x_scale="jac",
+                        tr_options=dict(atol=1e-12, btol=1e-12, maxiter=max_inner_iterations),
                         ftol=tolerance, xtol=tolerance, gtol=tolerance, max_nfev=max_evaluations)
     R, raw_t, P = unpack(sol.x)
     return TwoViewBAResult(R_j_from_i=R, t_direction=raw_t / np.linalg.norm(raw_t), points_in_i=P,

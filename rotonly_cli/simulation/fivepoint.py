@@ -25,8 +25,9 @@ from rotonly_cli.geometry import so3
 class RelativePoseEstimate:
     R_j_from_i: np.ndarray  # (3, 3); identity when ``success`` is False
     t_direction: np.ndarray  # (3,) unit t_ij (zeros on failure)
-    inlier_mask: np.ndarray  # (m,) bool: RANSAC inliers that also pass the cheirality test
+    inlier_mask: np.ndarray  # (m,) bool: RANSAC (epipolar) inliers
     success: bool
+    num_cheiral: int = 0  # inliers in front of both cameras for the chosen decomposition
 
     @property
     def num_inliers(self) -> int:
@@ -51,12 +52,14 @@ def five_point_ransac(x_i: np.ndarray, x_j: np.ndarray, focal: float, threshold_
     if E is None or E.shape[0] < 3 or not np.all(np.isfinite(E)):
         return failure
     E = E[:3]  # several stacked solutions are possible on degenerate data: keep the best-voted first
-    n_good, R, t, pose_mask = cv2.recoverPose(E, x_i, x_j, np.eye(3), mask=mask.copy())
-    if n_good < 5 or not np.all(so3.is_rotation(R)):
+    inliers = mask.ravel() > 0
+    n_cheiral, R, t, _ = cv2.recoverPose(E, x_i, x_j, np.eye(3), mask=mask.copy())
+    if inliers.sum() < 5 or not np.all(so3.is_rotation(R)):
         return failure
-    inliers = pose_mask.ravel() > 0
+    # The epipolar inliers are kept even when few of them pass the cheirality test: under pure
+    # rotation (PR/B/I) E = [t]x R holds for any t, so depth signs carry no information there.
     t = t.ravel()
-    return RelativePoseEstimate(np.asarray(R, dtype=float), t / np.linalg.norm(t), inliers, True)
+    return RelativePoseEstimate(np.asarray(R, dtype=float), t / np.linalg.norm(t), inliers, True, int(n_cheiral))
 
 
 def perturbed_rotation(R: np.ndarray, angle_deg: float, rng: np.random.Generator) -> np.ndarray:

@@ -270,6 +270,21 @@ def _writer(module: str, name: str):
         raise AlgorithmError(f"writer rotonly_cli.io.{module}.{name} is not available: {exc}") from exc
 
 
+def as_openmvg_camera(scene: SfMScene) -> SfMScene:
+    """Shallow copy of ``scene`` whose COLMAP ``PINHOLE`` (fx = fy) cameras become OpenMVG
+    ``pinhole`` [focal, ppx, ppy] (both in COLMAP's pixel convention, types.py)."""
+    out = copy.copy(scene)
+    out.intrinsics = {}
+    for key, intr in scene.intrinsics.items():
+        fx, fy, cx, cy = np.asarray(intr.params, dtype=float)
+        if intr.model != "PINHOLE" or fx != fy:
+            raise InputError(f"cannot express {intr.model} {intr.params} as an OpenMVG pinhole",
+                             field=f"intrinsics[{key}]")
+        out.intrinsics[key] = Intrinsics(id=intr.id, model="pinhole", width=intr.width, height=intr.height,
+                                         params=np.array([fx, cx, cy]))
+    return out
+
+
 def save_multiview(out_dir, problem: MultiViewProblem, formats: tuple[str, ...] = ("colmap", "openmvg")):
     """Write ``problem`` into ``out_dir`` atomically (temp folder next to it, renamed at the end).
 
@@ -292,10 +307,9 @@ def save_multiview(out_dir, problem: MultiViewProblem, formats: tuple[str, ...] 
         if "colmap" in formats:
             _writer("colmap", "write_database")(tmp / "database.db", problem.scene)
         if "openmvg" in formats:
-            (tmp / "openmvg").mkdir()
-            _writer("openmvg", "write_project")(tmp / "openmvg", problem.scene)
+            _writer("openmvg", "write_project")(tmp / "openmvg", as_openmvg_camera(problem.scene))
         (tmp / "gt").mkdir()
-        _writer("openmvg", "write_sfm_data")(tmp / "gt" / "sfm_data.json", problem.gt_scene())
+        _writer("openmvg", "write_sfm_data")(tmp / "gt" / "sfm_data.json", as_openmvg_camera(problem.gt_scene()))
         info = dict(setup=problem.setup, noise_px=problem.noise_px, focal=problem.focal,
                     image_size=list(problem.image_size), num_pairs=len(problem.scene.pairs),
                     corrupted_pairs=[list(map(int, key)) for key in problem.corrupted_pairs],
