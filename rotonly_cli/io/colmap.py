@@ -205,7 +205,10 @@ def check_database(path: PathLike) -> Path:
     if header != SQLITE_MAGIC:
         raise InputError("not an SQLite file (expected a COLMAP database)", path=str(path))
     try:
-        connection = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True)
+        # immutable=1: no locks and no -wal/-shm sidecars next to the input (pycolmap
+        # databases are in WAL mode, where even a read-only open would create them).
+        connection = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro&immutable=1",
+                                     uri=True)
         try:
             tables = {row[0] for row in connection.execute(
                 "SELECT name FROM sqlite_master WHERE type = 'table'")}
@@ -226,6 +229,9 @@ def _open_database_copy(path: Path) -> Iterator:
     with tempfile.TemporaryDirectory(prefix="rotonly-db-") as scratch:
         copy = Path(scratch) / "database.db"
         shutil.copyfile(path, copy)
+        wal = Path(f"{path}-wal")  # committed-but-not-checkpointed pages of a WAL database
+        if wal.is_file():
+            shutil.copyfile(wal, Path(f"{copy}-wal"))
         database = pycolmap.Database.open(str(copy))
         try:
             yield database
@@ -237,7 +243,7 @@ def read_database(path: PathLike, include_unverified: bool = True) -> SfMScene:
     """COLMAP database -> SfMScene (formats.md §4.1-§4.6).
 
     Verified pairs come from ``two_view_geometries`` (inlier matches, config name and, when
-    stored, ``cam2_from_cam1`` as R_j_from_i / t_j_from_i); pairs verified and rejected
+    stored, ``cam2_from_cam1`` as R_j_from_i / unit t_j_from_i); pairs verified and rejected
     (UNDEFINED, DEGENERATE, WATERMARK or no inlier) are dropped; with
     ``include_unverified`` the raw ``matches`` of pairs never verified come with
     ``verified=False``.
@@ -282,7 +288,10 @@ def read_database(path: PathLike, include_unverified: bool = True) -> SfMScene:
             relative = geometry.cam2_from_cam1
             if relative is not None:
                 pair.R_j_from_i = np.array(relative.rotation.matrix(), dtype=np.float64)
-                pair.t_j_from_i = np.array(relative.translation, dtype=np.float64)
+                # A direction (scale unknown, §4.5): PLANAR/H decompositions store |t| != 1.
+                translation = np.array(relative.translation, dtype=np.float64)
+                norm = np.linalg.norm(translation)
+                pair.t_j_from_i = translation / norm if norm > 0 else translation
             scene.pairs[(i, j)] = pair
         if num_rejected:
             logger.info("%s: %d verified-and-rejected pairs skipped", path, num_rejected)
@@ -348,6 +357,13 @@ def write_database(path: PathLike, scene: SfMScene) -> None:
             _fill_database(pycolmap, database, scene, view_offset, camera_offset)
         finally:
             database.close()
+        # pycolmap leaves the file in WAL mode, where every later reader (even read-only)
+        # creates -wal/-shm files beside it; a rollback-journal file is self-contained.
+        connection = sqlite3.connect(str(staging))
+        try:
+            connection.execute("PRAGMA journal_mode=DELETE")
+        finally:
+            connection.close()
         os.replace(staging, path)
     finally:
         for leftover in (staging, Path(f"{staging}-journal"), Path(f"{staging}-wal"),
