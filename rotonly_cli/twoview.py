@@ -1,0 +1,126 @@
+"""Public two-view API (architecture.md "Python API contract", stable).
+
+    from rotonly_cli import twoview
+    twoview.identify_scene(R_j_from_i, x_i, x_j)  -> SceneIdentification(kind, detection_value, ...)
+    twoview.refine_rotation(R_j_from_i, x_i, x_j) -> TwoViewRefinement(rotation, translation_direction,
+                                                                       cost, iterations, kind)
+    twoview.identify_scenes(R_j_from_i, xs_i, xs_j) / twoview.refine_rotations(...)   # many edges at once
+
+``x_i``, ``x_j``: (m, 2) or (m, 3) normalized coordinates of matched points (at least 6).
+``R_j_from_i``: the relative rotation R_ij = R_j R_i^T (maps camera-i coordinates into camera j).
+Bad input raises ``ValueError`` naming the argument.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from rotonly_cli.geometry import twoview as _tv
+from rotonly_cli.geometry.scene import IdentificationOptions, SceneKind, identify
+from rotonly_cli.geometry.trrm import TRRMOptions, refine
+
+__all__ = [
+    "SceneKind", "SceneIdentification", "TwoViewRefinement", "BatchRefinement", "IdentificationOptions",
+    "TRRMOptions", "identify_scene", "identify_scenes", "refine_rotation", "refine_rotations",
+]
+
+
+@dataclass(frozen=True)
+class SceneIdentification:
+    kind: SceneKind
+    detection_value: float  #: v_rs of the paper (RotationSingular when < threshold)
+    pure_rotation_ratio: float  #: ρ = f_pure / f_TRRM (PR/B/I when < threshold)
+    ps_eigenvalues: tuple[float, float, float]  #: eigenvalues of Pˢ at the given rotation, ascending
+
+
+@dataclass(frozen=True)
+class TwoViewRefinement:
+    rotation: np.ndarray  #: refined R_j_from_i (3, 3)
+    translation_direction: np.ndarray  #: unit t_ij (chirality sign); zeros for PURE_ROTATION
+    cost: float  #: final eq:ROMerr
+    iterations: int
+    kind: SceneKind
+    initial_cost: float = float("nan")
+    converged: bool = True
+    detection_value: float = float("nan")
+
+
+@dataclass(frozen=True)
+class BatchRefinement:
+    rotations: np.ndarray  #: (E, 3, 3)
+    translation_directions: np.ndarray  #: (E, 3)
+    costs: np.ndarray  #: (E,)
+    initial_costs: np.ndarray  #: (E,)
+    iterations: np.ndarray  #: (E,)
+    converged: np.ndarray  #: (E,)
+    kinds: np.ndarray  #: (E,) SceneKind
+    detection_values: np.ndarray  #: (E,)
+    pure_rotation_ratios: np.ndarray  #: (E,)
+
+    def __len__(self) -> int:
+        return len(self.costs)
+
+    def __getitem__(self, e: int) -> TwoViewRefinement:
+        return TwoViewRefinement(rotation=self.rotations[e], translation_direction=self.translation_directions[e],
+                                 cost=float(self.costs[e]), iterations=int(self.iterations[e]), kind=self.kinds[e],
+                                 initial_cost=float(self.initial_costs[e]), converged=bool(self.converged[e]),
+                                 detection_value=float(self.detection_values[e]))
+
+
+def _prepare(R_j_from_i, xs_i: Sequence, xs_j: Sequence) -> tuple[np.ndarray, _tv.EdgeBatch]:
+    batch = _tv.pack_edges(xs_i, xs_j)
+    R = _tv.as_rotations(R_j_from_i, "R_j_from_i", batch=batch.num_edges).reshape(-1, 3, 3)
+    return R, batch
+
+
+def _quiet():
+    """Numerical corner cases are handled explicitly; no numpy warning may escape."""
+    ctx = np.errstate(all="ignore")
+    return ctx
+
+
+def identify_scenes(R_j_from_i, xs_i: Sequence, xs_j: Sequence,
+                    options: IdentificationOptions = IdentificationOptions()) -> list[SceneIdentification]:
+    """Identify many edges at once (batched)."""
+    R, batch = _prepare(R_j_from_i, xs_i, xs_j)
+    with _quiet(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ident = identify(R, batch, options)
+    return [SceneIdentification(kind=ident.kinds[e], detection_value=float(ident.detection_value[e]),
+                                pure_rotation_ratio=float(ident.pure_rotation_ratio[e]),
+                                ps_eigenvalues=tuple(float(v) for v in ident.ps_eigenvalues[e]))
+            for e in range(batch.num_edges)]
+
+
+def identify_scene(R_j_from_i, x_i, x_j, options: IdentificationOptions = IdentificationOptions()) -> SceneIdentification:
+    """Scene kind of one edge: REGULAR, PURE_ROTATION (PR/B/I) or ROTATION_SINGULAR."""
+    R = _tv.as_rotations(R_j_from_i, "R_j_from_i")
+    if R.ndim != 2:
+        raise ValueError(f"R_j_from_i: expected one (3, 3) rotation, got shape {R.shape}")
+    return identify_scenes(R[None], [x_i], [x_j], options)[0]
+
+
+def refine_rotations(R_j_from_i, xs_i: Sequence, xs_j: Sequence, options: TRRMOptions = TRRMOptions(),
+                     identification_options: IdentificationOptions = IdentificationOptions()) -> BatchRefinement:
+    """TRRM (Alg. 2) on many edges at once, in lock-step."""
+    R, batch = _prepare(R_j_from_i, xs_i, xs_j)
+    with _quiet(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        res = refine(R, batch, options, identification_options)
+    return BatchRefinement(rotations=res.rotations, translation_directions=res.translation_directions, costs=res.cost,
+                           initial_costs=res.initial_cost, iterations=res.iterations, converged=res.converged,
+                           kinds=res.kinds, detection_values=res.identification.detection_value,
+                           pure_rotation_ratios=res.identification.pure_rotation_ratio)
+
+
+def refine_rotation(R_j_from_i, x_i, x_j, options: TRRMOptions = TRRMOptions(),
+                    identification_options: IdentificationOptions = IdentificationOptions()) -> TwoViewRefinement:
+    """TRRM (Alg. 2) on one edge: the refined R_j_from_i and the closed-form t_ij."""
+    R = _tv.as_rotations(R_j_from_i, "R_j_from_i")
+    if R.ndim != 2:
+        raise ValueError(f"R_j_from_i: expected one (3, 3) rotation, got shape {R.shape}")
+    return refine_rotations(R[None], [x_i], [x_j], options, identification_options)[0]
