@@ -43,6 +43,21 @@ def test_read_database_counts_and_input_unchanged() -> None:
         assert abs(np.linalg.norm(pair.t_j_from_i) - 1.0) < 1e-9
 
 
+def test_read_database_leaves_no_sidecars_next_to_a_wal_input(tmp_path: Path) -> None:
+    """pycolmap writes WAL-mode databases; even a read-only sqlite open of one would create
+    -wal/-shm files beside it. read_database must leave the folder as it was."""
+    import sqlite3
+
+    database = tmp_path / "wal.db"
+    database.write_bytes((HJ / "database.db").read_bytes())
+    connection = sqlite3.connect(database)
+    assert connection.execute("PRAGMA journal_mode=WAL").fetchone()[0] == "wal"
+    connection.close()
+    before = {p.name: _md5(p) for p in tmp_path.iterdir()}
+    assert len(colmap.read_database(database).pairs) == 28
+    assert {p.name: _md5(p) for p in tmp_path.iterdir()} == before
+
+
 def test_normalized_is_pinhole_inverse(hj_scene: SfMScene) -> None:
     fx, fy, cx, cy = hj_scene.intrinsics[1].params
     assert hj_scene.intrinsics[1].model == "PINHOLE"
