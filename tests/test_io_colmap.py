@@ -226,3 +226,13 @@ def test_read_model_errors(tmp_path: Path) -> None:
     (tmp_path / "cameras.bin").write_bytes(b"")
     with pytest.raises(InputError, match="not a COLMAP model"):
         colmap.read_model(tmp_path)
+
+
+def test_rejected_pairs_are_dropped(tmp_path: Path) -> None:
+    """A pair verified as DEGENERATE is neither a verified pair nor 'never verified'."""
+    scene = _small_openmvg_scene()
+    scene.pairs[(0, 2)] = PairMatches(0, 2, np.array([[1, 1], [2, 2]]), config="DEGENERATE")
+    colmap.write_database(tmp_path / "r.db", scene)
+    back = colmap.read_database(tmp_path / "r.db")
+    assert sorted(back.pairs) == [(1, 2), (2, 3)]
+    assert sorted(colmap.read_database(tmp_path / "r.db", include_unverified=False).pairs) == [(1, 2)]

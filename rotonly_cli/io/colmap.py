@@ -527,6 +527,7 @@ def write_model(out_dir: PathLike, scene: SfMScene, binary: bool = True) -> None
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError("exists and is not a directory", path=str(out_dir))
     reconstruction = _reconstruction(pycolmap, scene)
+    reconstruction.update_point_3d_errors()  # points3D ERROR = mean reprojection error (px)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     try:
