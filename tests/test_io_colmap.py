@@ -198,7 +198,8 @@ def test_write_model_read_model(tmp_path: Path, hj_scene: SfMScene, binary: bool
     np.testing.assert_array_equal(back.structure.colors, scene.structure.colors)
     np.testing.assert_array_equal(back.structure.point_ids, [1, 2, 3, 4])  # COLMAP ids are > 0
     # the observation in unposed view 8 is dropped, the others kept in order
-    assert back.structure.observations == [[(1, 3), (2, 5)], [(1, 4), (3, 7)], [(2, 2), (4, 4), (5, 9)], [(6, 1), (7, 1)]]
+    assert back.structure.observations == [[(1, 3), (2, 5)], [(1, 4), (3, 7)],
+                                           [(2, 2), (4, 4), (5, 9)], [(6, 1), (7, 1)]]
     assert back.intrinsics[1].model == "PINHOLE"
 
 
