@@ -73,8 +73,8 @@ def detection_values(batch: tv.EdgeBatch) -> np.ndarray:
     """v_rs = max(λ_min(Gⁱ)/m, λ_min(Gʲ)/m), G = Σ X X^T of z = 1 points (eq:case2IdentifyingMatrixBasic)."""
     xi = batch.x_i / batch.x_i[:, 2:3]
     xj = batch.x_j / batch.x_j[:, 2:3]
-    G_i = batch.segment_sum(xi[:, :, None] * xi[:, None, :])
-    G_j = batch.segment_sum(xj[:, :, None] * xj[:, None, :])
+    G_i = tv.outer_segment_sum(xi, xi, batch.offsets)
+    G_j = tv.outer_segment_sum(xj, xj, batch.offsets)
     m = batch.counts.astype(float)
     lam_i = tv.symmetric_eigenvalues3(G_i)[:, 0]
     lam_j = tv.symmetric_eigenvalues3(G_j)[:, 0]
@@ -85,7 +85,9 @@ def pure_rotation_ratios(R_j_from_i: np.ndarray, batch: tv.EdgeBatch) -> np.ndar
     """ρ = f_pure(R*) / f_TRRM(R_ij) per edge (module docstring)."""
     R_star = tv.best_pure_rotation(batch)
     f_pure = tv.pure_rotation_residuals(R_star, batch)
-    f_trrm = tv.trrm_residuals(R_j_from_i, batch).cost
+    from rotonly_cli.geometry.kernels import trrm_normal_equations  # kernels imports twoview only
+
+    f_trrm = trrm_normal_equations(R_j_from_i, batch, with_jacobian=False).cost
     tiny = 1e-24 * batch.counts  # 0/0 on noise-free pure rotation -> ρ = 1
     return (f_pure + tiny) / (f_trrm + tiny)
 

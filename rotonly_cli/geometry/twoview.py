@@ -78,6 +78,23 @@ def segment_sum(values: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     return np.add.reduceat(values, offsets[:-1], axis=0)
 
 
+def outer_segment_sum(a: np.ndarray, b: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Per-edge Σ_k a_k b_k^T (E, 3, 3) without an (M, 3, 3) temporary."""
+    E = len(offsets) - 1
+    out = np.zeros((E, 3, 3))
+    if E == 0:
+        return out
+    starts = offsets[:-1]
+    symmetric = a is b
+    for r in range(3):
+        for c in range(3):
+            if symmetric and c < r:
+                out[:, r, c] = out[:, c, r]
+                continue
+            out[:, r, c] = np.add.reduceat(a[:, r] * b[:, c], starts)
+    return out
+
+
 def _as_points(x, name: str) -> np.ndarray:
     try:
         arr = np.asarray(x, dtype=float)
@@ -159,7 +176,7 @@ def theta_vectors(R_j_from_i: np.ndarray, batch: EdgeBatch) -> np.ndarray:
 def ps_matrices(R_j_from_i: np.ndarray, batch: EdgeBatch) -> np.ndarray:
     """Pˢ_ij = Σ_k θ θ^T per edge (eq:observeDerive2, Theorem 1), (E, 3, 3)."""
     theta = theta_vectors(R_j_from_i, batch)
-    return batch.segment_sum(theta[:, :, None] * theta[:, None, :])
+    return outer_segment_sum(theta, theta, batch.offsets)
 
 
 def ppo_matrix(R_j_from_i: np.ndarray, x_i: np.ndarray, x_j: np.ndarray) -> np.ndarray:
@@ -417,9 +434,10 @@ def pure_rotation_residuals(R_j_from_i: np.ndarray, batch: EdgeBatch) -> np.ndar
     """eq:PureRotationReprojBearingError for both views: per-edge cost Σ ‖x̂_j - R x̂_i‖² · 2."""
     xi_hat, _ = _unit(batch.x_i)
     xj_hat, _ = _unit(batch.x_j)
-    R_m = np.repeat(R_j_from_i, batch.counts, axis=0)
-    d = xj_hat - np.einsum("mab,mb->ma", R_m, xi_hat)
-    return 2.0 * batch.segment_sum(np.einsum("ma,ma->m", d, d))
+    # Σ‖x̂_j - R x̂_i‖² = Σ (2 - 2 x̂_j·R x̂_i) = 2m - 2 tr(R^T H), H = Σ x̂_j x̂_i^T: no per-match rotation
+    H = outer_segment_sum(xj_hat, xi_hat, batch.offsets)
+    m = batch.counts.astype(float)
+    return 2.0 * np.maximum(2.0 * m - 2.0 * np.einsum("eab,eab->e", R_j_from_i, H), 0.0)
 
 
 def best_pure_rotation(batch: EdgeBatch) -> np.ndarray:
@@ -427,5 +445,5 @@ def best_pure_rotation(batch: EdgeBatch) -> np.ndarray:
     minimiser of the PR/B/I form of the TRRM cost (eq:PureRotationReprojBearingError)."""
     xi_hat, _ = _unit(batch.x_i)
     xj_hat, _ = _unit(batch.x_j)
-    H = batch.segment_sum(xj_hat[:, :, None] * xi_hat[:, None, :])
+    H = outer_segment_sum(xj_hat, xi_hat, batch.offsets)
     return so3.project_to_so3(H)
