@@ -83,13 +83,12 @@ def test_refine_line_scene_is_rotation_singular(tmp_path) -> None:
     assert row["refined_rotation_error_deg"] == pytest.approx(row["initial_rotation_error_deg"])  # Alg. 2: left as is
 
 
-@pytest.mark.xfail(strict=True, reason="known: the noise-aware PR/B/I ratio test (geometry/scene.py) fires first on "
-                   "Holoplane (rho ~ 0.01), so the paper's RotationSingular label is never reached")
 def test_refine_holoplane_is_rotation_singular(tmp_path) -> None:
     pytest.importorskip("rotonly_cli.twoview")
-    row = _refine_json(tmp_path, "holoplane")
+    row = _refine_json(tmp_path, "holoplane")  # rank P^S = 1: points and both centres on one plane
     assert row["detection_value"] < 1e-4
     assert row["kind"] == "ROTATION_SINGULAR"
+    assert row["refined_rotation_error_deg"] == pytest.approx(row["initial_rotation_error_deg"])
 
 
 def test_simulate_multiview_writes_projects(tmp_path) -> None:
