@@ -49,12 +49,15 @@ def refine_simulation(path: Path, init: str, perturb_deg: float, ransac_threshol
     else:
         R_init = perturbed_rotation(problem.R_j_from_i, perturb_deg, np.random.default_rng(seed))
 
-    start = time.perf_counter()
-    identification = twoview.identify_scene(R_init, x_i, x_j)
-    time_identify = time.perf_counter() - start
-    start = time.perf_counter()
-    refinement = twoview.refine_rotation(R_init, x_i, x_j)
-    time_refine = time.perf_counter() - start
+    try:
+        start = time.perf_counter()
+        identification = twoview.identify_scene(R_init, x_i, x_j)
+        time_identify = time.perf_counter() - start
+        start = time.perf_counter()
+        refinement = twoview.refine_rotation(R_init, x_i, x_j)
+        time_refine = time.perf_counter() - start
+    except ValueError as exc:  # e.g. fewer matches than the two-view core accepts
+        raise AlgorithmError(f"{path}: two-view refinement impossible: {exc}") from exc
     kind = getattr(identification.kind, "value", identification.kind)
     return {
         "file": str(path), "scene": problem.scene, "noise_px": problem.noise_px, "matches": int(len(x_i)),
