@@ -1,0 +1,89 @@
+"""External and library reference methods for the benchmarks (not on ``rotonly run``'s path).
+
+* :func:`chatterjee` — Chatterjee & Govindu L1RA + IRLS with the ℓ½ (HALF_NORM) weight, the
+  TPAMI-2018 setting the paper and ROBA use as initialiser (algorithms.md §2.1 item 6), via
+  :func:`rotonly_cli.geometry.averaging.average_rotations`, uniform edge weights (ROBA's
+  ``AverageSO3Graph(..., 'Method', 'L0.5')`` has none).
+* :func:`pycolmap_rotation_averaging` — ``pycolmap.run_rotation_averaging`` (algorithms.md §2.3),
+  default options (Geman–McClure σ = 5°), edges weighted by ``num_matches`` for the spanning tree.
+* :func:`pycolmap_global_mapper` — ``pycolmap.global_mapping`` (GLOMAP: rotation averaging +
+  global positioning + bundle adjustment) on a private copy of a COLMAP database, intrinsics
+  fixed (formats.md §4.7), as the Strecha README's reference row.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from rotonly_cli.geometry.averaging import AveragingOptions, RobustWeight, average_rotations
+
+
+def chatterjee(num_views: int, edge_views: np.ndarray, R_j_from_i: np.ndarray, fixed_view: int = 0,
+               weights: np.ndarray | None = None) -> np.ndarray:
+    """Global R_cam_from_world (n, 3, 3) by L1RA + ℓ½-IRLS; NaN for views not connected."""
+    edge_views = np.asarray(edge_views, dtype=np.int64).reshape(-1, 2)
+    options = AveragingOptions(weight_type=RobustWeight.HALF_NORM)
+    result = average_rotations(num_views, edge_views[:, 0], edge_views[:, 1], R_j_from_i, weights=weights,
+                               fixed_view=fixed_view, options=options)
+    return result.R_cam_from_world
+
+
+def pycolmap_rotation_averaging(num_views: int, edge_views: np.ndarray, R_j_from_i: np.ndarray,
+                                num_matches: np.ndarray | None = None, weight_type: str = "GEMAN_MCCLURE",
+                                seed: int = 0) -> np.ndarray:
+    """``pycolmap.run_rotation_averaging`` on the relative rotations; (n, 3, 3), NaN if unregistered."""
+    import pycolmap
+
+    edge_views = np.asarray(edge_views, dtype=np.int64).reshape(-1, 2)
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(pycolmap.Camera.create_from_model_id(
+        1, pycolmap.CameraModelId.PINHOLE, 800.0, 1000, 1000))
+    for v in range(num_views):
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=f"{v}", camera_id=1, image_id=v + 1))
+    graph = pycolmap.PoseGraph()
+    for e, (i, j) in enumerate(edge_views):
+        edge = pycolmap.PoseGraphEdge(pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(R_j_from_i[e])),
+                                                       np.zeros(3)))
+        edge.num_matches = int(num_matches[e]) if num_matches is not None else 100
+        graph.add_edge(int(i) + 1, int(j) + 1, edge)
+    options = pycolmap.RotationEstimatorOptions()
+    options.weight_type = getattr(pycolmap.RotationWeightType, weight_type)
+    options.random_seed = int(seed)
+    out = np.full((num_views, 3, 3), np.nan)
+    if not pycolmap.run_rotation_averaging(options, graph, rec, []):
+        return out
+    for v in range(num_views):
+        image = rec.images[v + 1]
+        if image.has_pose:
+            out[v] = np.asarray(image.cam_from_world().rotation.matrix())
+    return out
+
+
+def pycolmap_global_mapper(database_path: str | Path, seed: int = 0, num_threads: int = 1) -> dict[str, np.ndarray]:
+    """GLOMAP through pycolmap on a copy of ``database_path``: {image name: R_cam_from_world} of
+    the largest model (intrinsics kept fixed). Returns {} when no model is produced."""
+    import pycolmap
+
+    with tempfile.TemporaryDirectory(prefix="rotonly_glomap_") as tmp:
+        db_copy = Path(tmp) / "database.db"
+        shutil.copyfile(database_path, db_copy)
+        options = pycolmap.GlobalPipelineOptions()
+        options.random_seed = int(seed)
+        options.num_threads = int(num_threads)
+        options.mapper.random_seed = int(seed)
+        options.mapper.num_threads = int(num_threads)
+        options.mapper.bundle_adjustment.refine_focal_length = False
+        options.mapper.bundle_adjustment.refine_principal_point = False
+        options.mapper.bundle_adjustment.refine_extra_params = False
+        (Path(tmp) / "images").mkdir()  # must exist; the images themselves are not read
+        (Path(tmp) / "out").mkdir()
+        models = pycolmap.global_mapping(db_copy, Path(tmp) / "images", Path(tmp) / "out", options)
+        if not models:
+            return {}
+        rec = max(models.values(), key=lambda r: r.num_reg_images())
+        return {image.name: np.asarray(image.cam_from_world().rotation.matrix())
+                for image in rec.images.values() if image.has_pose}
