@@ -63,11 +63,6 @@ def _rotate(R: np.ndarray, counts: np.ndarray, x):
                  for k in range(3))
 
 
-def _null_vector_and_pinv(P: np.ndarray):
-    lam, t = tv.smallest_eigenpair(P)
-    return lam, t
-
-
 def _pinv_shifted(P: np.ndarray, lam: np.ndarray, t: np.ndarray) -> np.ndarray:
     """(Pˢ - λI)^+ restricted to the complement of t (eigenvector perturbation)."""
     scale = np.trace(P, axis1=1, axis2=2)[:, None, None] + 1e-300
@@ -121,105 +116,137 @@ def _accumulate(J_cols, r, starts, E):
     return JtJ, Jtr
 
 
+def _trrm_chunk(Rg: np.ndarray, cnt: np.ndarray, starts: np.ndarray, xi, xj, with_jacobian: bool) -> dict:
+    """TRRM terms of one edge group, per match: residual rows r (6 arrays: r_i in camera-j
+    axes, then r_j), ‖θ‖, validity weight, t per edge and, with the Jacobian, the three
+    forward-mode columns J_cols[c] (6 arrays) and d‖θ‖/dδ_c, for R_ij <- exp([δ]x) R_ij."""
+    u = _rotate(Rg, cnt, xi)
+    theta = _cross(u, xj)
+    P = _ps_from(theta, starts)
+    lam, t = tv.smallest_eigenpair(P)
+    t_m = tuple(_rep(t[:, k], cnt) for k in range(3))
+    xj_x_t = _cross(xj, t_m)
+    u_x_t = _cross(u, t_m)
+    # chirality sign (twoview._chirality_sign_from)
+    depth_i = _dot(theta, xj_x_t)
+    depth_j = _dot(theta, u_x_t)
+    vote = _seg(((depth_i > 0) & (depth_j > 0)).astype(np.int64) - ((depth_i < 0) & (depth_j < 0)), starts)
+    sign = np.where(vote < 0, -1.0, 1.0)
+    if np.any(sign < 0):
+        t = t * sign[:, None]
+        sgn_m = _rep(sign, cnt)
+        t_m = tuple(sgn_m * v for v in t_m)
+        xj_x_t = tuple(sgn_m * v for v in xj_x_t)
+        u_x_t = tuple(sgn_m * v for v in u_x_t)
+    a_j = np.sqrt(_dot(xj_x_t, xj_x_t))
+    a_i = np.sqrt(_dot(u_x_t, u_x_t))
+    b = np.sqrt(_dot(theta, theta))
+    s_j = _axpy(a_j, u, b, t_m)
+    s_i = _axpy(a_i, xj, -b, t_m)
+    n_xj = np.sqrt(_dot(xj, xj))
+    n_u = np.sqrt(_dot(u, u))
+    n_sj = np.sqrt(_dot(s_j, s_j))
+    n_si = np.sqrt(_dot(s_i, s_i))
+    valid = (n_sj > 1e-14) & (n_si > 1e-14)
+    w = valid.astype(float)
+    inv_sj = np.where(valid, 1.0 / np.where(valid, n_sj, 1.0), 0.0)
+    inv_si = np.where(valid, 1.0 / np.where(valid, n_si, 1.0), 0.0)
+    sj_hat = tuple(v * inv_sj for v in s_j)
+    si_hat = tuple(v * inv_si for v in s_i)
+    inv_u = 1.0 / n_u
+    r = tuple(w * (u[k] * inv_u - si_hat[k]) for k in range(3)) + \
+        tuple(w * (xj[k] / n_xj - sj_hat[k]) for k in range(3))
+    out = {"r": r, "b": b, "w": w, "t": t}
+    if not with_jacobian:
+        return out
+    xj_dot_u = _dot(xj, u)
+    u_dot_t = _dot(u, t_m)
+    theta_dot_t = _dot(theta, t_m)
+    T = -_pinv_shifted(P, lam, t) @ _dPt(theta, theta_dot_t, u, xj, xj_dot_u, u_dot_t, t_m, starts)
+    inv_aj = np.where(a_j > 0, 1.0 / np.where(a_j > 0, a_j, 1.0), 0.0)
+    inv_ai = np.where(a_i > 0, 1.0 / np.where(a_i > 0, a_i, 1.0), 0.0)
+    inv_b = np.where(b > 0, 1.0 / np.where(b > 0, b, 1.0), 0.0)
+    J_cols, db_cols = [], []
+    for c in range(3):
+        du = _du(c, u)
+        dtheta = _cross(du, xj)
+        dt = tuple(_rep(T[:, k, c], cnt) for k in range(3))
+        da_j = _dot(xj_x_t, _cross(xj, dt)) * inv_aj
+        db = _dot(theta, dtheta) * inv_b
+        d_uxt = _cross(du, t_m)
+        u_x_dt = _cross(u, dt)
+        da_i = _dot(u_x_t, (d_uxt[0] + u_x_dt[0], d_uxt[1] + u_x_dt[1], d_uxt[2] + u_x_dt[2])) * inv_ai
+        ds_j = tuple(da_j * u[k] + a_j * du[k] + db * t_m[k] + b * dt[k] for k in range(3))
+        ds_i = tuple(da_i * xj[k] - db * t_m[k] - b * dt[k] for k in range(3))
+        pj = _dot(sj_hat, ds_j)
+        pi = _dot(si_hat, ds_i)
+        col = tuple(w * (du[k] * inv_u - (ds_i[k] - si_hat[k] * pi) * inv_si) for k in range(3)) + \
+            tuple(-w * (ds_j[k] - sj_hat[k] * pj) * inv_sj for k in range(3))
+        J_cols.append(col)
+        db_cols.append(db)
+    out["J_cols"] = J_cols
+    out["db"] = db_cols
+    return out
+
+
+def _chunks(batch: tv.EdgeBatch, chunk: int):
+    counts = batch.counts
+    for e0, e1 in _edge_groups(counts, chunk):
+        m0, m1 = batch.offsets[e0], batch.offsets[e1]
+        xi = tuple(np.ascontiguousarray(batch.x_i[m0:m1, k]) for k in range(3))
+        xj = tuple(np.ascontiguousarray(batch.x_j[m0:m1, k]) for k in range(3))
+        yield e0, e1, m0, m1, counts[e0:e1], batch.offsets[e0:e1] - m0, xi, xj
+
+
 def trrm_normal_equations(R: np.ndarray, batch: tv.EdgeBatch, with_jacobian: bool = True,
                           chunk: int = CHUNK_MATCHES) -> tv.ResidualEvaluation:
     """Per-edge TRRM cost (eq:ROMerr) and, optionally, JᵀJ and Jᵀr (exact Jacobian)."""
     E = batch.num_edges
-    counts = batch.counts
     cost = np.zeros(E)
     t_all = np.zeros((E, 3))
     JtJ = np.zeros((E, 3, 3)) if with_jacobian else None
     Jtr = np.zeros((E, 3)) if with_jacobian else None
-    for e0, e1 in _edge_groups(counts, chunk):
-        m0, m1 = batch.offsets[e0], batch.offsets[e1]
-        cnt = counts[e0:e1]
-        starts = batch.offsets[e0:e1] - m0
-        xi = tuple(np.ascontiguousarray(batch.x_i[m0:m1, k]) for k in range(3))
-        xj = tuple(np.ascontiguousarray(batch.x_j[m0:m1, k]) for k in range(3))
-        Rg = R[e0:e1]
-        u = _rotate(Rg, cnt, xi)
-        theta = _cross(u, xj)
-        P = _ps_from(theta, starts)
-        lam, t = tv.smallest_eigenpair(P)
-        t_m = tuple(_rep(t[:, k], cnt) for k in range(3))
-        xj_x_t = _cross(xj, t_m)
-        u_x_t = _cross(u, t_m)
-        # chirality sign (twoview._chirality_sign_from)
-        depth_i = _dot(theta, xj_x_t)
-        depth_j = _dot(theta, u_x_t)
-        vote = _seg(((depth_i > 0) & (depth_j > 0)).astype(np.int64) - ((depth_i < 0) & (depth_j < 0)), starts)
-        sign = np.where(vote < 0, -1.0, 1.0)
-        if np.any(sign < 0):
-            t = t * sign[:, None]
-            sgn_m = _rep(sign, cnt)
-            t_m = tuple(sgn_m * v for v in t_m)
-            xj_x_t = tuple(sgn_m * v for v in xj_x_t)
-            u_x_t = tuple(sgn_m * v for v in u_x_t)
-        t_all[e0:e1] = t
-        a_j = np.sqrt(_dot(xj_x_t, xj_x_t))
-        a_i = np.sqrt(_dot(u_x_t, u_x_t))
-        b = np.sqrt(_dot(theta, theta))
-        s_j = _axpy(a_j, u, b, t_m)
-        s_i = _axpy(a_i, xj, -b, t_m)
-        n_xj = np.sqrt(_dot(xj, xj))
-        n_u = np.sqrt(_dot(u, u))
-        n_sj = np.sqrt(_dot(s_j, s_j))
-        n_si = np.sqrt(_dot(s_i, s_i))
-        valid = (n_sj > 1e-14) & (n_si > 1e-14)
-        w = valid.astype(float)
-        inv_sj = np.where(valid, 1.0 / np.where(valid, n_sj, 1.0), 0.0)
-        inv_si = np.where(valid, 1.0 / np.where(valid, n_si, 1.0), 0.0)
-        sj_hat = tuple(v * inv_sj for v in s_j)
-        si_hat = tuple(v * inv_si for v in s_i)
-        inv_u = 1.0 / n_u
-        r = tuple(w * (u[k] * inv_u - si_hat[k]) for k in range(3)) + \
-            tuple(w * (xj[k] / n_xj - sj_hat[k]) for k in range(3))
-        cost[e0:e1] = _seg(sum(v * v for v in r), starts)
-        if not with_jacobian:
-            continue
-        xj_dot_u = _dot(xj, u)
-        u_dot_t = _dot(u, t_m)
-        theta_dot_t = _dot(theta, t_m)
-        T = -_pinv_shifted(P, lam, t) @ _dPt(theta, theta_dot_t, u, xj, xj_dot_u, u_dot_t, t_m, starts)
-        inv_aj = np.where(a_j > 0, 1.0 / np.where(a_j > 0, a_j, 1.0), 0.0)
-        inv_ai = np.where(a_i > 0, 1.0 / np.where(a_i > 0, a_i, 1.0), 0.0)
-        inv_b = np.where(b > 0, 1.0 / np.where(b > 0, b, 1.0), 0.0)
-        J_cols = []
-        for c in range(3):
-            du = _du(c, u)
-            dtheta = _cross(du, xj)
-            dt = tuple(_rep(T[:, k, c], cnt) for k in range(3))
-            da_j = _dot(xj_x_t, _cross(xj, dt)) * inv_aj
-            db = _dot(theta, dtheta) * inv_b
-            d_uxt = _cross(du, t_m)
-            u_x_dt = _cross(u, dt)
-            da_i = _dot(u_x_t, (d_uxt[0] + u_x_dt[0], d_uxt[1] + u_x_dt[1], d_uxt[2] + u_x_dt[2])) * inv_ai
-            ds_j = tuple(da_j * u[k] + a_j * du[k] + db * t_m[k] + b * dt[k] for k in range(3))
-            ds_i = tuple(da_i * xj[k] - db * t_m[k] - b * dt[k] for k in range(3))
-            pj = _dot(sj_hat, ds_j)
-            pi = _dot(si_hat, ds_i)
-            col = tuple(w * (du[k] * inv_u - (ds_i[k] - si_hat[k] * pi) * inv_si) for k in range(3)) + \
-                tuple(-w * (ds_j[k] - sj_hat[k] * pj) * inv_sj for k in range(3))
-            J_cols.append(col)
-        JtJ[e0:e1], Jtr[e0:e1] = _accumulate(J_cols, r, starts, e1 - e0)
+    for e0, e1, _, _, cnt, starts, xi, xj in _chunks(batch, chunk):
+        terms = _trrm_chunk(R[e0:e1], cnt, starts, xi, xj, with_jacobian)
+        t_all[e0:e1] = terms["t"]
+        cost[e0:e1] = _seg(sum(v * v for v in terms["r"]), starts)
+        if with_jacobian:
+            JtJ[e0:e1], Jtr[e0:e1] = _accumulate(terms["J_cols"], terms["r"], starts, e1 - e0)
     return tv.ResidualEvaluation(residuals=None, cost=cost, t=t_all, JtJ=JtJ, Jtr=Jtr)
+
+
+def trrm_match_terms(R: np.ndarray, batch: tv.EdgeBatch, with_jacobian: bool = True,
+                     chunk: int = CHUNK_MATCHES) -> dict:
+    """Per-match TRRM terms for GRRM: ``r`` (M, 6) [r_i in camera-j axes, r_j], ``b`` (M,) = ‖θ‖,
+    ``w`` (M,) validity, ``t`` (E, 3) and, with the Jacobian, ``J`` (M, 6, 3) = dr/dδ and
+    ``db`` (M, 3) = d‖θ‖/dδ for the left perturbation of each edge's R_ij."""
+    M = batch.x_i.shape[0]
+    out = {"r": np.empty((M, 6)), "b": np.empty(M), "w": np.empty(M), "t": np.zeros((batch.num_edges, 3))}
+    if with_jacobian:
+        out["J"] = np.empty((M, 6, 3))
+        out["db"] = np.empty((M, 3))
+    for e0, e1, m0, m1, cnt, starts, xi, xj in _chunks(batch, chunk):
+        terms = _trrm_chunk(R[e0:e1], cnt, starts, xi, xj, with_jacobian)
+        out["t"][e0:e1] = terms["t"]
+        out["r"][m0:m1] = np.stack(terms["r"], axis=1)
+        out["b"][m0:m1] = terms["b"]
+        out["w"][m0:m1] = terms["w"]
+        if with_jacobian:
+            for c in range(3):
+                out["J"][m0:m1, :, c] = np.stack(terms["J_cols"][c], axis=1)
+                out["db"][m0:m1, c] = terms["db"][c]
+    return out
 
 
 def epipolar_normal_equations(R: np.ndarray, batch: tv.EdgeBatch, with_jacobian: bool = True,
                               chunk: int = CHUNK_MATCHES) -> tv.ResidualEvaluation:
     """Per-edge λ_min(Pˢ) of bearing-normalised θ (twoview.epipolar_residuals), JᵀJ, Jᵀr."""
     E = batch.num_edges
-    counts = batch.counts
     cost = np.zeros(E)
     t_all = np.zeros((E, 3))
     JtJ = np.zeros((E, 3, 3)) if with_jacobian else None
     Jtr = np.zeros((E, 3)) if with_jacobian else None
-    for e0, e1 in _edge_groups(counts, chunk):
-        m0, m1 = batch.offsets[e0], batch.offsets[e1]
-        cnt = counts[e0:e1]
-        starts = batch.offsets[e0:e1] - m0
-        xi = tuple(np.ascontiguousarray(batch.x_i[m0:m1, k]) for k in range(3))
-        xj = tuple(np.ascontiguousarray(batch.x_j[m0:m1, k]) for k in range(3))
+    for e0, e1, _, _, cnt, starts, xi, xj in _chunks(batch, chunk):
         scale = 1.0 / (np.sqrt(_dot(xi, xi)) * np.sqrt(_dot(xj, xj)))
         u = _rotate(R[e0:e1], cnt, xi)
         theta = tuple(scale * v for v in _cross(u, xj))

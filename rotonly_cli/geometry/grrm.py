@@ -1,0 +1,388 @@
+"""GRRM: global reprojection residuals on the rotation manifold (paper Alg. 3-4).
+
+For an observation of point k in view i (eq:GRRMRes1, eq:GRRMRes2):
+
+    V_ik = Σ_{e_ij ∈ E_ik} ω_ijk V^{TRRM,i}_{ijk}(R_ij),    ω_ijk = ‖θ_ijk‖ / Σ_j ‖θ_ijk‖   (eq:weight)
+
+i.e. the ‖θ‖-weighted mean of the two-view TRRM residuals that every edge through view i
+that matched this observation predicts for it (bearing form, expressed in camera i). Each
+edge keeps its own closed-form t_ij(R_ij) (null vector of its Pˢ). An observation is the
+pair (view, keypoint): no track building is needed, E_ik is simply the set of edges whose
+matches contain that keypoint.
+
+Optimisation (Alg. 4): Levenberg-Marquardt on the 3n rotation parameters with one view
+fixed (the gauge), left perturbations R_i <- exp([δ_i]x) R_i. The exact Jacobian is built per
+match for the three parameters of R_ij (kernels.trrm_match_terms, including dt/dδ and
+dω/dδ), chained to the two cameras with δR_ij = δ_j - R_ij δ_i, and assembled as a scipy
+sparse matrix; the normal equations are sparse and solved with SuperLU.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from rotonly_cli.geometry import kernels, so3
+from rotonly_cli.geometry import twoview as tv
+
+log = logging.getLogger("rotonly.grrm")
+
+LOSSES = ("none", "huber", "cauchy")
+
+
+@dataclass(frozen=True)
+class GRRMOptions:
+    max_iterations: int = 30  #: k_max of Alg. 4
+    function_tolerance: float = 1e-8  #: stop at a relative cost decrease below this (ε of Alg. 4)
+    #: stop after an accepted step whose largest rotation update is below this (rad); LM
+    #: converges linearly here (~4x per iteration on Strecha), so the remaining change is
+    #: ~tol/4 ≈ 1.5e-5 deg, three orders below real rotation errors (~1e-2 deg)
+    step_tolerance: float = 1e-6
+    initial_damping: float = 1e-4  #: μ relative to diag(JᵀJ)
+    max_damping: float = 1e10
+    #: robust loss on ‖V_ik‖ (bearing chord units ≈ radians). Real matches contain a few
+    #: wrong correspondences that survived two-view RANSAC; "cauchy" bounds their pull.
+    loss: str = "cauchy"
+    #: loss scale; None = 3 x 1.4826 x median ‖V_ik‖ at the start (robust noise estimate)
+    loss_scale: float | None = None
+    #: first phase on Σ_edges λ_min(Pˢ_ij(R_j R_i^T)) (smooth, like TRRM's first phase):
+    #: brings starts a degree or more off into GRRM's basin; 0 disables it
+    epipolar_max_iterations: int = 10
+    epipolar_step_tolerance: float = 1e-4  #: rad; this phase only has to reach the basin
+
+    def validate(self) -> "GRRMOptions":
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss: must be one of {LOSSES}, got {self.loss!r}")
+        if self.max_iterations < 0:
+            raise ValueError("max_iterations: must be >= 0")
+        if self.loss_scale is not None and not self.loss_scale > 0:
+            raise ValueError("loss_scale: must be > 0")
+        return self
+
+
+@dataclass
+class GRRMResult:
+    R_cam_from_world: np.ndarray  # (n, 3, 3)
+    initial_cost: float  # eq:GRRMerror (robustified if a loss is used) at the start
+    cost: float  # ... at the end
+    iterations: int
+    converged: bool
+    history: list[dict] = field(default_factory=list)
+    num_observations: int = 0
+    loss_scale: float = 0.0
+
+
+class _Problem:
+    """The fixed structure of a GRRM problem: edges, matches, observation groups, and the
+    sparsity pattern of the normal equations (computed once, refilled every iteration).
+
+    Normal equations without a huge J: J = J_e C, where J_e (3G x 3E) holds one 3x3 block
+    B_c per contribution (match side c -> its observation g, derivative w.r.t. its edge's
+    δ_e) and C (3E x 3n) chains δ_e = δ_j - R_ij δ_i. Then JᵀJ = Cᵀ (J_eᵀ J_e) C with
+    J_eᵀ J_e = Σ_g Σ_{c, c' in g} B_cᵀ B_c' at block (e_c, e_c'): the pairs of contributions
+    inside each observation are enumerated once; each iteration only refills the blocks.
+    """
+
+    def __init__(self, n: int, edge_views: np.ndarray, batch: tv.EdgeBatch, obs_ids: np.ndarray):
+        from rotonly_cli.geometry.tracks import pairs_within_tracks
+
+        self.n = n
+        self.E = batch.num_edges
+        self.edge_views = edge_views
+        self.batch = batch
+        self.edge_of_match = np.repeat(np.arange(batch.num_edges), batch.counts)
+        self.M = batch.x_i.shape[0]
+        # every match contributes to two observations: (view i, its keypoint) and (view j, ...)
+        groups, self.group = np.unique(np.concatenate([obs_ids[:, 0], obs_ids[:, 1]]), return_inverse=True)
+        self.num_groups = len(groups)
+        self.edge_of_contribution = np.concatenate([self.edge_of_match, self.edge_of_match])
+        # contributions sorted by observation -> pairs (a <= b) inside each observation
+        order = np.argsort(self.group, kind="stable")
+        sizes = np.bincount(self.group, minlength=self.num_groups)
+        offsets = np.concatenate([[0], np.cumsum(sizes)])
+        a, b = pairs_within_tracks(offsets)
+        self.pair_a = np.concatenate([order, order[a]])  # diagonal pairs (c, c) first
+        self.pair_b = np.concatenate([order, order[b]])
+        key = self.edge_of_contribution[self.pair_a] * self.E + self.edge_of_contribution[self.pair_b]
+        self.block_keys, self.pair_block = np.unique(key, return_inverse=True)
+        self.block_row = self.block_keys // self.E
+        self.block_col = self.block_keys % self.E
+
+    def relative(self, R: np.ndarray) -> np.ndarray:
+        return R[self.edge_views[:, 1]] @ np.swapaxes(R[self.edge_views[:, 0]], 1, 2)
+
+    def evaluate(self, R: np.ndarray, with_jacobian: bool):
+        """Per-observation residuals V (G, 3), the weight sums S (G,), and optionally the
+        per-contribution Jacobian blocks B (2M, 3, 3) w.r.t. their edge's δ_e."""
+        R_ij = self.relative(R)
+        terms = kernels.trrm_match_terms(R_ij, self.batch, with_jacobian=with_jacobian)
+        R_ij_m = R_ij[self.edge_of_match]  # (M, 3, 3)
+        r_i_in_j = terms["r"][:, :3]
+        r_i = np.einsum("mba,mb->ma", R_ij_m, r_i_in_j)  # R_ij^T r: view i's residual in camera i
+        r_j = terms["r"][:, 3:]
+        b = terms["b"] * terms["w"]  # ω numerators (eq:weight); invalid matches weigh 0
+        res = np.concatenate([r_i, r_j])  # (2M, 3)
+        b2 = np.concatenate([b, b])
+        S = np.bincount(self.group, weights=b2, minlength=self.num_groups)
+        safe_S = np.where(S > 0, S, 1.0)
+        V = np.stack([np.bincount(self.group, weights=b2 * res[:, k], minlength=self.num_groups)
+                      for k in range(3)], axis=1) / safe_S[:, None]
+        if not with_jacobian:
+            return V, S, None
+        J = terms["J"]
+        db = terms["db"] * terms["w"][:, None]
+        # d(R^T v) = R^T (dv + [v]x δ) for R <- exp([δ]x) R
+        dr_i = np.einsum("mba,mbc->mac", R_ij_m, J[:, :3, :] + so3.hat(r_i_in_j))
+        dres = np.concatenate([dr_i, J[:, 3:, :]])  # (2M, 3, 3)
+        db2 = np.concatenate([db, db])
+        g = self.group
+        # dV_g = Σ_c [(res_c - V_g) db_c^T + b_c dres_c] / S_g   (ω = b / S, eq:weight)
+        B = ((res - V[g])[:, :, None] * db2[:, None, :] + b2[:, None, None] * dres) * (1.0 / safe_S)[g][:, None, None]
+        return V, S, B
+
+    def chain_matrix(self, R: np.ndarray) -> sp.csr_matrix:
+        """C (3E x 3n): δ_e = δ_j - R_ij δ_i."""
+        return _chain(R, self.edge_views, self.n)
+
+    def normal_equations(self, R: np.ndarray, V: np.ndarray, B: np.ndarray, row_weight: np.ndarray):
+        """(JᵀWJ (3n x 3n, sparse), JᵀW V (3n,)) with per-observation weights W = ρ'."""
+        E = self.E
+        wB = B * row_weight[self.group][:, None, None]
+        # J_eᵀ W V per edge: Σ_c B_cᵀ w_g V_g
+        BtV = np.einsum("cab,ca->cb", wB, V[self.group])
+        g_edge = np.stack([np.bincount(self.edge_of_contribution, weights=BtV[:, k], minlength=E)
+                           for k in range(3)], axis=1).ravel()
+        # J_eᵀ W J_e blocks: Σ over contribution pairs (a <= b) in the same observation,
+        # in chunks so the (pairs, 3, 3) temporaries stay small
+        K = len(self.block_keys)
+        blocks = np.zeros((K, 9))
+        B_flat = B.reshape(-1, 9)
+        wB_flat = wB.reshape(-1, 9)
+        step = 1 << 18
+        for p0 in range(0, len(self.pair_a), step):
+            pa = self.pair_a[p0:p0 + step]
+            pb = self.pair_b[p0:p0 + step]
+            pk = self.pair_block[p0:p0 + step]
+            Ba = wB_flat[pa]
+            Bb = B_flat[pb]
+            for a in range(3):
+                for b in range(3):
+                    # (Bᵀ_a B_b)[a, b] = Σ_k Ba[k, a] Bb[k, b]
+                    v = Ba[:, a] * Bb[:, b] + Ba[:, 3 + a] * Bb[:, 3 + b] + Ba[:, 6 + a] * Bb[:, 6 + b]
+                    blocks[:, 3 * a + b] += np.bincount(pk, weights=v, minlength=K)
+        blocks = blocks.reshape(K, 3, 3)
+        rows = (3 * self.block_row)[:, None, None] + np.arange(3)[None, :, None]
+        cols = (3 * self.block_col)[:, None, None] + np.arange(3)[None, None, :]
+        H_upper = sp.csr_matrix((blocks.ravel(), (np.broadcast_to(rows, (K, 3, 3)).ravel(),
+                                                  np.broadcast_to(cols, (K, 3, 3)).ravel())), shape=(3 * E, 3 * E))
+        # pairs with a < b appear once: H = U + Uᵀ - diag-pair part counted once
+        diag_pairs = sp.csr_matrix((np.einsum("cka,ckb->cab", wB, B).ravel(),
+                                    (np.broadcast_to((3 * self.edge_of_contribution)[:, None, None]
+                                                     + np.arange(3)[None, :, None], (len(B), 3, 3)).ravel(),
+                                     np.broadcast_to((3 * self.edge_of_contribution)[:, None, None]
+                                                     + np.arange(3)[None, None, :], (len(B), 3, 3)).ravel())),
+                                   shape=(3 * E, 3 * E))
+        H = H_upper + H_upper.T - diag_pairs
+        C = self.chain_matrix(R)
+        return (C.T @ H @ C).tocsc(), C.T @ g_edge
+
+
+def _robust(sq_norm: np.ndarray, loss: str, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """ρ(s) and ρ'(s) of a squared norm s (Ceres' convention: ρ(s) ≈ s near 0)."""
+    if loss == "none":
+        return sq_norm, np.ones_like(sq_norm)
+    c2 = scale * scale
+    if loss == "huber":
+        small = sq_norm <= c2
+        root = np.sqrt(sq_norm)
+        rho = np.where(small, sq_norm, 2.0 * scale * root - c2)
+        drho = np.where(small, 1.0, scale / np.where(small, 1.0, root))
+        return rho, drho
+    rho = c2 * np.log1p(sq_norm / c2)  # cauchy
+    drho = 1.0 / (1.0 + sq_norm / c2)
+    return rho, drho
+
+
+def validate_inputs(R_cam_from_world, edge_views, batch: tv.EdgeBatch, obs_ids) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    R = tv.as_rotations(R_cam_from_world, "R_cam_from_world").reshape(-1, 3, 3).astype(float)
+    n = R.shape[0]
+    edge_views = np.asarray(edge_views)
+    if edge_views.ndim != 2 or edge_views.shape[1] != 2 or edge_views.shape[0] != batch.num_edges:
+        raise ValueError(f"edge_views: expected shape ({batch.num_edges}, 2), got {edge_views.shape}")
+    if not np.issubdtype(edge_views.dtype, np.integer):
+        raise ValueError("edge_views: must be integer view indices")
+    if edge_views.size and (edge_views.min() < 0 or edge_views.max() >= n or np.any(edge_views[:, 0] == edge_views[:, 1])):
+        raise ValueError(f"edge_views: view indices must be distinct and in [0, {n})")
+    obs_ids = np.asarray(obs_ids)
+    if obs_ids.shape != (batch.x_i.shape[0], 2) or not np.issubdtype(obs_ids.dtype, np.integer):
+        raise ValueError(f"obs_ids: expected an integer array of shape ({batch.x_i.shape[0]}, 2), got {obs_ids.shape}")
+    return R, edge_views.astype(np.int64), obs_ids.astype(np.int64)
+
+
+def _chain(R: np.ndarray, edge_views: np.ndarray, n: int) -> sp.csr_matrix:
+    """C (3E x 3n): δ_e = δ_j - R_ij δ_i for left perturbations of both cameras."""
+    R_ij = R[edge_views[:, 1]] @ np.swapaxes(R[edge_views[:, 0]], 1, 2)
+    E = len(edge_views)
+    rows = np.broadcast_to((3 * np.arange(E))[:, None, None] + np.arange(3)[None, :, None], (E, 3, 3)).ravel()
+    cols_j = np.broadcast_to((3 * edge_views[:, 1])[:, None, None] + np.arange(3)[None, None, :], (E, 3, 3)).ravel()
+    cols_i = np.broadcast_to((3 * edge_views[:, 0])[:, None, None] + np.arange(3)[None, None, :], (E, 3, 3)).ravel()
+    data = np.concatenate([np.broadcast_to(np.eye(3), (E, 3, 3)).ravel(), (-R_ij).ravel()])
+    return sp.csr_matrix((data, (np.concatenate([rows, rows]), np.concatenate([cols_j, cols_i]))), shape=(3 * E, 3 * n))
+
+
+def _block_diag(blocks: np.ndarray) -> sp.csr_matrix:
+    E = len(blocks)
+    rows = np.broadcast_to((3 * np.arange(E))[:, None, None] + np.arange(3)[None, :, None], (E, 3, 3)).ravel()
+    cols = np.broadcast_to((3 * np.arange(E))[:, None, None] + np.arange(3)[None, None, :], (E, 3, 3)).ravel()
+    return sp.csr_matrix((blocks.ravel(), (rows, cols)), shape=(3 * E, 3 * E))
+
+
+def _solve_damped(JtJ, grad, mu):
+    diag = JtJ.diagonal()
+    diag = np.where(diag > 0, diag, 1.0)
+    try:
+        delta = -spla.spsolve((JtJ + sp.diags(mu * diag)).tocsc(), grad)
+    except RuntimeError:
+        return None
+    return delta if np.all(np.isfinite(delta)) else None
+
+
+def epipolar_phase(R: np.ndarray, edge_views: np.ndarray, batch: tv.EdgeBatch, free: np.ndarray,
+                   max_iterations: int, step_tolerance: float) -> tuple[np.ndarray, int]:
+    """LM on Σ_e λ_min(Pˢ_e(R_j R_i^T)) (bearing-normalised θ): per-edge normal equations
+    from kernels.epipolar_normal_equations chained to the cameras, JᵀJ = Cᵀ diag(JᵀJ_e) C."""
+    n = R.shape[0]
+    R_ij = R[edge_views[:, 1]] @ np.swapaxes(R[edge_views[:, 0]], 1, 2)
+    ev = kernels.epipolar_normal_equations(R_ij, batch)
+    cost = float(ev.cost.sum())
+    mu = 1e-4
+    it = 0
+    for it in range(1, max_iterations + 1):
+        C = _chain(R, edge_views, n)
+        JtJ = (C.T @ _block_diag(ev.JtJ) @ C).tocsc()[free][:, free]
+        grad = (C.T @ ev.Jtr.ravel())[free]
+        while True:
+            delta_free = _solve_damped(JtJ, grad, mu)
+            if delta_free is not None:
+                delta = np.zeros(3 * n)
+                delta[free] = delta_free
+                R_cand = so3.exp(delta.reshape(n, 3)) @ R
+                R_ij = R_cand[edge_views[:, 1]] @ np.swapaxes(R_cand[edge_views[:, 0]], 1, 2)
+                ev_c = kernels.epipolar_normal_equations(R_ij, batch)
+                if ev_c.cost.sum() <= cost:
+                    break
+            mu *= 10.0
+            if mu > 1e10:
+                return R, it
+        step = float(np.max(np.linalg.norm(delta.reshape(n, 3), axis=1)))
+        R, ev, cost, mu = R_cand, ev_c, float(ev_c.cost.sum()), max(mu / 10.0, 1e-15)
+        log.debug("GRRM λ_min phase iteration %d: cost %.6e, max step %.2e rad", it, cost, step)
+        if step < step_tolerance:
+            break
+    return R, it
+
+
+def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch, obs_ids, fixed_view: int = 0,
+                              options: GRRMOptions = GRRMOptions()) -> GRRMResult:
+    """Alg. 4: minimise Σ_ik ρ(‖V_ik‖²) (eq:GRRMerror) over the rotations, one view fixed."""
+    options.validate()
+    R, edge_views, obs_ids = validate_inputs(R_cam_from_world, edge_views, batch, obs_ids)
+    n = R.shape[0]
+    if not 0 <= fixed_view < n:
+        raise ValueError(f"fixed_view: must be in [0, {n})")
+    problem = _Problem(n, edge_views, batch, obs_ids)
+    free = np.ones(3 * n, dtype=bool)
+    free[3 * fixed_view:3 * fixed_view + 3] = False
+    if options.epipolar_max_iterations > 0 and batch.num_edges:
+        R, it1 = epipolar_phase(R, edge_views, batch, free, options.epipolar_max_iterations,
+                                options.epipolar_step_tolerance)
+        log.info("GRRM λ_min phase: %d iterations", it1)
+
+    V, S, B = problem.evaluate(R, with_jacobian=True)
+    sq = np.einsum("gk,gk->g", V, V)
+    scale = options.loss_scale
+    if scale is None:
+        active = S > 0
+        med = np.median(np.sqrt(sq[active])) if np.any(active) else 0.0
+        scale = max(3.0 * 1.4826 * med, 1e-12)
+    rho, drho = _robust(sq, options.loss, scale)
+    cost = float(rho.sum())
+    initial_cost = cost
+    history: list[dict] = []
+    mu = options.initial_damping
+    converged = False
+    iteration = 0
+    log.info("GRRM start: %d views, %d edges, %d observations, cost %.6e, loss %s (scale %.3e)",
+             n, batch.num_edges, problem.num_groups, cost, options.loss, scale)
+    for iteration in range(1, options.max_iterations + 1):
+        t0 = time.perf_counter()
+        # IRLS form of the robust loss: observation weights ρ'(s)
+        JtJ, grad = problem.normal_equations(R, V, B, drho)
+        JtJ = JtJ[free][:, free]
+        grad = grad[free]
+        accepted = False
+        while True:
+            delta_free = _solve_damped(JtJ, grad, mu)
+            if delta_free is None:
+                mu *= 10.0
+                if mu > options.max_damping:
+                    break
+                continue
+            delta = np.zeros(3 * n)
+            delta[free] = delta_free
+            R_cand = so3.exp(delta.reshape(n, 3)) @ R
+            V_c, S_c, _ = problem.evaluate(R_cand, with_jacobian=False)
+            sq_c = np.einsum("gk,gk->g", V_c, V_c)
+            rho_c, _ = _robust(sq_c, options.loss, scale)
+            cost_c = float(rho_c.sum())
+            step = float(np.max(np.linalg.norm(delta.reshape(n, 3), axis=1)))
+            if cost_c <= cost:
+                accepted = True
+                break
+            mu *= 10.0
+            if mu > options.max_damping:
+                break
+        if not accepted:
+            history.append({"iteration": iteration, "cost": cost, "step": 0.0, "damping": mu, "accepted": False,
+                            "seconds": time.perf_counter() - t0})
+            log.info("GRRM iteration %d: no decrease possible (damping %.1e); stop", iteration, mu)
+            converged = True
+            break
+        decrease = cost - cost_c
+        R = R_cand
+        cost = cost_c
+        mu = max(mu / 10.0, 1e-15)
+        V, S, B = problem.evaluate(R, with_jacobian=True)
+        sq = np.einsum("gk,gk->g", V, V)
+        rho, drho = _robust(sq, options.loss, scale)
+        history.append({"iteration": iteration, "cost": cost, "step": step, "damping": mu, "accepted": True,
+                        "seconds": time.perf_counter() - t0})
+        log.info("GRRM iteration %d: cost %.6e (-%.2e), max step %.2e rad, %.2f s",
+                 iteration, cost, decrease, step, time.perf_counter() - t0)
+        if decrease <= options.function_tolerance * max(cost, 1e-300) or step < options.step_tolerance:
+            converged = True
+            break
+    return GRRMResult(R_cam_from_world=R, initial_cost=initial_cost, cost=cost, iterations=iteration,
+                      converged=converged, history=history, num_observations=problem.num_groups, loss_scale=scale)
+
+
+def grrm_residuals(R_cam_from_world, edge_views, batch: tv.EdgeBatch, obs_ids, with_jacobian: bool = False):
+    """V_ik (G, 3) of eq:GRRMRes2 for every observation (order: sorted unique ids) and,
+    optionally, the explicit sparse Jacobian J = J_e C (3G x 3n, left perturbations of the
+    cameras) — for tests and small problems; the optimiser never forms it."""
+    R, edge_views, obs_ids = validate_inputs(R_cam_from_world, edge_views, batch, obs_ids)
+    problem = _Problem(R.shape[0], edge_views, batch, obs_ids)
+    V, _, B = problem.evaluate(R, with_jacobian)
+    if not with_jacobian:
+        return V, None
+    nc = len(B)
+    rows = (3 * problem.group)[:, None, None] + np.arange(3)[None, :, None]
+    cols = (3 * problem.edge_of_contribution)[:, None, None] + np.arange(3)[None, None, :]
+    J_e = sp.csr_matrix((B.ravel(), (np.broadcast_to(rows, (nc, 3, 3)).ravel(), np.broadcast_to(cols, (nc, 3, 3)).ravel())),
+                        shape=(3 * problem.num_groups, 3 * problem.E))
+    return V, (J_e @ problem.chain_matrix(R)).tocsr()
