@@ -1,0 +1,174 @@
+"""View graph of a reconstruction: views, edges with relative poses and per-edge diagnostics.
+
+Data model of architecture.md "Data model". An edge (i, j) holds view ids with i < j,
+``R_j_from_i`` / unit ``t_dir`` (= t_ij / ‖t_ij‖, COLMAP ``cam2_from_cam1`` with image1 = i)
+and its inlier matches ``matches[:, 0]`` in view i, ``matches[:, 1]`` in view j.
+
+Filters never delete: they set ``status = "filtered"`` with a ``reason`` (first reason wins),
+and :func:`largest_component` is re-checked after each filter (architecture.md).
+``view_graph.json`` holds every edge's diagnostics, in edge order, with sorted keys, so two
+identical runs write identical bytes.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from rotonly_cli.io.types import View
+
+ACTIVE = "active"
+FILTERED = "filtered"
+
+
+@dataclass
+class Edge:
+    i: int  # view id (smaller)
+    j: int  # view id (larger)
+    R_j_from_i: np.ndarray  # (3, 3)
+    t_dir: np.ndarray  # (3,) unit t_ij; zeros when unknown / pure rotation
+    matches: np.ndarray  # (m, 2) int64 keypoint indices [view i, view j]
+    pose_source: str = ""  # "stored" (COLMAP E), "ransac" (re-estimated), "given"
+    config: str | None = None  # the input's two-view configuration (COLMAP name, "E" ...)
+    scene_kind: str | None = None  # SceneKind value after identification
+    detection_value: float = math.nan  # v_rs (paper §"Scene Identification")
+    pure_rotation_ratio: float = math.nan  # ρ = f_pure / f_TRRM
+    status: str = ACTIVE
+    reason: str = ""
+    residual_deg: float = math.nan  # angle of R_jᵀ R_ij R_i after rotation averaging
+    trrm_initial_cost: float = math.nan
+    trrm_cost: float = math.nan
+    trrm_iterations: int = 0
+    trrm_rotation_change_deg: float = math.nan
+
+    @property
+    def num_inliers(self) -> int:
+        return int(self.matches.shape[0])
+
+    @property
+    def active(self) -> bool:
+        return self.status == ACTIVE
+
+    def filter(self, reason: str) -> None:
+        """Mark filtered; an edge keeps the first reason it was filtered for."""
+        if self.status == ACTIVE:
+            self.status, self.reason = FILTERED, reason
+
+    def diagnostics(self) -> dict:
+        def number(x: float) -> float | None:  # JSON has no NaN
+            return None if x is None or not np.isfinite(x) else float(x)
+
+        return {
+            "i": int(self.i), "j": int(self.j), "num_inliers": self.num_inliers,
+            "pose_source": self.pose_source, "config": self.config, "scene_kind": self.scene_kind,
+            "detection_value": number(self.detection_value),
+            "pure_rotation_ratio": number(self.pure_rotation_ratio),
+            "status": self.status, "reason": self.reason, "residual_deg": number(self.residual_deg),
+            "trrm_initial_cost": number(self.trrm_initial_cost), "trrm_cost": number(self.trrm_cost),
+            "trrm_iterations": int(self.trrm_iterations),
+            "trrm_rotation_change_deg": number(self.trrm_rotation_change_deg),
+            "R_j_from_i": np.asarray(self.R_j_from_i, dtype=float).tolist(),
+            "t_dir": np.asarray(self.t_dir, dtype=float).tolist(),
+        }
+
+
+@dataclass
+class ViewGraph:
+    views: dict[int, View] = field(default_factory=dict)
+    edges: list[Edge] = field(default_factory=list)
+    #: views outside the largest component of active edges (reported, not registered)
+    unregistered_views: list[int] = field(default_factory=list)
+
+    def view_ids(self) -> list[int]:
+        return sorted(self.views)
+
+    def active_edges(self) -> list[int]:
+        return [k for k, edge in enumerate(self.edges) if edge.active]
+
+    def counts(self) -> dict:
+        reasons: dict[str, int] = {}
+        for edge in self.edges:
+            if not edge.active:
+                reasons[edge.reason] = reasons.get(edge.reason, 0) + 1
+        return {"views": len(self.views), "edges": len(self.edges),
+                "active_edges": len(self.active_edges()), "filtered_by_reason": dict(sorted(reasons.items())),
+                "unregistered_views": list(self.unregistered_views)}
+
+
+def components(view_ids: list[int], edges: list[tuple[int, int]]) -> dict[int, int]:
+    """Connected-component label of every view id (scipy union-find, no per-edge Python)."""
+    index = {v: k for k, v in enumerate(view_ids)}
+    if edges:
+        rows = np.array([index[i] for i, _ in edges])
+        cols = np.array([index[j] for _, j in edges])
+    else:
+        rows = cols = np.zeros(0, dtype=np.int64)
+    graph = coo_matrix((np.ones(rows.size), (rows, cols)), shape=(len(view_ids), len(view_ids)))
+    _, label = connected_components(graph, directed=False)
+    return {v: int(label[k]) for v, k in index.items()}
+
+
+def largest_component(graph: ViewGraph, reason: str = "outside largest component") -> list[int]:
+    """Keep the largest connected component of the active edges.
+
+    Active edges outside it are filtered with ``reason``; ``graph.unregistered_views`` is set
+    to the views outside it. Ties: the component holding the smallest view id. Returns the
+    sorted view ids of the component.
+    """
+    view_ids = graph.view_ids()
+    active = graph.active_edges()
+    label = components(view_ids, [(graph.edges[k].i, graph.edges[k].j) for k in active])
+    touched = {v for k in active for v in (graph.edges[k].i, graph.edges[k].j)}
+    sizes: dict[int, int] = {}
+    for v in touched:
+        sizes[label[v]] = sizes.get(label[v], 0) + 1
+    if not sizes:
+        graph.unregistered_views = view_ids
+        return []
+    best = min(sizes, key=lambda c: (-sizes[c], min(v for v in touched if label[v] == c)))
+    keep = sorted(v for v in touched if label[v] == best)
+    for k in active:
+        if label[graph.edges[k].i] != best:
+            graph.edges[k].filter(reason)
+    kept = set(keep)
+    graph.unregistered_views = [v for v in view_ids if v not in kept]
+    return keep
+
+
+def view_graph_document(graph: ViewGraph) -> dict:
+    return {
+        "views": [{"id": int(v), "name": graph.views[v].name} for v in graph.view_ids()],
+        "unregistered_views": [int(v) for v in graph.unregistered_views],
+        "counts": graph.counts(),
+        "edges": [edge.diagnostics() for edge in graph.edges],
+    }
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` to a temporary sibling and rename it over ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, name = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(handle, "w") as stream:
+            stream.write(text)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(name, 0o666 & ~umask)
+        os.replace(name, path)
+    except BaseException:
+        Path(name).unlink(missing_ok=True)
+        raise
+
+
+def write_view_graph_json(path: str | os.PathLike, graph: ViewGraph) -> None:
+    """Per-edge diagnostics as JSON (sorted keys, fixed edge order: deterministic bytes)."""
+    atomic_write_text(path, json.dumps(view_graph_document(graph), indent=1, sort_keys=True) + "\n")

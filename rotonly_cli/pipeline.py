@@ -1,0 +1,377 @@
+"""`rotonly run`: the whole chain, and the workspace form of each stage.
+
+load (INPUT -> view graph, re-estimated relative poses, min-inlier filter)
+-> identify (scene kinds; ROTATION_SINGULAR filtered) -> refine (TRRM, batched)
+-> average (L1-IRLS, gross-outlier filter) -> optimize (GRRM) -> translate (LiGT)
+-> triangulate (+ colours) -> export (OUT/sfm_data.json, OUT/sparse/).
+
+Every stage reads and writes plain objects; :class:`Run` holds them. The workspace
+``OUT/`` (architecture.md "CLI contract"): ``sfm_data.json``, ``sparse/``, ``view_graph.json``,
+``reports/<stage>.json``, ``run.log`` and ``state.npz`` (io/workspace.py) for the stage
+subcommands. ``run`` builds the whole workspace in a temporary folder beside OUT and
+renames it at the end, so a failed run leaves no partial OUT.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from rotonly_cli.errors import AlgorithmError, InputError, RotonlyError
+from rotonly_cli.geometry.scene import IdentificationOptions
+from rotonly_cli.geometry.trrm import TRRMOptions
+from rotonly_cli.io.types import Pose, SfMScene, Structure
+from rotonly_cli.io.viewgraph import ViewGraph, largest_component, write_view_graph_json
+from rotonly_cli.io.workspace import STATE_FILE, WorkspaceState, load_state, save_state
+from rotonly_cli.stages.average import AverageOptions
+from rotonly_cli.stages.common import write_report
+from rotonly_cli.stages.load import LoadOptions
+
+logger = logging.getLogger(__name__)
+STAGES = ("load", "identify", "refine", "average", "optimize", "translate", "triangulate")
+#: files a workspace may hold; an existing OUT with anything else is not replaced
+WORKSPACE_ENTRIES = {"sfm_data.json", "sparse", "view_graph.json", "reports", "run.log", STATE_FILE, "eval"}
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    matches_dir: str | None = None  # OpenMVG input: features + matches folder
+    image_path: str | None = None  # images for the point colours (default: beside the input)
+    gt: str | None = None  # ground truth for the final evaluation
+    load: LoadOptions = LoadOptions()
+    identification: IdentificationOptions = IdentificationOptions()
+    trrm: TRRMOptions = TRRMOptions()
+    average: AverageOptions = AverageOptions()
+    grrm: bool = True  # False: keep the averaged rotations (ablation)
+    progress: bool = False
+
+
+@dataclass
+class Run:
+    """Everything the stages produce, in memory."""
+
+    input_path: str
+    input_kind: str
+    scene: SfMScene
+    graph: ViewGraph
+    options: RunOptions
+    rotations: np.ndarray | None = None  # (n, 3, 3) sorted-view-id rows, NaN = unregistered
+    centers: np.ndarray | None = None
+    structure: Structure | None = None
+    reports: dict = field(default_factory=dict)
+
+
+# ============================================================================ stages in memory
+
+def _ensure_two_views(graph: ViewGraph, after: str) -> None:
+    component = largest_component(graph)
+    if len(component) < 2:
+        usable = len(graph.views) - len(graph.unregistered_views)
+        raise AlgorithmError(f"fewer than two usable images after {after} ({usable} of {len(graph.views)} "
+                             f"connected by an edge); nothing to reconstruct")
+
+
+def load_stage(input_path: str | Path, options: RunOptions) -> Run:
+    from rotonly_cli.stages.load import build_view_graph, read_input
+
+    start = time.perf_counter()
+    scene, kind = read_input(input_path, options.matches_dir)
+    read_time = time.perf_counter() - start
+    graph, report = build_view_graph(scene, replace(options.load, progress=options.progress))
+    report["read_time_s"] = read_time
+    report["input"] = str(input_path)
+    report["input_kind"] = kind
+    run = Run(str(input_path), kind, scene, graph, options, reports={"load": report})
+    _ensure_two_views(graph, "loading")
+    return run
+
+
+def identify_stage(run: Run) -> None:
+    from rotonly_cli.stages.identify import identify_edges
+
+    run.reports["identify"] = identify_edges(run.graph, run.scene.normalized, run.options.identification)
+    _ensure_two_views(run.graph, "scene identification")
+
+
+def refine_stage(run: Run) -> None:
+    from rotonly_cli.stages.refine import refine_edges
+
+    run.reports["refine"] = refine_edges(run.graph, run.scene.normalized, run.options.trrm,
+                                         run.options.identification)
+    _ensure_two_views(run.graph, "TRRM")
+
+
+def average_stage(run: Run) -> None:
+    from rotonly_cli.stages.average import average_graph
+
+    run.rotations, run.reports["average"] = average_graph(run.graph, run.options.average)
+
+
+def optimize_stage(run: Run) -> None:
+    from rotonly_cli.stages.optimize import optimize_graph
+
+    if not run.options.grrm:
+        run.reports["optimize"] = {"skipped": "disabled (--no-grrm)"}
+        return
+    run.rotations, run.reports["optimize"] = optimize_graph(run.graph, run.scene.normalized, run.rotations)
+
+
+def translate_stage(run: Run) -> None:
+    from rotonly_cli.stages.translate import translate_graph
+
+    run.centers, run.reports["translate"] = translate_graph(run.graph, run.scene.normalized, run.rotations)
+
+
+def image_root(run: Run) -> Path | None:
+    """--image-path; else COLMAP: ``images/`` beside the database; OpenMVG: root_path
+    (relative to the sfm_data.json folder)."""
+    if run.options.image_path:
+        return Path(run.options.image_path)
+    input_path = Path(run.input_path)
+    if run.input_kind == "colmap-db":
+        candidate = input_path.parent / "images"
+        return candidate if candidate.is_dir() else None
+    if not run.scene.root_path:
+        return None
+    root = Path(run.scene.root_path)
+    base = input_path if input_path.is_dir() else input_path.parent
+    return root if root.is_absolute() else base / root
+
+
+def triangulate_stage(run: Run) -> None:
+    from rotonly_cli.stages.triangulate import triangulate_graph
+
+    run.structure, run.reports["triangulate"] = triangulate_graph(run.graph, run.scene, run.rotations, run.centers,
+                                                                  image_root(run))
+
+
+STAGE_FUNCTIONS = {"identify": identify_stage, "refine": refine_stage, "average": average_stage,
+                   "optimize": optimize_stage, "translate": translate_stage, "triangulate": triangulate_stage}
+
+
+# ============================================================================ outputs
+
+def output_scene(run: Run) -> SfMScene:
+    """The input scene with the estimated poses (views with rotation and centre) and points."""
+    poses = {}
+    if run.rotations is not None and run.centers is not None:
+        for row, view_id in enumerate(run.graph.view_ids()):
+            if np.all(np.isfinite(run.rotations[row])) and np.all(np.isfinite(run.centers[row])):
+                poses[view_id] = Pose(run.rotations[row].copy(), run.centers[row].copy())
+    root = image_root(run)
+    return replace(run.scene, poses=poses, structure=run.structure, pairs={},
+                   root_path=str(root) if root is not None else run.scene.root_path)
+
+
+def write_outputs(out_dir: Path, run: Run) -> SfMScene:
+    """OUT/sfm_data.json (OpenMVG) and OUT/sparse/ (COLMAP binary model)."""
+    from rotonly_cli.io import colmap, openmvg
+    from rotonly_cli.stages.convert import colmap_to_openmvg
+
+    scene = output_scene(run)
+    if not scene.poses:
+        raise AlgorithmError("no view received a pose (rotation and centre)")
+    openmvg_scene = colmap_to_openmvg(scene) if run.input_kind == "colmap-db" else scene
+    openmvg.write_sfm_data(out_dir / "sfm_data.json", openmvg_scene)
+    colmap.write_model(out_dir / "sparse", scene, binary=True)
+    return scene
+
+
+def write_workspace(out_dir: Path, run: Run, stages_done: list[str]) -> None:
+    """state.npz, view_graph.json and reports/<stage>.json of the stages run so far."""
+    write_view_graph_json(out_dir / "view_graph.json", run.graph)
+    for stage, report in run.reports.items():
+        write_report(out_dir, stage, report)
+    options = {"matches_dir": run.options.matches_dir, "image_path": run.options.image_path,
+               "grrm": run.options.grrm}
+    save_state(out_dir, WorkspaceState(run.input_path, run.input_kind, run.options.matches_dir,
+                                       run.options.image_path, run.graph, run.rotations, run.centers,
+                                       stages_done, options))
+
+
+def load_ground_truth(path: str | Path) -> SfMScene:
+    """GT for --gt: a Strecha folder, an OpenMVG sfm_data.json or a COLMAP model."""
+    from rotonly_cli.io import colmap, openmvg, strecha
+
+    path = Path(path)
+    if not path.exists():
+        raise InputError("does not exist", path=str(path), field="--gt")
+    if path.is_file():
+        return openmvg.read_sfm_data(path)
+    if (path / strecha.GT_SUBDIR).is_dir() or any(path.glob("*.camera")):
+        return strecha.read_ground_truth(path)
+    if colmap.is_model_dir(path):
+        return colmap.read_model(path)
+    if (path / "sfm_data.json").is_file():
+        return openmvg.read_sfm_data(path / "sfm_data.json")
+    raise InputError("neither a Strecha folder, an sfm_data.json nor a COLMAP model", path=str(path), field="--gt")
+
+
+def evaluate_against(gt_path: str | Path, estimate: SfMScene, report_dir: Path, estimate_path: str) -> dict:
+    from rotonly_cli.evaluation.quality import evaluate
+    from rotonly_cli.evaluation.report import write_report as write_eval_report
+
+    report = evaluate(load_ground_truth(gt_path), estimate)
+    report.gt_path, report.estimate_path = str(gt_path), estimate_path
+    write_eval_report(report, report_dir)
+    rotation = report.rotation_error_deg
+    logger.info("eval: %d of %d GT cameras estimated, rotation error mean %.4f deg, median %.4f deg",
+                report.num_matched, report.num_gt, rotation.mean, rotation.median)
+    return report.to_dict()
+
+
+# ============================================================================ OUT handling
+
+def check_out_dir(out_dir: Path) -> None:
+    """OUT may be new, empty, or a previous workspace (replaced); anything else: InputError."""
+    if not out_dir.exists():
+        return
+    if not out_dir.is_dir():
+        raise InputError("exists and is not a folder", path=str(out_dir), field="-o")
+    foreign = sorted(p.name for p in out_dir.iterdir() if p.name not in WORKSPACE_ENTRIES)
+    if foreign:
+        raise InputError(f"exists and holds files that are not a rotonly workspace ({', '.join(foreign[:3])})",
+                         path=str(out_dir), field="-o")
+
+
+class _RunLog:
+    """Log records of the run also go to ``<dir>/run.log`` (closed on exit)."""
+
+    def __init__(self, directory: Path):
+        self.handler = logging.FileHandler(directory / "run.log", mode="a", encoding="utf-8")
+        self.handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        self.handler.setLevel(logging.DEBUG)
+        self.root = logging.getLogger()
+
+    def __enter__(self):
+        self.previous_level = self.root.level
+        self.root.addHandler(self.handler)
+        if self.root.level > logging.INFO:  # run.log keeps INFO even under -q
+            for handler in self.root.handlers:
+                if handler is not self.handler and handler.level == logging.NOTSET:
+                    handler.setLevel(self.root.level)
+            self.root.setLevel(logging.INFO)
+        return self
+
+    def __exit__(self, *exc):
+        self.root.removeHandler(self.handler)
+        self.root.setLevel(self.previous_level)
+        self.handler.close()
+
+
+def _replace_dir(staging: Path, out_dir: Path) -> None:
+    if out_dir.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".old", dir=out_dir.parent))
+        old.rmdir()
+        out_dir.rename(old)
+        staging.rename(out_dir)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        staging.rename(out_dir)
+
+
+def _as_algorithm_error(exc: ValueError) -> RotonlyError:
+    return exc if isinstance(exc, RotonlyError) else AlgorithmError(str(exc))
+
+
+def run_pipeline(input_path: str | Path, out_dir: str | Path, options: RunOptions = RunOptions(),
+                 stages: tuple[str, ...] = STAGES) -> dict:
+    """Run ``stages`` (a prefix of STAGES) on INPUT into OUT, atomically; returns the summary.
+
+    With all stages the outputs (sfm_data.json, sparse/) are written, and with
+    ``options.gt`` the evaluation (OUT/eval/report.{json,html}).
+    """
+    input_path, out_dir = Path(input_path), Path(out_dir)
+    check_out_dir(out_dir)
+    if out_dir.exists() and input_path.resolve().is_relative_to(out_dir.resolve()):
+        raise InputError("the input lies inside OUT, which would be replaced", path=str(input_path), field="-o")
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".tmp", dir=out_dir.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    staging.chmod(0o777 & ~umask)  # mkdtemp makes 0700; OUT is an ordinary folder
+    start = time.perf_counter()
+    try:
+        with _RunLog(staging):
+            logger.info("rotonly run %s -> %s", input_path, out_dir)
+            try:
+                run = load_stage(input_path, options)
+                done = ["load"]
+                for stage in stages[1:]:
+                    STAGE_FUNCTIONS[stage](run)
+                    done.append(stage)
+                summary = _finish(staging, out_dir, run, done, start)
+            except ValueError as exc:
+                raise _as_algorithm_error(exc) from exc
+        _replace_dir(staging, out_dir)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return summary
+
+
+def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: float) -> dict:
+    """Write outputs of a finished chain into ``directory`` (which becomes ``out_dir``)."""
+    summary: dict = {"input": run.input_path, "stages": done}
+    if done[-1] == "triangulate":
+        scene = write_outputs(directory, run)
+        summary.update(num_views=len(run.scene.views), num_registered=len(scene.poses),
+                       num_points=0 if scene.structure is None else len(scene.structure.points),
+                       unregistered_views=[v for v in run.graph.view_ids() if v not in scene.poses])
+        if run.options.gt:
+            evaluation = evaluate_against(run.options.gt, scene, directory / "eval",
+                                          str(out_dir / "sfm_data.json"))
+            summary["rotation_error_deg"] = evaluation.get("rotation_error_deg")
+    summary["num_active_edges"] = len(run.graph.active_edges())
+    summary["time_s"] = time.perf_counter() - start
+    run.reports["run"] = summary
+    write_workspace(directory, run, done)
+    logger.info("done in %.2f s: %s", summary["time_s"],
+                {k: v for k, v in summary.items() if k in ("num_registered", "num_points", "num_active_edges")})
+    return summary
+
+
+# ============================================================================ stage subcommands
+
+def resume(out_dir: str | Path, stage: str, options: RunOptions | None = None) -> dict:
+    """Run one stage on an existing workspace (``rotonly refine|average|... OUT``) in place.
+
+    The stage's predecessors must be done; later stages' results become stale and are
+    dropped from the state. Files are replaced one by one, each atomically.
+    """
+    from rotonly_cli.stages.load import read_input
+
+    out_dir = Path(out_dir)
+    state = load_state(out_dir)
+    position = STAGES.index(stage)
+    previous = STAGES[position - 1]
+    if previous not in state.stages:
+        raise InputError(f"stage {stage!r} needs {previous!r} first (done: {', '.join(state.stages)})",
+                         path=str(out_dir))
+    saved = state.options
+    options = options or RunOptions()
+    options = replace(options, matches_dir=options.matches_dir or saved.get("matches_dir"),
+                      image_path=options.image_path or saved.get("image_path"))
+    start = time.perf_counter()
+    with _RunLog(out_dir):
+        try:
+            scene, kind = read_input(state.input_path, options.matches_dir)
+            run = Run(state.input_path, kind, scene, state.graph, options, state.rotations, state.centers)
+            if stage == "triangulate" and (run.rotations is None or run.centers is None):
+                raise InputError("no rotations / centres in the workspace", path=str(out_dir))
+            STAGE_FUNCTIONS[stage](run)
+            done = list(STAGES[:position + 1])
+            if position < STAGES.index("average"):
+                run.rotations = None  # stale: computed from the edges before this stage
+            if position < STAGES.index("translate"):
+                run.centers = None
+            return _finish(out_dir, out_dir, run, done, start)
+        except ValueError as exc:
+            raise _as_algorithm_error(exc) from exc

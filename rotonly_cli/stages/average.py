@@ -1,0 +1,87 @@
+"""Stage `average`: robust rotation averaging (L1 + IRLS) of the active edges, weighted by
+inlier count, with the gross-outlier filter.
+
+Edges whose residual angle after averaging exceeds ``max_residual_deg`` are filtered
+("rotation averaging outlier"), the largest component is re-checked and the averaging is
+solved again without them, until no edge is removed (at most ``max_rounds``).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from rotonly_cli.errors import AlgorithmError
+from rotonly_cli.geometry.averaging import AveragingOptions, average_rotations
+from rotonly_cli.io.viewgraph import ViewGraph, largest_component
+from rotonly_cli.stages.common import view_index
+
+logger = logging.getLogger(__name__)
+OUTLIER_REASON = "rotation averaging outlier"
+
+
+@dataclass(frozen=True)
+class AverageOptions:
+    #: residual (deg) above which an edge is a gross outlier. 5°: averaging.py's inlier
+    #: threshold (Geman-McClure σ = 5°, Chatterjee & Govindu ICCV 2013).
+    max_residual_deg: float = 5.0
+    max_rounds: int = 5
+    averaging: AveragingOptions = AveragingOptions()
+
+
+def _solve(graph: ViewGraph, index: dict[int, int], averaging: AveragingOptions):
+    """One averaging of the active edges of the largest component; (edge list, result)."""
+    component = largest_component(graph)
+    edges = graph.active_edges()
+    if len(component) < 2:
+        raise AlgorithmError("rotation averaging: fewer than two connected views left")
+    e_i = np.array([index[graph.edges[k].i] for k in edges])
+    e_j = np.array([index[graph.edges[k].j] for k in edges])
+    R_ij = np.stack([graph.edges[k].R_j_from_i for k in edges])
+    weights = np.array([graph.edges[k].num_inliers for k in edges], dtype=float)
+    result = average_rotations(len(index), e_i, e_j, R_ij, weights, fixed_view=index[component[0]],
+                               options=averaging)
+    return edges, result
+
+
+def average_graph(graph: ViewGraph, options: AverageOptions = AverageOptions()) -> tuple[np.ndarray, dict]:
+    """(R_cam_from_world (n, 3, 3) in sorted-view-id order, NaN outside the component; report)."""
+    start = time.perf_counter()
+    index = view_index(graph)
+    n = len(index)
+    averaging = replace(options.averaging, max_inlier_residual_deg=options.max_residual_deg)
+    rounds, num_outliers = [], 0
+    R = np.full((n, 3, 3), np.nan)
+    for _ in range(max(options.max_rounds, 1)):
+        edges, result = _solve(graph, index, averaging)
+        R = result.R_cam_from_world
+        for row, k in enumerate(edges):
+            graph.edges[k].residual_deg = float(result.edge_residual_deg[row])
+        outliers = [k for row, k in enumerate(edges) if not result.inlier_mask[row]]
+        residual = result.edge_residual_deg[np.isfinite(result.edge_residual_deg)]
+        rounds.append({"num_edges": len(edges), "num_outliers": len(outliers),
+                       "residual_deg_median": float(np.median(residual)) if residual.size else None,
+                       "residual_deg_max": float(residual.max()) if residual.size else None,
+                       "irls_iterations": int(result.irls_iterations), "irls_converged": bool(result.irls_converged)})
+        if not outliers:
+            break
+        for k in outliers:
+            graph.edges[k].filter(OUTLIER_REASON)
+        num_outliers += len(outliers)
+        logger.info("average: %d outlier edges (residual > %.3g deg) filtered, solving again", len(outliers),
+                    options.max_residual_deg)
+    else:  # the last round still removed edges: solve once more on the survivors
+        R = _solve(graph, index, averaging)[1].R_cam_from_world
+    component = set(largest_component(graph))
+    for v, row in index.items():
+        if v not in component:
+            R[row] = np.nan
+    report = {"rounds": rounds, "num_outliers_filtered": num_outliers, "num_active_edges": len(graph.active_edges()),
+              "num_registered_views": len(component), "unregistered_views": list(graph.unregistered_views),
+              "max_residual_deg": options.max_residual_deg, "time_s": time.perf_counter() - start}
+    logger.info("average: %d views registered, %d outlier edges filtered in %d round(s)", len(component),
+                num_outliers, len(rounds))
+    return R, report

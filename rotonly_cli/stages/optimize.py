@@ -1,0 +1,79 @@
+"""Stage `optimize`: GRRM (paper Alg. 3-4) on the averaged rotations.
+
+GRRM's residuals need each edge's closed-form translation, so only active REGULAR edges
+enter (PURE_ROTATION and ROTATION_SINGULAR edges are kept out of GRRM: geometry/scene.py).
+The problem is the largest connected component of those edges; its first view is the gauge.
+Views outside it keep their averaged rotations. Observation ids: (view, keypoint) numbered
+by a per-view offset, so every match of every edge through that keypoint shares the id.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from rotonly_cli.errors import AlgorithmError
+from rotonly_cli.geometry.scene import SceneKind
+from rotonly_cli.io.viewgraph import ViewGraph, components
+from rotonly_cli.stages.common import edge_batch, view_index
+
+logger = logging.getLogger(__name__)
+
+
+def regular_edges(graph: ViewGraph) -> list[int]:
+    return [k for k in graph.active_edges() if graph.edges[k].scene_kind == SceneKind.REGULAR.value]
+
+
+def optimize_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_world: np.ndarray,
+                   options=None) -> tuple[np.ndarray, dict]:
+    """GRRM-refined copy of ``R_cam_from_world`` (sorted-view-id rows); report with costs."""
+    start = time.perf_counter()
+    R_out = np.array(R_cam_from_world, dtype=float, copy=True)
+    try:
+        from rotonly_cli.geometry.grrm import GRRMOptions, optimize_global_rotations
+    except ImportError as exc:  # GRRM not available in this build: keep the averaged rotations
+        logger.warning("optimize: GRRM unavailable (%s); keeping the averaged rotations", exc)
+        return R_out, {"skipped": f"GRRM unavailable: {exc}", "time_s": time.perf_counter() - start}
+    options = options or GRRMOptions()
+    index = view_index(graph)
+    registered = {v for v, row in index.items() if np.all(np.isfinite(R_out[row]))}
+    edges = [k for k in regular_edges(graph) if graph.edges[k].i in registered and graph.edges[k].j in registered]
+    if not edges:
+        return R_out, {"skipped": "no REGULAR edge", "time_s": time.perf_counter() - start}
+    # largest component of the REGULAR edges (ties: the one with the smallest view id)
+    touched = sorted({v for k in edges for v in (graph.edges[k].i, graph.edges[k].j)})
+    label = components(touched, [(graph.edges[k].i, graph.edges[k].j) for k in edges])
+    sizes = np.bincount(np.array([label[v] for v in touched]))
+    best = int(np.argmax(sizes))  # argmax: first maximum = component of the smallest view id
+    views = [v for v in touched if label[v] == best]
+    edges = [k for k in edges if label[graph.edges[k].i] == best]
+    local = {v: r for r, v in enumerate(views)}
+    edge_views = np.array([[local[graph.edges[k].i], local[graph.edges[k].j]] for k in edges], dtype=np.int64)
+    sizes_kp = np.array([len(normalized[v]) for v in views], dtype=np.int64)
+    offset = np.concatenate([[0], np.cumsum(sizes_kp)])
+    obs_ids = np.concatenate([np.stack([offset[local[graph.edges[k].i]] + graph.edges[k].matches[:, 0],
+                                        offset[local[graph.edges[k].j]] + graph.edges[k].matches[:, 1]], axis=1)
+                              for k in edges])
+    batch = edge_batch(graph, normalized, edges)
+    R0 = np.stack([R_out[index[v]] for v in views])
+    try:
+        with np.errstate(all="ignore"):
+            result = optimize_global_rotations(R0, edge_views, batch, obs_ids, fixed_view=0, options=options)
+    except ValueError as exc:
+        raise AlgorithmError(f"GRRM failed: {exc}") from exc
+    from rotonly_cli.geometry import so3
+
+    change = np.degrees(so3.geodesic_angle(result.R_cam_from_world, R0))
+    for r, v in enumerate(views):
+        R_out[index[v]] = result.R_cam_from_world[r]
+    report = {"num_views": len(views), "num_edges": len(edges), "num_matches": int(batch.x_i.shape[0]),
+              "cost_before": float(result.initial_cost), "cost_after": float(result.cost),
+              "iterations": int(result.iterations), "converged": bool(result.converged),
+              "rotation_change_deg": {"mean": float(change.mean()), "max": float(change.max())},
+              "views_kept_averaged": sorted(v for v in registered if v not in local),
+              "history": list(result.history), "time_s": time.perf_counter() - start}
+    logger.info("optimize (GRRM): %d views, %d edges, cost %.6g -> %.6g in %d iterations, mean change %.4f deg",
+                len(views), len(edges), result.initial_cost, result.cost, result.iterations, change.mean())
+    return R_out, report
