@@ -1,7 +1,9 @@
-"""`rotonly refine FILE.npz`: identify and TRRM-refine one simulated edge, compared to its truth.
+"""`rotonly refine FILE.npz | WORKSPACE`: TRRM on one simulated edge, or the refine stage.
 
-A FILE ending in ``.npz`` (written by ``rotonly simulate twoview``) selects this simulation
-mode; a workspace argument is reserved for the ``refine`` stage of ``rotonly run``.
+A FILE ending in ``.npz`` (written by ``rotonly simulate twoview``) selects the simulation
+mode: identify and TRRM-refine that edge, compared to its truth. A folder is an OUT workspace
+of ``rotonly identify`` / ``rotonly run``: TRRM runs on all its active edges
+(``pipeline.resume(WORKSPACE, "refine")``).
 Initial rotation: ``--init ransac`` = OpenCV 5-point RANSAC on the normalized matches, the
 optimisation then runs on its inliers (paper §"Default Settings"); ``--init truth-perturbed``
 = the true rotation turned by ``--perturb-deg`` about a random axis, all matches.
@@ -102,14 +104,24 @@ def format_table(row: dict) -> str:
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of RANSAC / the perturbation.")
 @click.option("--json", "as_json", is_flag=True, help="Print the numbers as JSON.")
 def command(target: Path, init: str, perturb_deg: float, ransac_threshold_px: float, seed: int, as_json: bool) -> None:
-    """Identify the scene and refine the rotation of the simulated edge TARGET (.npz).
+    """TRRM-refine the edges of a workspace, or the simulated edge of a .npz file.
 
-    Prints the scene kind, v_rs, and the rotation / translation-direction errors before and
-    after TRRM against the stored ground truth.
+    \b
+    TARGET = OUT workspace (folder from `rotonly identify INPUT -o OUT`): TRRM on every
+             active edge, in place (state.npz, view_graph.json, reports/refine.json).
+    TARGET = FILE.npz (from `rotonly simulate twoview`): prints the scene kind, v_rs, and the
+             rotation / translation-direction errors before and after TRRM against the
+             stored ground truth (the options below apply to this mode).
     """
+    if target.is_dir():
+        from rotonly_cli.cli.run import echo_summary
+        from rotonly_cli.pipeline import resume
+
+        echo_summary(resume(target, "refine"), target)
+        return
     if target.suffix.lower() != ".npz":
-        raise InputError("only the simulation mode (a .npz from `rotonly simulate twoview`) is available",
-                         path=target, field="TARGET")
+        raise InputError("expected a workspace folder (from `rotonly identify`) or a .npz from "
+                         "`rotonly simulate twoview`", path=target, field="TARGET")
     row = refine_simulation(target, init, perturb_deg, ransac_threshold_px, seed)
     if as_json:
         import json

@@ -1,0 +1,75 @@
+"""The pipeline stages one by one on an OUT workspace (see `rotonly run`).
+
+    rotonly identify INPUT -o OUT    # load + relative poses + scene identification -> OUT
+    rotonly refine OUT               # TRRM on every active edge
+    rotonly average OUT              # robust rotation averaging (+ outlier filter)
+    rotonly optimize OUT             # GRRM
+    rotonly translate OUT            # LiGT camera centres
+    rotonly triangulate OUT          # points; writes OUT/sfm_data.json and OUT/sparse/
+
+Each updates OUT/state.npz, OUT/view_graph.json and OUT/reports/<stage>.json.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from rotonly_cli.cli.run import echo_summary, run_options, shared_load_options
+
+
+@click.command("identify")
+@click.argument("input_path", metavar="INPUT", type=click.Path(path_type=Path))
+@click.option("-o", "--output", "out_dir", required=True, type=click.Path(path_type=Path),
+              help="Workspace folder to create (or a previous workspace to replace).")
+@shared_load_options
+@click.pass_context
+def identify(ctx: click.Context, input_path: Path, out_dir: Path, **load_options) -> None:
+    """Load INPUT (COLMAP .db or OpenMVG sfm_data.json), estimate the view graph and identify
+    every edge's scene kind (REGULAR / PURE_ROTATION / ROTATION_SINGULAR) into OUT."""
+    from rotonly_cli.pipeline import run_pipeline
+
+    echo_summary(run_pipeline(input_path, out_dir, run_options(ctx, **load_options), stages=("load", "identify")),
+                 out_dir)
+
+
+def _stage_command(stage: str, summary: str, extra_options=()):
+    def callback(workspace: Path, max_residual_deg: float | None = None, image_path: Path | None = None,
+                 gt_path: Path | None = None) -> None:
+        from rotonly_cli.pipeline import RunOptions, resume
+        from rotonly_cli.stages.average import AverageOptions
+
+        kwargs: dict = {}
+        if max_residual_deg is not None:
+            kwargs["average"] = AverageOptions(max_residual_deg=max_residual_deg)
+        if image_path is not None:
+            kwargs["image_path"] = str(image_path)
+        if gt_path is not None:
+            kwargs["gt"] = str(gt_path)
+        echo_summary(resume(workspace, stage, RunOptions(**kwargs)), workspace)
+
+    command = click.Command(stage, callback=callback, help=f"{summary}\n\nWORKSPACE is an OUT folder made by "
+                            "`rotonly identify` or `rotonly run`; its state.npz, view_graph.json and "
+                            f"reports/{stage}.json are updated in place.",
+                            params=[click.Argument(["workspace"], metavar="WORKSPACE",
+                                                   type=click.Path(path_type=Path)), *extra_options])
+    return command
+
+
+average = _stage_command("average", "Robust rotation averaging (L1 + IRLS, weighted by inlier count) of the "
+                         "active edges; edges beyond --max-residual-deg are filtered.",
+                         [click.Option(["--max-residual-deg"], type=click.FloatRange(min=0, min_open=True),
+                                       default=5.0, show_default=True, help="Outlier threshold (degrees).")])
+optimize = _stage_command("optimize", "GRRM (paper Alg. 4): refine the averaged global rotations on the "
+                          "reprojection residuals of all REGULAR edges.")
+translate = _stage_command("translate", "Camera centres by LiGT from the rotations and the tracks of the REGULAR "
+                           "edges.")
+triangulate = _stage_command("triangulate", "Triangulate the tracks and write OUT/sfm_data.json and OUT/sparse/.",
+                             [click.Option(["--image-path"], type=click.Path(path_type=Path), default=None,
+                                           help="Images for point colours."),
+                              click.Option(["--gt", "gt_path"], type=click.Path(path_type=Path), default=None,
+                                           help="Ground truth: also write OUT/eval/report.{json,html}.")])
+
+commands = {"identify": identify, "average": average, "optimize": optimize, "translate": translate,
+            "triangulate": triangulate}
