@@ -115,8 +115,12 @@ def command(target: Path, init: str, perturb_deg: float, ransac_threshold_px: fl
     """
     if target.is_dir():
         from rotonly_cli.cli.run import echo_summary
+        from rotonly_cli.io.workspace import STATE_FILE
         from rotonly_cli.pipeline import resume
 
+        if not (target / STATE_FILE).is_file():
+            raise InputError(f"folder is not a rotonly workspace (no {STATE_FILE}; make one with "
+                             "`rotonly identify INPUT -o OUT`)", path=target, field="TARGET")
         echo_summary(resume(target, "refine"), target)
         return
     if target.suffix.lower() != ".npz":
