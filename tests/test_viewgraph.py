@@ -1,0 +1,96 @@
+"""io.viewgraph / io.workspace: components, filters with reasons, deterministic JSON, state round trip."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from rotonly_cli.errors import InputError
+from rotonly_cli.geometry import so3
+from rotonly_cli.io.types import View
+from rotonly_cli.io.viewgraph import Edge, ViewGraph, largest_component, write_view_graph_json
+from rotonly_cli.io.workspace import WorkspaceState, load_state, save_state
+
+
+def _graph(pairs: list[tuple[int, int]], num_views: int, seed: int = 0) -> ViewGraph:
+    rng = np.random.default_rng(seed)
+    graph = ViewGraph(views={v: View(v, f"{v:04d}.jpg", 1) for v in range(1, num_views + 1)})
+    for i, j in pairs:
+        matches = np.stack([rng.permutation(50)[:40], rng.permutation(60)[:40]], axis=1)
+        t = rng.normal(size=3)
+        graph.edges.append(Edge(i, j, so3.random_rotations(1, rng)[0], t / np.linalg.norm(t), matches,
+                                pose_source="stored", config="CALIBRATED"))
+    return graph
+
+
+def test_largest_component_filters_the_rest_and_reports_views():
+    # component {1,2,3} (3 views) vs {4,5} (2 views); view 6 has no edge
+    graph = _graph([(1, 2), (2, 3), (1, 3), (4, 5)], num_views=6)
+    keep = largest_component(graph)
+    assert keep == [1, 2, 3]
+    assert graph.unregistered_views == [4, 5, 6]
+    assert [e.status for e in graph.edges] == ["active", "active", "active", "filtered"]
+    assert graph.edges[3].reason == "outside largest component"
+    assert graph.counts()["filtered_by_reason"] == {"outside largest component": 1}
+
+
+def test_tie_goes_to_the_component_with_the_smallest_view_id():
+    graph = _graph([(3, 4), (1, 2)], num_views=4)
+    assert largest_component(graph) == [1, 2]
+    assert graph.unregistered_views == [3, 4]
+
+
+def test_first_filter_reason_wins_and_filtering_can_disconnect():
+    graph = _graph([(1, 2), (2, 3)], num_views=3)
+    graph.edges[1].filter("too few inliers")
+    graph.edges[1].filter("rotation averaging outlier")
+    assert graph.edges[1].reason == "too few inliers"
+    assert largest_component(graph) == [1, 2]
+    assert graph.unregistered_views == [3]
+    assert graph.active_edges() == [0]
+
+
+def test_view_graph_json_is_deterministic_and_has_every_edge(tmp_path):
+    graph = _graph([(1, 2), (2, 3), (1, 3)], num_views=3)
+    graph.edges[2].filter("too few inliers")
+    graph.edges[0].residual_deg = float("nan")  # NaN must become null, not invalid JSON
+    write_view_graph_json(tmp_path / "a.json", graph)
+    write_view_graph_json(tmp_path / "b.json", graph)
+    assert (tmp_path / "a.json").read_bytes() == (tmp_path / "b.json").read_bytes()
+    document = json.loads((tmp_path / "a.json").read_text())
+    assert [(e["i"], e["j"], e["status"], e["reason"]) for e in document["edges"]] == [
+        (1, 2, "active", ""), (2, 3, "active", ""), (1, 3, "filtered", "too few inliers")]
+    assert document["edges"][0]["residual_deg"] is None
+    assert document["edges"][1]["num_inliers"] == 40
+    np.testing.assert_allclose(document["edges"][1]["R_j_from_i"], graph.edges[1].R_j_from_i, rtol=0, atol=0)
+
+
+def test_workspace_state_round_trip(tmp_path):
+    graph = _graph([(1, 2), (2, 3), (1, 3)], num_views=3)
+    graph.edges[1].scene_kind = "PURE_ROTATION"
+    graph.edges[1].detection_value = 0.25
+    graph.edges[2].filter("rotation averaging outlier")
+    rotations = so3.random_rotations(3, np.random.default_rng(5))
+    rotations[2] = np.nan
+    state = WorkspaceState("in/database.db", "colmap-db", None, "imgs", graph, rotations, None,
+                           ["load", "identify"], {"grrm": True})
+    save_state(tmp_path, state)
+    back = load_state(tmp_path)
+    assert (back.input_path, back.input_kind, back.image_path, back.stages) == (
+        "in/database.db", "colmap-db", "imgs", ["load", "identify"])
+    assert back.centers is None
+    np.testing.assert_array_equal(back.rotations, rotations)
+    assert [(e.i, e.j, e.status, e.reason, e.scene_kind) for e in back.graph.edges] == [
+        (e.i, e.j, e.status, e.reason, e.scene_kind) for e in graph.edges]
+    assert back.graph.edges[1].detection_value == 0.25 and np.isnan(back.graph.edges[0].detection_value)
+    for a, b in zip(back.graph.edges, graph.edges):
+        np.testing.assert_array_equal(a.matches, b.matches)
+        np.testing.assert_array_equal(a.R_j_from_i, b.R_j_from_i)
+    assert back.graph.views[2].name == "0002.jpg"
+
+
+def test_load_state_of_a_plain_folder_is_input_error(tmp_path):
+    with pytest.raises(InputError, match="not a rotonly workspace"):
+        load_state(tmp_path)
