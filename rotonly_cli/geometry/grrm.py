@@ -298,11 +298,6 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
     problem = _Problem(n, edge_views, batch, obs_ids)
     free = np.ones(3 * n, dtype=bool)
     free[3 * fixed_view:3 * fixed_view + 3] = False
-    if options.epipolar_max_iterations > 0 and batch.num_edges:
-        R, it1 = epipolar_phase(R, edge_views, batch, free, options.epipolar_max_iterations,
-                                options.epipolar_step_tolerance)
-        log.info("GRRM λ_min phase: %d iterations", it1)
-
     V, S, B = problem.evaluate(R, with_jacobian=True)
     sq = np.einsum("gk,gk->g", V, V)
     scale = options.loss_scale
@@ -313,6 +308,17 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
     rho, drho = _robust(sq, options.loss, scale)
     cost = float(rho.sum())
     initial_cost = cost
+    if options.epipolar_max_iterations > 0 and batch.num_edges:
+        # the λ_min phase only proposes a start: keep it if GRRM's own cost agrees it is
+        # better (on weak geometry, e.g. far points, λ_min's optimum can be worse)
+        R1, it1 = epipolar_phase(R, edge_views, batch, free, options.epipolar_max_iterations,
+                                 options.epipolar_step_tolerance)
+        V1, S1, B1 = problem.evaluate(R1, with_jacobian=True)
+        sq1 = np.einsum("gk,gk->g", V1, V1)
+        rho1, drho1 = _robust(sq1, options.loss, scale)
+        if float(rho1.sum()) < cost:
+            R, V, S, B, sq, rho, drho, cost = R1, V1, S1, B1, sq1, rho1, drho1, float(rho1.sum())
+        log.info("GRRM λ_min phase: %d iterations, start %s", it1, "taken" if R is R1 else "kept")
     history: list[dict] = []
     mu = options.initial_damping
     converged = False
