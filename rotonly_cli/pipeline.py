@@ -181,6 +181,9 @@ def write_outputs(out_dir: Path, run: Run) -> SfMScene:
     openmvg_scene = colmap_to_openmvg(scene) if run.input_kind == "colmap-db" else scene
     openmvg.write_sfm_data(out_dir / "sfm_data.json", openmvg_scene)
     colmap.write_model(out_dir / "sparse", scene, binary=True)
+    umask = os.umask(0)
+    os.umask(umask)
+    (out_dir / "sparse").chmod(0o777 & ~umask)  # write_model stages in a 0700 mkdtemp folder
     return scene
 
 
