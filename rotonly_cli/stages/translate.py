@@ -45,7 +45,8 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
     ids = graph.view_ids()
     without = [ids[r] for r in np.flatnonzero(registered & ~result.has_translation)]
     report = {"num_edges": len(edges), "num_tracks": tracks.num_tracks, "num_observations": tracks.num_observations,
-              "num_inconsistent_tracks": tracks.num_inconsistent, "num_views_with_centre": int(result.has_translation.sum()),
+              "num_inconsistent_tracks": tracks.num_inconsistent,
+              "num_views_with_centre": int(result.has_translation.sum()),
               "views_without_centre": without, "smallest_eigenvalues": result.smallest_eigenvalues.tolist(),
               "sign_votes": list(result.sign_votes), "time_s": time.perf_counter() - start}
     logger.info("translate (LiGT): %d tracks from %d REGULAR edges, %d views with a centre%s",
