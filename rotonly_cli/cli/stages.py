@@ -61,7 +61,7 @@ average = _stage_command("average", "Robust rotation averaging (L1 + IRLS, weigh
                          "active edges; edges beyond --max-residual-deg are filtered.",
                          [click.Option(["--max-residual-deg"], type=click.FloatRange(min=0, min_open=True),
                                        default=5.0, show_default=True, help="Outlier threshold (degrees).")])
-optimize = _stage_command("optimize", "GRRM (paper Alg. 4): refine the averaged global rotations on the "
+optimize = _stage_command("optimize", "GRRM (the paper's Algorithm 4) refines the averaged global rotations on the "
                           "reprojection residuals of all REGULAR edges.")
 translate = _stage_command("translate", "Camera centres by LiGT from the rotations and the tracks of the REGULAR "
                            "edges.")
