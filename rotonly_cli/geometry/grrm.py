@@ -101,14 +101,15 @@ class _Problem:
         groups, self.group = np.unique(np.concatenate([obs_ids[:, 0], obs_ids[:, 1]]), return_inverse=True)
         self.num_groups = len(groups)
         self.edge_of_contribution = np.concatenate([self.edge_of_match, self.edge_of_match])
-        # contributions sorted by observation -> pairs (a <= b) inside each observation
-        order = np.argsort(self.group, kind="stable")
+        # contributions sorted by observation; pairs (a < b) inside each observation, as
+        # positions in that sorted order (so the gathers below stay local in memory)
+        self.order = np.argsort(self.group, kind="stable")
         sizes = np.bincount(self.group, minlength=self.num_groups)
         offsets = np.concatenate([[0], np.cumsum(sizes)])
-        a, b = pairs_within_tracks(offsets)
-        self.pair_a = np.concatenate([order, order[a]])  # diagonal pairs (c, c) first
-        self.pair_b = np.concatenate([order, order[b]])
-        key = self.edge_of_contribution[self.pair_a] * self.E + self.edge_of_contribution[self.pair_b]
+        self.pair_a, self.pair_b = pairs_within_tracks(offsets)
+        edge_sorted = self.edge_of_contribution[self.order]
+        self.edge_sorted = edge_sorted
+        key = edge_sorted[self.pair_a] * self.E + edge_sorted[self.pair_b]
         self.block_keys, self.pair_block = np.unique(key, return_inverse=True)
         self.block_row = self.block_keys // self.E
         self.block_col = self.block_keys % self.E
@@ -152,42 +153,40 @@ class _Problem:
     def normal_equations(self, R: np.ndarray, V: np.ndarray, B: np.ndarray, row_weight: np.ndarray):
         """(JᵀWJ (3n x 3n, sparse), JᵀW V (3n,)) with per-observation weights W = ρ'."""
         E = self.E
-        wB = B * row_weight[self.group][:, None, None]
+        w_c = row_weight[self.group]
         # J_eᵀ W V per edge: Σ_c B_cᵀ w_g V_g
-        BtV = np.einsum("cab,ca->cb", wB, V[self.group])
+        BtV = np.einsum("cab,ca->cb", B, V[self.group] * w_c[:, None])
         g_edge = np.stack([np.bincount(self.edge_of_contribution, weights=BtV[:, k], minlength=E)
                            for k in range(3)], axis=1).ravel()
-        # J_eᵀ W J_e blocks: Σ over contribution pairs (a <= b) in the same observation,
-        # in chunks so the (pairs, 3, 3) temporaries stay small
+        Bs = B[self.order].reshape(-1, 9)
+        wBs = Bs * w_c[self.order][:, None]
+
+        def blocks_of(Ba, Bb, keys, K):
+            out = np.empty((K, 9))
+            for a in range(3):
+                for b in range(3):
+                    # (B_aᵀ B_b)[a, b] = Σ_k B_a[k, a] B_b[k, b]
+                    v = Ba[:, a] * Bb[:, b] + Ba[:, 3 + a] * Bb[:, 3 + b] + Ba[:, 6 + a] * Bb[:, 6 + b]
+                    out[:, 3 * a + b] = np.bincount(keys, weights=v, minlength=K)
+            return out.reshape(K, 3, 3)
+
+        # diagonal pairs (c, c): blocks (e_c, e_c)
+        diag = blocks_of(wBs, Bs, self.edge_sorted, E)
+        # pairs c < c' inside one observation: blocks (e_c, e_c') and their transposes
         K = len(self.block_keys)
-        blocks = np.zeros((K, 9))
-        B_flat = B.reshape(-1, 9)
-        wB_flat = wB.reshape(-1, 9)
+        off = np.zeros((K, 3, 3))
         step = 1 << 18
         for p0 in range(0, len(self.pair_a), step):
             pa = self.pair_a[p0:p0 + step]
             pb = self.pair_b[p0:p0 + step]
-            pk = self.pair_block[p0:p0 + step]
-            Ba = wB_flat[pa]
-            Bb = B_flat[pb]
-            for a in range(3):
-                for b in range(3):
-                    # (Bᵀ_a B_b)[a, b] = Σ_k Ba[k, a] Bb[k, b]
-                    v = Ba[:, a] * Bb[:, b] + Ba[:, 3 + a] * Bb[:, 3 + b] + Ba[:, 6 + a] * Bb[:, 6 + b]
-                    blocks[:, 3 * a + b] += np.bincount(pk, weights=v, minlength=K)
-        blocks = blocks.reshape(K, 3, 3)
-        rows = (3 * self.block_row)[:, None, None] + np.arange(3)[None, :, None]
-        cols = (3 * self.block_col)[:, None, None] + np.arange(3)[None, None, :]
-        H_upper = sp.csr_matrix((blocks.ravel(), (np.broadcast_to(rows, (K, 3, 3)).ravel(),
-                                                  np.broadcast_to(cols, (K, 3, 3)).ravel())), shape=(3 * E, 3 * E))
-        # pairs with a < b appear once: H = U + Uᵀ - diag-pair part counted once
-        diag_pairs = sp.csr_matrix((np.einsum("cka,ckb->cab", wB, B).ravel(),
-                                    (np.broadcast_to((3 * self.edge_of_contribution)[:, None, None]
-                                                     + np.arange(3)[None, :, None], (len(B), 3, 3)).ravel(),
-                                     np.broadcast_to((3 * self.edge_of_contribution)[:, None, None]
-                                                     + np.arange(3)[None, None, :], (len(B), 3, 3)).ravel())),
-                                   shape=(3 * E, 3 * E))
-        H = H_upper + H_upper.T - diag_pairs
+            off += blocks_of(wBs[pa], Bs[pb], self.pair_block[p0:p0 + step], K)
+        rows = np.concatenate([np.arange(E), self.block_row, self.block_col])
+        cols = np.concatenate([np.arange(E), self.block_col, self.block_row])
+        data = np.concatenate([diag, off, np.swapaxes(off, 1, 2)])
+        H = sp.bsr_matrix((data, cols, np.arange(len(rows) + 1)), shape=(3 * len(rows), 3 * E))
+        # rows of that BSR are one per block: sum them into block row r via a selector
+        Sel = sp.csr_matrix((np.ones(len(rows)), (rows, np.arange(len(rows)))), shape=(E, len(rows)))
+        H = sp.kron(Sel, sp.identity(3), format="csr") @ H
         C = self.chain_matrix(R)
         return (C.T @ H @ C).tocsc(), C.T @ g_edge
 
@@ -342,9 +341,10 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
             delta = np.zeros(3 * n)
             delta[free] = delta_free
             R_cand = so3.exp(delta.reshape(n, 3)) @ R
-            V_c, S_c, _ = problem.evaluate(R_cand, with_jacobian=False)
+            # evaluate the candidate with its Jacobian: accepted steps (the usual case) reuse it
+            V_c, S_c, B_c = problem.evaluate(R_cand, with_jacobian=True)
             sq_c = np.einsum("gk,gk->g", V_c, V_c)
-            rho_c, _ = _robust(sq_c, options.loss, scale)
+            rho_c, drho_c = _robust(sq_c, options.loss, scale)
             cost_c = float(rho_c.sum())
             step = float(np.max(np.linalg.norm(delta.reshape(n, 3), axis=1)))
             if cost_c <= cost:
@@ -360,12 +360,8 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
             converged = True
             break
         decrease = cost - cost_c
-        R = R_cand
-        cost = cost_c
+        R, V, S, B, sq, rho, drho, cost = R_cand, V_c, S_c, B_c, sq_c, rho_c, drho_c, cost_c
         mu = max(mu / 10.0, 1e-15)
-        V, S, B = problem.evaluate(R, with_jacobian=True)
-        sq = np.einsum("gk,gk->g", V, V)
-        rho, drho = _robust(sq, options.loss, scale)
         history.append({"iteration": iteration, "cost": cost, "step": step, "damping": mu, "accepted": True,
                         "seconds": time.perf_counter() - t0})
         log.info("GRRM iteration %d: cost %.6e (-%.2e), max step %.2e rad, %.2f s",
