@@ -1,0 +1,456 @@
+"""Issue-5 benchmark on the Strecha scenes: rotonly against pycolmap and OpenMVG, one evaluator.
+
+Usage: python scripts/bench_strecha.py --root /work/shared/data/strecha [--scenes fountain-P11 ...]
+                                       [-o RESULTS_DIR] [--threads N] [--skip-mapper]
+
+For every scene folder under ROOT (database.db, gt_dense_cameras/, openmvg/{sfm_data.json,
+matches.e.bin, global/sfm_data.json}; data/strecha/README.md), in the same run:
+
+* ``rotonly run <scene>/database.db`` and ``rotonly run <scene>/openmvg/sfm_data.json`` as a
+  subprocess of the installed CLI (honest wall time, process start included), plus the
+  internal stage times from OUT/reports/<stage>.json;
+* the same two inputs once more in-process, stage by stage, to evaluate the GRRM start (the
+  L1-IRLS averaged rotations, stage ``average``) against the GRRM result (stage ``optimize``),
+  and pycolmap's rotation averaging on exactly rotonly's edges after TRRM (same edges, other
+  averager);
+* pycolmap rotation averaging on the database's stored two-view geometries (uniform and
+  inlier-weighted: ``RotationAveragingReweighting.INLIER_MATCH_COUNT``), as the README's rows;
+* pycolmap's global mapper (GLOMAP: rotation averaging + global positioning + BA, K fixed) on
+  a private copy of the database;
+* OpenMVG 2.1's own global SfM result stored in openmvg/global/sfm_data.json (its time is the
+  README's, it is not re-run here).
+
+One evaluator for all: ``rotonly_cli.evaluation.quality.evaluate`` against
+``rotonly_cli.io.strecha.read_ground_truth(scene)``: rotation error (geodesic after the best
+global rotation, the README's metric; mean and OpenMVG's upper median), position error after the
+similarity on centres (GT units; "–" for rotation-only estimates), number registered, time.
+Writes RESULTS_DIR/results.json and RESULTS_DIR/table.md atomically; never writes into ROOT
+(every database is copied to a temporary folder before pycolmap opens it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from rotonly_cli.evaluation.quality import evaluate
+from rotonly_cli.io import openmvg, strecha
+from rotonly_cli.io.types import Pose, SfMScene, View
+
+#: OpenMVG 2.1 global SfM wall time on this machine type (data/strecha/README.md, "What the
+#: references reach"); the stored result is evaluated, the tool is not re-run.
+OPENMVG_GLOBAL_TIME_S = {"fountain-P11": 5.0, "Herz-Jesus-P8": 1.0, "entry-P10": 2.0}
+STAGE_NAMES = ("load", "identify", "refine", "average", "optimize", "translate", "triangulate")
+
+
+@dataclass
+class MethodResult:
+    method: str
+    rotation_mean_deg: float | None = None
+    rotation_median_deg: float | None = None
+    position_mean: float | None = None  # GT units, after the similarity on centres
+    num_registered: int = 0
+    num_gt: int = 0
+    time_s: float | None = None
+    time_note: str = ""  # how time_s was measured
+    error: str = ""  # why the method produced nothing
+    extra: dict = field(default_factory=dict)
+
+
+# ============================================================================ evaluation
+
+def evaluate_scene(method: str, gt: SfMScene, estimate: SfMScene, time_s: float | None,
+                   time_note: str = "") -> MethodResult:
+    """The one evaluator, applied to any estimate with poses keyed by view id and view names."""
+    result = MethodResult(method, num_gt=len(gt.poses), time_s=time_s, time_note=time_note)
+    if not estimate.poses:
+        result.error = "no pose estimated"
+        return result
+    report = evaluate(gt, estimate)
+    result.rotation_mean_deg = report.rotation_error_deg.mean
+    result.rotation_median_deg = report.rotation_error_deg.median
+    result.position_mean = None if report.position_error is None else report.position_error.mean
+    result.num_registered = report.num_matched
+    return result
+
+
+def rotations_scene(names: dict[int, str], rotations: dict[int, np.ndarray],
+                    centers: dict[int, np.ndarray] | None = None) -> SfMScene:
+    """SfMScene holding only named views and poses. Without centres they are all zero, which
+    the evaluator recognises as rotation-only (position metrics omitted)."""
+    scene = SfMScene(source="bench")
+    for view_id, R in rotations.items():
+        if not np.all(np.isfinite(R)):
+            continue
+        scene.views[view_id] = View(view_id, names[view_id], 0)
+        center = np.zeros(3) if centers is None else np.asarray(centers[view_id], dtype=float)
+        scene.poses[view_id] = Pose(np.asarray(R, dtype=float), center)
+    return scene
+
+
+# ============================================================================ rotonly
+
+def rotonly_command() -> list[str]:
+    """The installed console script, else the module entry point of this interpreter."""
+    exe = shutil.which("rotonly")
+    return [exe] if exe else [sys.executable, "-m", "rotonly_cli"]
+
+
+def run_rotonly_subprocess(method: str, input_path: Path, gt: SfMScene, work: Path, log_dir: Path) -> MethodResult:
+    """`rotonly -q run INPUT -o OUT` as a subprocess; wall time and OUT/reports stage times."""
+    out = work / method.replace(" ", "_").replace("/", "_")
+    command = rotonly_command() + ["-q", "run", str(input_path), "-o", str(out)]
+    start = time.perf_counter()
+    completed = subprocess.run(command, capture_output=True, text=True)
+    wall = time.perf_counter() - start
+    (log_dir / f"{out.name}.log").write_text(f"$ {' '.join(command)}\nexit {completed.returncode}\n"
+                                             f"--- stdout\n{completed.stdout}--- stderr\n{completed.stderr}")
+    if completed.returncode != 0:
+        result = MethodResult(method, num_gt=len(gt.poses), time_s=wall, time_note="subprocess wall")
+        result.error = f"exit {completed.returncode}: {completed.stderr.strip().splitlines()[-1:]}"
+        return result
+    estimate = openmvg.read_sfm_data(out / "sfm_data.json")
+    result = evaluate_scene(method, gt, estimate, wall, "subprocess wall")
+    stage_times = {}
+    for stage in STAGE_NAMES + ("run",):
+        report_path = out / "reports" / f"{stage}.json"
+        if report_path.is_file():
+            stage_times[stage] = json.loads(report_path.read_text()).get("time_s")
+    result.extra["stage_times_s"] = stage_times
+    optimize_report = out / "reports" / "optimize.json"
+    if optimize_report.is_file():
+        report = json.loads(optimize_report.read_text())
+        result.extra["grrm"] = {k: report.get(k) for k in ("num_views", "num_edges", "num_matches", "iterations",
+                                                           "cost_before", "cost_after", "converged")}
+    return result
+
+
+def run_rotonly_stages(label: str, input_path: Path, gt: SfMScene) -> tuple[list[MethodResult], dict]:
+    """load..optimize in-process: the averaged (GRRM start) and GRRM rotations, and pycolmap
+    rotation averaging on the same active edges after TRRM."""
+    from rotonly_cli.pipeline import (RunOptions, average_stage, identify_stage, load_stage, optimize_stage,
+                                      refine_stage)
+    from rotonly_cli.stages.common import view_index
+
+    times: dict[str, float] = {}
+    start = time.perf_counter()
+    run = load_stage(input_path, RunOptions())
+    times["load"] = time.perf_counter() - start
+    for name, stage in (("identify", identify_stage), ("refine", refine_stage)):
+        start = time.perf_counter()
+        stage(run)
+        times[name] = time.perf_counter() - start
+    names = {v: run.graph.views[v].name for v in run.graph.view_ids()}
+    index = view_index(run.graph)
+    row_to_view = {row: v for v, row in index.items()}
+
+    # pycolmap on rotonly's edges after TRRM (before the average stage filters outliers)
+    edges = run.graph.active_edges()
+    edge_views = np.array([[index[run.graph.edges[k].i], index[run.graph.edges[k].j]] for k in edges])
+    R_j_from_i = np.stack([run.graph.edges[k].R_j_from_i for k in edges])
+    inliers = np.array([run.graph.edges[k].num_inliers for k in edges])
+    results = []
+    for weighted in (False, True):
+        method = f"pycolmap RA on rotonly's TRRM edges ({label}{', inlier-weighted' if weighted else ''})"
+        start = time.perf_counter()
+        R = pycolmap_rotation_averaging(len(index), edge_views, R_j_from_i, inliers, weighted)
+        elapsed = time.perf_counter() - start
+        results.append(evaluate_scene(method, gt, rotations_scene(names, {row_to_view[r]: R[r] for r in
+                                                                           range(len(R))}), elapsed,
+                                      "averaging call only"))
+
+    start = time.perf_counter()
+    average_stage(run)
+    times["average"] = time.perf_counter() - start
+    averaged = run.rotations.copy()
+    start = time.perf_counter()
+    optimize_stage(run)
+    times["optimize"] = time.perf_counter() - start
+    start_result = evaluate_scene(f"rotonly L1-IRLS average = GRRM start ({label})", gt,
+                                  rotations_scene(names, {row_to_view[r]: averaged[r] for r in range(len(averaged))}),
+                                  times["load"] + times["identify"] + times["refine"] + times["average"],
+                                  "in-process load..average")
+    final_result = evaluate_scene(f"rotonly GRRM, in-process ({label})", gt,
+                                  rotations_scene(names, {row_to_view[r]: run.rotations[r]
+                                                          for r in range(len(run.rotations))}),
+                                  sum(times.values()), "in-process load..optimize")
+    final_result.extra["stage_times_s"] = times
+    return [start_result, final_result] + results, times
+
+
+# ============================================================================ pycolmap
+
+def pycolmap_rotation_averaging(num_views: int, edge_views: np.ndarray, R_j_from_i: np.ndarray,
+                                num_inliers: np.ndarray, weighted: bool, seed: int = 0) -> np.ndarray:
+    """``pycolmap.run_rotation_averaging`` (algorithms.md §2.3) with default options (Geman-McClure,
+    σ = 5°); ``weighted``: ``reweighting = INLIER_MATCH_COUNT``. (n, 3, 3), NaN if unregistered."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(pycolmap.Camera.create_from_model_id(
+        1, pycolmap.CameraModelId.PINHOLE, 1000.0, 1000, 1000))
+    for v in range(num_views):
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=f"{v}", camera_id=1, image_id=v + 1))
+    graph = pycolmap.PoseGraph()
+    for e, (i, j) in enumerate(edge_views):
+        edge = pycolmap.PoseGraphEdge(pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(R_j_from_i[e], dtype=float)),
+                                                       np.zeros(3)))
+        edge.num_matches = int(num_inliers[e])  # spanning-tree weight (and the reweighting's)
+        graph.add_edge(int(i) + 1, int(j) + 1, edge)
+    options = pycolmap.RotationEstimatorOptions()
+    options.random_seed = seed
+    if weighted:
+        options.reweighting = pycolmap.RotationAveragingReweighting.INLIER_MATCH_COUNT
+    out = np.full((num_views, 3, 3), np.nan)
+    if not pycolmap.run_rotation_averaging(options, graph, rec, []):
+        return out
+    for v in range(num_views):
+        image = rec.images[v + 1]
+        if image.has_pose:
+            out[v] = np.asarray(image.cam_from_world().rotation.matrix())
+    return out
+
+
+def run_pycolmap_stored(database: Path, gt: SfMScene) -> list[MethodResult]:
+    """pycolmap RA on the database's stored cam2_from_cam1 (the README's first two rows)."""
+    from rotonly_cli.io.colmap import read_database
+
+    scene = read_database(database)  # reads a private copy of the file
+    view_ids = sorted(scene.views)
+    index = {v: k for k, v in enumerate(view_ids)}
+    keys = [key for key in sorted(scene.pairs) if scene.pairs[key].verified and scene.pairs[key].R_j_from_i is not None]
+    edge_views = np.array([[index[i], index[j]] for i, j in keys])
+    R_j_from_i = np.stack([scene.pairs[key].R_j_from_i for key in keys])
+    inliers = np.array([len(scene.pairs[key].matches) for key in keys])
+    names = {v: scene.views[v].name for v in view_ids}
+    results = []
+    for weighted in (False, True):
+        method = f"pycolmap RA on the stored two-view geometries{' (inlier-weighted)' if weighted else ''}"
+        start = time.perf_counter()
+        R = pycolmap_rotation_averaging(len(view_ids), edge_views, R_j_from_i, inliers, weighted)
+        elapsed = time.perf_counter() - start
+        result = evaluate_scene(method, gt, rotations_scene(names, {view_ids[r]: R[r] for r in range(len(R))}),
+                                elapsed, "averaging call only")
+        result.extra["num_edges"] = len(keys)
+        results.append(result)
+    return results
+
+
+def run_global_mapper(database: Path, gt: SfMScene, threads: int, seed: int = 0) -> MethodResult:
+    """pycolmap.global_mapping (GLOMAP) on a copy of the database, intrinsics fixed
+    (formats.md §4.7); largest model; the time is the global_mapping call."""
+    import pycolmap
+
+    method = "pycolmap global mapper (RA + GP + BA, K fixed)"
+    with tempfile.TemporaryDirectory(prefix="bench_glomap_") as tmp:
+        db_copy = Path(tmp) / "database.db"
+        shutil.copyfile(database, db_copy)  # Database.open rewrites the header even to read
+        options = pycolmap.GlobalPipelineOptions()
+        options.random_seed = seed
+        options.num_threads = threads
+        options.mapper.random_seed = seed
+        options.mapper.num_threads = threads
+        options.mapper.bundle_adjustment.refine_focal_length = False
+        options.mapper.bundle_adjustment.refine_principal_point = False
+        options.mapper.bundle_adjustment.refine_extra_params = False
+        (Path(tmp) / "images").mkdir()  # must exist; the images are not read
+        (Path(tmp) / "out").mkdir()
+        start = time.perf_counter()
+        models = pycolmap.global_mapping(db_copy, Path(tmp) / "images", Path(tmp) / "out", options)
+        elapsed = time.perf_counter() - start
+        if not models:
+            return MethodResult(method, num_gt=len(gt.poses), time_s=elapsed, error="no model")
+        rec = max(models.values(), key=lambda r: r.num_reg_images())
+        rotations, centers, names = {}, {}, {}
+        for image in rec.images.values():
+            if image.has_pose:
+                rotations[image.image_id] = np.asarray(image.cam_from_world().rotation.matrix())
+                centers[image.image_id] = np.asarray(image.projection_center())
+                names[image.image_id] = image.name
+        result = evaluate_scene(method, gt, rotations_scene(names, rotations, centers), elapsed,
+                                f"global_mapping call, {threads if threads > 0 else 'all'} threads")
+        result.extra["num_models"] = len(models)
+        result.extra["num_points"] = rec.num_points3D()
+        return result
+
+
+# ============================================================================ one scene
+
+def bench_scene(scene_dir: Path, work: Path, log_dir: Path, threads: int, skip_mapper: bool) -> list[MethodResult]:
+    name = scene_dir.name
+    gt = strecha.read_ground_truth(scene_dir)
+    database = scene_dir / "database.db"
+    project = scene_dir / "openmvg" / "sfm_data.json"
+    results: list[MethodResult] = []
+
+    def guarded(method: str, fn, *args):
+        try:
+            out = fn(*args)
+            results.extend(out if isinstance(out, list) else [out])
+        except Exception as exc:  # a failing method is a table row, not a crashed benchmark
+            results.append(MethodResult(method, num_gt=len(gt.poses), error=f"{type(exc).__name__}: {exc}"))
+        print(f"  [{name}] {method}: done", file=sys.stderr, flush=True)
+
+    with tempfile.TemporaryDirectory(prefix=f"bench_{name}_", dir=work) as tmp:
+        tmp = Path(tmp)
+        if database.is_file():
+            guarded("rotonly run database.db", run_rotonly_subprocess, "rotonly run database.db", database, gt,
+                    tmp, log_dir)
+        if project.is_file():
+            guarded("rotonly run openmvg/sfm_data.json", run_rotonly_subprocess,
+                    "rotonly run openmvg/sfm_data.json", project, gt, tmp, log_dir)
+        if database.is_file():
+            guarded("rotonly stages (database.db)", lambda: run_rotonly_stages("database.db", database, gt)[0])
+        if project.is_file():
+            guarded("rotonly stages (openmvg)", lambda: run_rotonly_stages("openmvg", project, gt)[0])
+        if database.is_file():
+            guarded("pycolmap RA on stored geometries", run_pycolmap_stored, database, gt)
+            if not skip_mapper:
+                guarded("pycolmap global mapper", run_global_mapper, database, gt, threads)
+    global_sfm = scene_dir / "openmvg" / "global" / "sfm_data.json"
+    if global_sfm.is_file():
+        guarded("OpenMVG 2.1 global SfM", lambda: evaluate_scene(
+            "OpenMVG 2.1 global SfM (LiGT + BA, stored result)", gt, openmvg.read_sfm_data(global_sfm),
+            OPENMVG_GLOBAL_TIME_S.get(name), "README, not re-run"))
+    return results
+
+
+# ============================================================================ tables
+
+def fmt(value: float | None, digits: int = 4) -> str:
+    if value is None or not np.isfinite(value):
+        return "–"
+    return f"{value:.{digits}f}"
+
+
+def scene_table(name: str, results: list[MethodResult]) -> str:
+    lines = [f"### {name}", "",
+             "| method | rot. error mean (deg) | median (deg) | position error mean (GT units) | registered "
+             "| time (s) | time measured as |",
+             "|---|---|---|---|---|---|---|"]
+    for r in results:
+        if r.error:
+            lines.append(f"| {r.method} | failed: {r.error} | | | | {fmt(r.time_s, 2)} | {r.time_note} |")
+            continue
+        lines.append(f"| {r.method} | {fmt(r.rotation_mean_deg)} | {fmt(r.rotation_median_deg)} | "
+                     f"{fmt(r.position_mean)} | {r.num_registered}/{r.num_gt} | {fmt(r.time_s, 2)} | {r.time_note} |")
+    stage_rows = [r for r in results if "stage_times_s" in r.extra and r.method.startswith("rotonly run")]
+    if stage_rows:
+        lines += ["", f"rotonly internal stage times (s, OUT/reports/<stage>.json), {name}:", "",
+                  "| input | " + " | ".join(STAGE_NAMES) + " | run total | subprocess wall |",
+                  "|---|" + "---|" * (len(STAGE_NAMES) + 2)]
+        for r in stage_rows:
+            times = r.extra["stage_times_s"]
+            lines.append(f"| {r.method.removeprefix('rotonly run ')} | "
+                         + " | ".join(fmt(times.get(s), 2) for s in STAGE_NAMES)
+                         + f" | {fmt(times.get('run'), 2)} | {fmt(r.time_s, 2)} |")
+    return "\n".join(lines)
+
+
+def summary_table(all_results: dict[str, list[MethodResult]]) -> str:
+    scenes = list(all_results)
+    methods: list[str] = []
+    for results in all_results.values():
+        for r in results:
+            if r.method not in methods:
+                methods.append(r.method)
+    lines = ["### Summary: mean rotation error in degrees (time in s)", "",
+             "| method | " + " | ".join(scenes) + " |", "|---|" + "---|" * len(scenes)]
+    for method in methods:
+        cells = []
+        for scene in scenes:
+            r = next((x for x in all_results[scene] if x.method == method), None)
+            if r is None:
+                cells.append("")
+            elif r.error:
+                cells.append("failed")
+            else:
+                missing = "" if r.num_registered == r.num_gt else f", {r.num_registered}/{r.num_gt} reg."
+                cells.append(f"{fmt(r.rotation_mean_deg)} ({fmt(r.time_s, 1)} s{missing})")
+        lines.append(f"| {method} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--root", type=Path, required=True, help="folder of Strecha scene folders")
+    parser.add_argument("--scenes", nargs="*", default=None, help="scene folder names (default: all)")
+    parser.add_argument("-o", "--output", type=Path, default=Path("bench_results/strecha"),
+                        help="results folder (replaced atomically)")
+    parser.add_argument("--threads", type=int, default=-1, help="pycolmap global mapper threads (-1: all)")
+    parser.add_argument("--skip-mapper", action="store_true", help="leave out the pycolmap global mapper")
+    args = parser.parse_args(argv)
+
+    root = args.root.resolve()
+    results_dir = args.output.resolve()
+    if results_dir.is_relative_to(root):
+        parser.error("the results folder must not lie inside ROOT (inputs are never modified)")
+    scene_dirs = sorted(p for p in root.iterdir() if p.is_dir() and (p / strecha.GT_SUBDIR).is_dir())
+    if args.scenes:
+        scene_dirs = [p for p in scene_dirs if p.name in args.scenes]
+        unknown = set(args.scenes) - {p.name for p in scene_dirs}
+        if unknown:
+            parser.error(f"unknown scenes: {', '.join(sorted(unknown))}")
+    if not scene_dirs:
+        parser.error(f"no scene folder with {strecha.GT_SUBDIR}/ under {root}")
+
+    results_dir.parent.mkdir(parents=True, exist_ok=True)
+    # subprocess logs and rotonly workspaces live beside RESULTS_DIR until the end
+    log_dir = Path(tempfile.mkdtemp(prefix=f".{results_dir.name}.logs.", dir=results_dir.parent))
+    all_results: dict[str, list[MethodResult]] = {}
+    start = time.perf_counter()
+    try:
+        for scene_dir in scene_dirs:
+            print(f"== {scene_dir.name}", file=sys.stderr, flush=True)
+            all_results[scene_dir.name] = bench_scene(scene_dir, results_dir.parent, log_dir, args.threads,
+                                                      args.skip_mapper)
+            print(scene_table(scene_dir.name, all_results[scene_dir.name]) + "\n", flush=True)
+        summary = summary_table(all_results)
+        print(summary)
+        table = "\n\n".join([scene_table(n, r) for n, r in all_results.items()] + [summary])
+        payload = {"root": str(root), "command": " ".join([Path(sys.argv[0]).name] + (argv or sys.argv[1:])),
+                   "rotonly": " ".join(rotonly_command()), "cpu_count": os.cpu_count(),
+                   "total_time_s": time.perf_counter() - start,
+                   "scenes": {n: [vars(r) for r in rs] for n, rs in all_results.items()}}
+        write_results(results_dir, payload, table, log_dir)
+    finally:
+        shutil.rmtree(log_dir, ignore_errors=True)
+    print(f"\nwrote {results_dir}/results.json and table.md ({time.perf_counter() - start:.0f} s)", file=sys.stderr)
+    return 0
+
+
+def write_results(results_dir: Path, payload: dict, table: str, log_dir: Path) -> None:
+    """results.json, table.md and logs/ (subprocess output) into a temporary sibling of RESULTS_DIR,
+    renamed over it at the end (no partial results)."""
+    results_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{results_dir.name}.", dir=results_dir.parent))
+    try:
+        (tmp / "results.json").write_text(json.dumps(payload, indent=1, default=float) + "\n")
+        (tmp / "table.md").write_text(table + "\n")
+        if log_dir.is_dir():
+            shutil.copytree(log_dir, tmp / "logs")
+        if results_dir.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{results_dir.name}.old", dir=results_dir.parent))
+            old.rmdir()
+            results_dir.rename(old)
+            tmp.rename(results_dir)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            tmp.rename(results_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+if __name__ == "__main__":
+    sys.exit(main())
