@@ -1,0 +1,136 @@
+"""Shared helpers of the benchmarks: statistics, markdown tables, atomic result folders,
+process pools and progress bars."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import shutil
+import sys
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Callable, Iterable, Iterator, Sequence
+
+import numpy as np
+
+from rotonly_cli.geometry import so3
+
+
+def error_deg(R_est: np.ndarray, R_true: np.ndarray) -> np.ndarray:
+    """Geodesic rotation error (deg), eq:rotationerrorcalculate."""
+    return np.degrees(so3.geodesic_angle(R_est, R_true))
+
+
+def stats(values: Sequence[float]) -> dict:
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return {"mean": float("nan"), "median": float("nan"), "max": float("nan"), "count": 0}
+    return {"mean": float(v.mean()), "median": float(np.median(v)), "max": float(v.max()), "count": int(v.size)}
+
+
+def fmt(value: float, digits: int = 4) -> str:
+    if value is None or not np.isfinite(value):
+        return "–"
+    if value != 0 and abs(value) < 10 ** -digits:
+        return f"{value:.2e}"
+    return f"{value:.{digits}f}"
+
+
+def markdown_table(head: Sequence[str], rows: Iterable[Sequence[str]], bold_min_columns: Sequence[int] = ()) -> str:
+    rows = [list(r) for r in rows]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        lines.append("| " + " | ".join(r) + " |")
+    return "\n".join(lines)
+
+
+@contextmanager
+def result_dir(target: str | os.PathLike) -> Iterator[Path]:
+    """A temporary sibling of ``target`` that replaces it on success (no partial outputs)."""
+    target = Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
+    try:
+        yield tmp
+        if target.exists():
+            backup = target.parent / f".{target.name}.old"
+            if backup.exists():
+                shutil.rmtree(backup)
+            target.rename(backup)
+            tmp.rename(target)
+            shutil.rmtree(backup, ignore_errors=True)
+        else:
+            tmp.rename(target)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def write_json(path: Path, payload: dict) -> None:
+    def default(o):
+        if isinstance(o, np.integer):
+            return int(o)
+        if isinstance(o, np.floating):
+            return float(o)
+        if isinstance(o, np.ndarray):
+            return o.tolist()
+        return str(o)
+    path.write_text(json.dumps(payload, indent=1, default=default, allow_nan=True) + "\n")
+
+
+def parallel_map(fn: Callable, tasks: list, jobs: int, desc: str, progress: bool = True) -> list:
+    """``[fn(t) for t in tasks]`` in order, over ``jobs`` forked processes, with a tqdm bar."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(tasks), desc=desc, disable=not progress, file=sys.stderr, leave=False)
+    try:
+        if jobs > 1 and len(tasks) > 1:
+            with mp.get_context("fork").Pool(min(jobs, len(tasks))) as pool:
+                out = []
+                for result in pool.imap(fn, tasks, chunksize=1):
+                    out.append(result)
+                    bar.update()
+                return out
+        out = []
+        for t in tasks:
+            out.append(fn(t))
+            bar.update()
+        return out
+    finally:
+        bar.close()
+
+
+def plot_curves(path: Path, panels: dict[str, dict[str, tuple[list, list]]], xlabel: str, ylabel: str,
+                title: str, logy: bool = True) -> None:
+    """One subplot per panel: {panel: {method: (x, y)}}; saved as PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    k = len(panels)
+    cols = min(k, 3)
+    rows = (k + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.4 * rows), squeeze=False)
+    for ax, (panel, curves) in zip(axes.ravel(), panels.items()):
+        for method, (x, y) in curves.items():
+            y = np.asarray(y, dtype=float)
+            if np.all(~np.isfinite(y)):
+                continue
+            ax.plot(x, y, marker="o", label=method)
+        ax.set_title(panel)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        if logy:
+            ax.set_yscale("log")
+        ax.grid(True, which="both", alpha=0.3)
+    for ax in axes.ravel()[k:]:
+        ax.axis("off")
+    axes.ravel()[0].legend(fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
