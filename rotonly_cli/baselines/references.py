@@ -68,6 +68,15 @@ def pycolmap_global_mapper(database_path: str | Path, seed: int = 0, num_threads
     the largest model (intrinsics kept fixed). Returns {} when no model is produced."""
     import pycolmap
 
+    previous_level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 2  # glog: errors only (GLOMAP logs every stage and missing image)
+    try:
+        return _global_mapper(pycolmap, database_path, seed, num_threads)
+    finally:
+        pycolmap.logging.minloglevel = previous_level
+
+
+def _global_mapper(pycolmap, database_path, seed: int, num_threads: int) -> dict[str, np.ndarray]:
     with tempfile.TemporaryDirectory(prefix="rotonly_glomap_") as tmp:
         db_copy = Path(tmp) / "database.db"
         shutil.copyfile(database_path, db_copy)
