@@ -12,6 +12,7 @@ RANSAC inliers only. It is per-edge C++ work, so a loop over edges is fine here.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -137,13 +138,24 @@ def build_view_graph(scene: SfMScene, options: LoadOptions = LoadOptions()) -> t
         elif not has_pose:
             edge.filter("no relative pose")
     num_failed = 0
-    for k in tqdm(to_estimate, desc="relative poses (RANSAC)", unit="edge", disable=not options.progress):
+
+    def estimate_edge(k: int):
         edge = graph.edges[k]
         x_i = scene.normalized[edge.i][edge.matches[:, 0]]
         x_j = scene.normalized[edge.j][edge.matches[:, 1]]
         focal_i = focal_length(scene.intrinsics[scene.views[edge.i].intrinsics_id])
         focal_j = focal_length(scene.intrinsics[scene.views[edge.j].intrinsics_id])
-        estimate = _relative_pose_ransac(x_i, x_j, focal_i, focal_j, options)
+        return _relative_pose_ransac(x_i, x_j, focal_i, focal_j, options)
+
+    # pycolmap releases the GIL inside RANSAC: one thread per core; every edge has its own
+    # seeded RANSAC, so the results do not depend on the scheduling
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1)) as pool:
+        estimates = list(tqdm(pool.map(estimate_edge, to_estimate), total=len(to_estimate),
+                              desc="relative poses (RANSAC)", unit="edge", disable=not options.progress))
+    for k, estimate in zip(to_estimate, estimates):
+        edge = graph.edges[k]
         if estimate is None:
             num_failed += 1
             edge.filter("relative pose estimation failed")
