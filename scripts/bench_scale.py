@@ -180,6 +180,15 @@ def measure(scene_dir: Path, out_json: Path) -> None:
 
 # ============================================================================ parent
 
+def code_version() -> str:
+    """``git describe`` of the checkout the benchmark imports (``-dirty``: uncommitted edits)."""
+    try:
+        return subprocess.run(["git", "describe", "--always", "--dirty"], cwd=Path(__file__).resolve().parent,
+                              capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return ""
+
+
 def run_child(args: list[str], timeout: float) -> tuple[float, subprocess.CompletedProcess]:
     start = time.perf_counter()
     completed = subprocess.run([sys.executable, str(Path(__file__).resolve())] + args, stdout=subprocess.PIPE,
@@ -250,6 +259,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
     results = []
+    load_at_start = os.getloadavg()[0]  # other processes on the 2 cores inflate every time here
     common = ["--points-per-view", str(args.points_per_view), "--setup", args.setup, "--window", str(args.window),
               "--max-height", str(args.max_height), "--seed", str(args.seed)]
     for views in args.sizes:
@@ -279,10 +289,12 @@ def main(argv: list[str] | None = None) -> int:
                 entry["error"] = f"timeout {args.timeout:.0f} s"
         results.append(entry)
 
-    table = tables(results)
+    table = tables(results) + (f"\n\nLoad average (1 min) at start / end: {load_at_start:.1f} / "
+                               f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; code {code_version()}.")
     print(table)
     payload = {"command": " ".join(["bench_scale.py"] + (argv if argv is not None else sys.argv[1:])),
-               "cpu_count": os.cpu_count(), "results": results}
+               "code_version": code_version(), "cpu_count": os.cpu_count(), "load_average_1min_start_end": [load_at_start, os.getloadavg()[0]],
+               "results": results}
     out_dir = args.output.resolve()
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))

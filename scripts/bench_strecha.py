@@ -100,6 +100,25 @@ def rotations_scene(names: dict[int, str], rotations: dict[int, np.ndarray],
 
 # ============================================================================ rotonly
 
+def code_version() -> str:
+    """``git describe`` of the checkout the benchmark imports (``-dirty``: uncommitted edits)."""
+    try:
+        return subprocess.run(["git", "describe", "--always", "--dirty"], cwd=Path(__file__).resolve().parent,
+                              capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return ""
+
+
+def quiet_pycolmap(level: int = 2) -> int:
+    """glog INFO lines ("Marked 0 image pairs as invalid ...") would drown the tables; 2 = errors
+    and fatal only. Returns the previous level."""
+    import pycolmap
+
+    previous = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = level
+    return previous
+
+
 def rotonly_command() -> list[str]:
     """The installed console script, else the module entry point of this interpreter."""
     exe = shutil.which("rotonly")
@@ -408,6 +427,8 @@ def main(argv: list[str] | None = None) -> int:
     # subprocess logs and rotonly workspaces live beside RESULTS_DIR until the end
     log_dir = Path(tempfile.mkdtemp(prefix=f".{results_dir.name}.logs.", dir=results_dir.parent))
     all_results: dict[str, list[MethodResult]] = {}
+    load_at_start = os.getloadavg()[0]  # other processes on the 2 cores inflate every time here
+    previous_log_level = quiet_pycolmap()
     start = time.perf_counter()
     try:
         for scene_dir in scene_dirs:
@@ -415,16 +436,21 @@ def main(argv: list[str] | None = None) -> int:
             all_results[scene_dir.name] = bench_scene(scene_dir, results_dir.parent, log_dir, args.threads,
                                                       args.skip_mapper)
             print(scene_table(scene_dir.name, all_results[scene_dir.name]) + "\n", flush=True)
-        summary = summary_table(all_results)
+        summary = summary_table(all_results) + (
+            f"\n\nLoad average (1 min) at start / end: {load_at_start:.1f} / {os.getloadavg()[0]:.1f} "
+            f"on {os.cpu_count()} cores; code {code_version()}.")
         print(summary)
         table = "\n\n".join([scene_table(n, r) for n, r in all_results.items()] + [summary])
         payload = {"root": str(root), "command": " ".join([Path(sys.argv[0]).name] + (argv or sys.argv[1:])),
-                   "rotonly": " ".join(rotonly_command()), "cpu_count": os.cpu_count(),
+                   "rotonly": " ".join(rotonly_command()), "code_version": code_version(),
+                   "cpu_count": os.cpu_count(),
+                   "load_average_1min_start_end": [load_at_start, os.getloadavg()[0]],
                    "total_time_s": time.perf_counter() - start,
                    "scenes": {n: [vars(r) for r in rs] for n, rs in all_results.items()}}
         write_results(results_dir, payload, table, log_dir)
     finally:
         shutil.rmtree(log_dir, ignore_errors=True)
+        quiet_pycolmap(previous_log_level)
     print(f"\nwrote {results_dir}/results.json and table.md ({time.perf_counter() - start:.0f} s)", file=sys.stderr)
     return 0
 

@@ -1,0 +1,169 @@
+"""scripts/bench_strecha.py and scripts/bench_scale.py on small fixtures / simulated scenes."""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rotonly_cli.geometry import so3
+from rotonly_cli.io.types import Pose, SfMScene, View
+
+ROOT = Path(__file__).resolve().parents[1]
+FIXTURES = ROOT / "data_fixtures"
+
+
+def _load_script(name: str):
+    spec = importlib.util.spec_from_file_location(f"bench_script_{name}", ROOT / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+bench_strecha = _load_script("bench_strecha")
+bench_scale = _load_script("bench_scale")
+
+
+def _digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _gt_scene(rng: np.random.Generator, n: int) -> SfMScene:
+    scene = SfMScene(source="test")
+    for v in range(n):
+        scene.views[v] = View(v, f"{v:04d}.jpg", 0)
+        scene.poses[v] = Pose(so3.random_rotations(1, rng)[0], rng.normal(size=3))
+    return scene
+
+
+# ============================================================================ bench_strecha pieces
+
+def test_pycolmap_rotation_averaging_recovers_exact_rotations_both_weightings():
+    rng = np.random.default_rng(3)
+    R = so3.random_rotations(6, rng)
+    i, j = np.triu_indices(6, k=1)
+    R_j_from_i = R[j] @ np.swapaxes(R[i], -1, -2)
+    for weighted in (False, True):
+        R_est = bench_strecha.pycolmap_rotation_averaging(6, np.column_stack([i, j]), R_j_from_i,
+                                                          np.arange(15) + 30, weighted)
+        relative = R_est[j] @ np.swapaxes(R_est[i], -1, -2)
+        assert np.degrees(so3.geodesic_angle(relative, R_j_from_i)).max() < 1e-4
+
+
+def test_evaluate_scene_rotation_only_and_with_centres():
+    rng = np.random.default_rng(4)
+    gt = _gt_scene(rng, 5)
+    S = so3.random_rotations(1, rng)[0]
+    names = {v: gt.views[v].name for v in gt.views}
+    exact = bench_strecha.rotations_scene(names, {v: gt.poses[v].R_cam_from_world @ S for v in gt.views})
+    result = bench_strecha.evaluate_scene("exact", gt, exact, 1.5)
+    assert result.rotation_mean_deg < 1e-6 and result.position_mean is None  # zero centres: rotation-only
+    assert (result.num_registered, result.num_gt, result.time_s) == (5, 5, 1.5)
+
+    # one camera 1° off about its own axis, centres a similarity of the GT
+    R_off = {v: gt.poses[v].R_cam_from_world @ S for v in gt.views}
+    R_off[2] = so3.exp(np.radians(1.0) * np.array([0.0, 0.0, 1.0])) @ R_off[2]
+    centers = {v: 2.0 * S.T @ gt.poses[v].center + 1.0 for v in gt.views}
+    del R_off[4]
+    result = bench_strecha.evaluate_scene("off", gt, bench_strecha.rotations_scene(names, R_off, centers), None)
+    assert result.num_registered == 4
+    assert result.position_mean < 1e-9
+    assert 0.2 < result.rotation_mean_deg < 0.5  # 1° spread over 4 cameras by the L2 alignment
+    assert bench_strecha.evaluate_scene("none", gt, SfMScene(), None).error == "no pose estimated"
+
+
+def _fixture_root(tmp_path: Path) -> tuple[Path, list[Path]]:
+    """A Strecha-like ROOT with one scene made of links to the Herz-Jesu fixtures."""
+    scene = tmp_path / "root" / "Herz-Jesus-P8"
+    (scene / "openmvg" / "global").mkdir(parents=True)
+    source = FIXTURES / "herzjesu_p8"
+    inputs = [source / "database.db", *sorted((source / "openmvg").iterdir()),
+              FIXTURES / "evalquality" / "Herz-Jesus-P8" / "openmvg" / "global" / "sfm_data.json"]
+    (scene / "database.db").symlink_to(inputs[0])
+    (scene / "gt_dense_cameras").symlink_to(source / "gt_dense_cameras")
+    for path in inputs[1:-1]:
+        (scene / "openmvg" / path.name).symlink_to(path)
+    (scene / "openmvg" / "global" / "sfm_data.json").symlink_to(inputs[-1])
+    return tmp_path / "root", inputs
+
+
+def test_bench_strecha_end_to_end_on_fixture(tmp_path, capsys):
+    root, inputs = _fixture_root(tmp_path)
+    before = {path: _digest(path) for path in inputs}
+    out = tmp_path / "results"
+    assert bench_strecha.main(["--root", str(root), "-o", str(out), "--skip-mapper"]) == 0
+    assert {path: _digest(path) for path in inputs} == before  # inputs untouched
+    assert sorted(p.name for p in out.iterdir()) == ["logs", "results.json", "table.md"]
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary leftovers
+
+    rows = {r["method"]: r for r in json.loads((out / "results.json").read_text())["scenes"]["Herz-Jesus-P8"]}
+    for method, row in rows.items():
+        assert not row["error"], (method, row["error"])
+        assert row["num_registered"] == row["num_gt"] == 8, method
+    run_db = rows["rotonly run database.db"]
+    assert run_db["rotation_mean_deg"] < 0.1 and run_db["position_mean"] < 0.05
+    assert set(run_db["extra"]["stage_times_s"]) >= {"load", "optimize", "triangulate", "run"}
+    # the subprocess run and the in-process stages are the same deterministic chain
+    for label, run_method in (("database.db", "rotonly run database.db"),
+                              ("openmvg", "rotonly run openmvg/sfm_data.json")):
+        in_process = rows[f"rotonly GRRM, in-process ({label})"]
+        assert abs(in_process["rotation_mean_deg"] - rows[run_method]["rotation_mean_deg"]) < 1e-6
+        assert rows[f"rotonly L1-IRLS average = GRRM start ({label})"]["position_mean"] is None
+    # the stored OpenMVG global result is the real one: the README's Herz-Jesu number
+    openmvg_row = rows["OpenMVG 2.1 global SfM (LiGT + BA, stored result)"]
+    assert abs(openmvg_row["rotation_mean_deg"] - 0.0258) < 5e-4 and openmvg_row["time_s"] == 1.0
+    stored = rows["pycolmap RA on the stored two-view geometries"]
+    assert 0.0 < stored["rotation_mean_deg"] < 1.0 and stored["extra"]["num_edges"] > 0
+
+    table = (out / "table.md").read_text()
+    assert "### Herz-Jesus-P8" in table and "### Summary" in table
+    assert table.count("| rotonly run ") >= 4  # per-scene rows, stage-time rows
+    assert "### Summary" in capsys.readouterr().out
+
+
+def test_bench_strecha_refuses_results_inside_root(tmp_path):
+    root, _ = _fixture_root(tmp_path)
+    with pytest.raises(SystemExit) as exc:
+        bench_strecha.main(["--root", str(root), "-o", str(root / "results")])
+    assert exc.value.code == 2
+    assert not (root / "results").exists()
+
+
+# ============================================================================ bench_scale pieces
+
+def test_peak_rss_probe_sees_a_200_mb_buffer_after_reset():
+    resettable = bench_scale.reset_peak_rss()
+    base = bench_scale.peak_rss_mb(resettable)
+    buffer = np.ones(25_000_000)  # 200 MB, touched
+    assert bench_scale.peak_rss_mb(resettable) > base + 150
+    del buffer
+    if resettable:
+        bench_scale.reset_peak_rss()
+        assert bench_scale.peak_rss_mb(resettable) < base + 150
+
+
+def test_bench_scale_measure_on_small_simulated_scene(tmp_path):
+    scene_dir = tmp_path / "sim"
+    bench_scale.simulate_to(scene_dir, num_views=10, num_points=800, setup="linear", window=3, max_height=100.0,
+                            seed=1)
+    info = json.loads((scene_dir / "simulation.json").read_text())
+    assert info["num_views"] == 10 and info["num_pairs"] > 9 and info["num_matches"] > 1000
+    bench_scale.measure(scene_dir, tmp_path / "measure.json")
+    measured = json.loads((tmp_path / "measure.json").read_text())
+    assert list(measured["stages"]) == list(bench_scale.STAGES)
+    assert all(row["time_s"] > 0 and row["peak_rss_mb"] > 10 for row in measured["stages"].values())
+    assert measured["grrm"]["num_views"] == 10
+    for key in ("rotation_error_averaged_deg", "rotation_error_grrm_deg"):
+        assert measured[key]["registered"] == 10
+        assert 0.0 < measured[key]["mean"] < 0.5  # 1 px noise, 0.5° perturbed starts
+
+    table = bench_scale.tables([{"simulation": info, "measure": measured},
+                                {"simulation": info, "error": "timeout 10 s"}])
+    assert "| 10 | 800 |" in table and "failed: timeout 10 s" in table
+    assert "| met |" in table  # a 10-view GRRM is far inside 60 s / 4 GB
