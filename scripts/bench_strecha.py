@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import shutil
 import subprocess
 import sys
@@ -129,9 +130,12 @@ def run_rotonly_subprocess(method: str, input_path: Path, gt: SfMScene, work: Pa
     """`rotonly -q run INPUT -o OUT` as a subprocess; wall time and OUT/reports stage times."""
     out = work / method.replace(" ", "_").replace("/", "_")
     command = rotonly_command() + ["-q", "run", str(input_path), "-o", str(out)]
+    cpu_before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     completed = subprocess.run(command, capture_output=True, text=True)
     wall = time.perf_counter() - start
+    cpu_after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (cpu_after.ru_utime - cpu_before.ru_utime) + (cpu_after.ru_stime - cpu_before.ru_stime)
     (log_dir / f"{out.name}.log").write_text(f"$ {' '.join(command)}\nexit {completed.returncode}\n"
                                              f"--- stdout\n{completed.stdout}--- stderr\n{completed.stderr}")
     if completed.returncode != 0:
@@ -140,6 +144,7 @@ def run_rotonly_subprocess(method: str, input_path: Path, gt: SfMScene, work: Pa
         return result
     estimate = openmvg.read_sfm_data(out / "sfm_data.json")
     result = evaluate_scene(method, gt, estimate, wall, "subprocess wall")
+    result.extra["subprocess_cpu_s"] = cpu  # user + sys of the child: less sensitive to other load
     stage_times = {}
     for stage in STAGE_NAMES + ("run",):
         report_path = out / "reports" / f"{stage}.json"
@@ -366,13 +371,14 @@ def scene_table(name: str, results: list[MethodResult]) -> str:
     stage_rows = [r for r in results if "stage_times_s" in r.extra and r.method.startswith("rotonly run")]
     if stage_rows:
         lines += ["", f"rotonly internal stage times (s, OUT/reports/<stage>.json), {name}:", "",
-                  "| input | " + " | ".join(STAGE_NAMES) + " | run total | subprocess wall |",
-                  "|---|" + "---|" * (len(STAGE_NAMES) + 2)]
+                  "| input | " + " | ".join(STAGE_NAMES) + " | run total | subprocess wall | subprocess CPU |",
+                  "|---|" + "---|" * (len(STAGE_NAMES) + 3)]
         for r in stage_rows:
             times = r.extra["stage_times_s"]
             lines.append(f"| {r.method.removeprefix('rotonly run ')} | "
                          + " | ".join(fmt(times.get(s), 2) for s in STAGE_NAMES)
-                         + f" | {fmt(times.get('run'), 2)} | {fmt(r.time_s, 2)} |")
+                         + f" | {fmt(times.get('run'), 2)} | {fmt(r.time_s, 2)} "
+                         f"| {fmt(r.extra.get('subprocess_cpu_s'), 2)} |")
     return "\n".join(lines)
 
 

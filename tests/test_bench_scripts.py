@@ -109,6 +109,7 @@ def test_bench_strecha_end_to_end_on_fixture(tmp_path, capsys):
     run_db = rows["rotonly run database.db"]
     assert run_db["rotation_mean_deg"] < 0.1 and run_db["position_mean"] < 0.05
     assert set(run_db["extra"]["stage_times_s"]) >= {"load", "optimize", "triangulate", "run"}
+    assert 0.0 < run_db["extra"]["subprocess_cpu_s"] < 10 * run_db["time_s"]
     # the subprocess run and the in-process stages are the same deterministic chain
     for label, run_method in (("database.db", "rotonly run database.db"),
                               ("openmvg", "rotonly run openmvg/sfm_data.json")):
@@ -157,7 +158,8 @@ def test_bench_scale_measure_on_small_simulated_scene(tmp_path):
     bench_scale.measure(scene_dir, tmp_path / "measure.json")
     measured = json.loads((tmp_path / "measure.json").read_text())
     assert list(measured["stages"]) == list(bench_scale.STAGES)
-    assert all(row["time_s"] > 0 and row["peak_rss_mb"] > 10 for row in measured["stages"].values())
+    assert all(row["time_s"] > 0 and row["cpu_s"] > 0 and row["peak_rss_mb"] > 10
+               for row in measured["stages"].values())
     assert measured["grrm"]["num_views"] == 10
     for key in ("rotation_error_averaged_deg", "rotation_error_grrm_deg"):
         assert measured[key]["registered"] == 10
