@@ -235,9 +235,12 @@ def test_lm_stopping_rules_are_options():
     p = simulate_twoview("standard", num_points=200, noise_px=1.0, rng=4)
     R0 = so3.exp(np.array([0.05, 0.0, 0.0])) @ p.R_j_from_i
     batch = _batch(p)
-    _, _, _, iters1, _ = optimize_rotations(R0[None], batch, TRRMOptions(max_iterations=1, epipolar_max_iterations=0))
+    _, _, _, iters1, _ = optimize_rotations(R0[None], batch, TRRMOptions(max_iterations=1, epipolar_max_iterations=0,
+                                                                      loss="none"))
+    # the robust loss runs LM twice (scale from the start, then from the first result)
+    _, _, _, iters2, _ = optimize_rotations(R0[None], batch, TRRMOptions(max_iterations=1, epipolar_max_iterations=0))
     _, c0, c_full, iters_full, conv = optimize_rotations(R0[None], batch, TRRMOptions())
-    assert iters1[0] == 1
+    assert iters1[0] == 1 and iters2[0] == 2
     assert iters_full[0] > 1 and conv[0]
     assert c_full[0] < c0[0]
 
@@ -375,3 +378,21 @@ def test_epipolar_jacobian_matches_central_differences():
         sp, sm = np.sign(plus.t[0] @ ev.t[0]), np.sign(minus.t[0] @ ev.t[0])  # eigenvector sign
         J_fd[:, :, k] = (sp * plus.residuals - sm * minus.residuals) / (2 * h)
     assert np.max(np.abs(ev.jacobian - J_fd)) / np.max(np.abs(ev.jacobian)) < 1e-6
+
+
+def test_cauchy_loss_resists_wrong_matches():
+    """5 % of the matches replaced by random points: the robust TRRM stays at the noise
+    level while plain least squares is dragged away (geometry/trrm.py, option ``loss``)."""
+    rng = np.random.default_rng(21)
+    errs = {"cauchy": [], "none": []}
+    for seed in range(10):
+        p = simulate_twoview("standard", num_points=400, noise_px=1.0, rng=300 + seed)
+        x_j = p.x_j.copy()
+        bad = rng.choice(400, size=20, replace=False)
+        x_j[bad] = rng.uniform(-0.6, 0.6, size=(20, 2))
+        R0 = so3.exp(rng.normal(scale=0.002, size=3)) @ p.R_j_from_i
+        for loss in errs:
+            res = twoview.refine_rotation(R0, p.x_i, x_j, options=TRRMOptions(loss=loss))
+            errs[loss].append(np.rad2deg(so3.geodesic_angle(res.rotation, p.R_j_from_i)))
+    assert np.mean(errs["cauchy"]) < 0.05
+    assert np.mean(errs["cauchy"]) < 0.5 * np.mean(errs["none"])

@@ -70,21 +70,31 @@ def _pinv_shifted(P: np.ndarray, lam: np.ndarray, t: np.ndarray) -> np.ndarray:
     return np.linalg.inv(P - lam[:, None, None] * np.eye(3) + scale * tt) - tt / scale
 
 
-def _ps_from(theta, starts):
-    s00 = _seg(theta[0] * theta[0], starts)
-    s01 = _seg(theta[0] * theta[1], starts)
-    s02 = _seg(theta[0] * theta[2], starts)
-    s11 = _seg(theta[1] * theta[1], starts)
-    s12 = _seg(theta[1] * theta[2], starts)
-    s22 = _seg(theta[2] * theta[2], starts)
+def _ps_from(theta, starts, w=None):
+    if w is not None:  # Σ w θ θᵀ
+        wt = tuple(w * v for v in theta)
+        return _ps_pairs(wt, theta, starts)
+    return _ps_pairs(theta, theta, starts)
+
+
+def _ps_pairs(a, theta, starts):
+    s00 = _seg(a[0] * theta[0], starts)
+    s01 = _seg(a[0] * theta[1], starts)
+    s02 = _seg(a[0] * theta[2], starts)
+    s11 = _seg(a[1] * theta[1], starts)
+    s12 = _seg(a[1] * theta[2], starts)
+    s22 = _seg(a[2] * theta[2], starts)
     return np.stack([np.stack([s00, s01, s02], -1), np.stack([s01, s11, s12], -1),
                      np.stack([s02, s12, s22], -1)], -2)
 
 
-def _dPt(theta, theta_dot_t, u, xj, xj_dot_u, u_dot_t, t_m, starts):
-    """Σ_k [(θ·t) A + θ (A^T t)^T] with A = u x_j^T - (x_j·u) I, as (E, 3, 3) (columns = δ axes)."""
+def _dPt(theta, theta_dot_t, u, xj, xj_dot_u, u_dot_t, t_m, starts, w=None):
+    """Σ_k w_k [(θ·t) A + θ (A^T t)^T] with A = u x_j^T - (x_j·u) I, as (E, 3, 3) (columns = δ axes)."""
     E = len(starts)
     out = np.empty((E, 3, 3))
+    if w is not None:
+        theta_dot_t = w * theta_dot_t
+        theta = tuple(w * v for v in theta)
     for c in range(3):
         at_c = xj[c] * u_dot_t - xj_dot_u * t_m[c]  # (A^T t)_c
         for r in range(3):
@@ -116,13 +126,14 @@ def _accumulate(J_cols, r, starts, E):
     return JtJ, Jtr
 
 
-def _trrm_chunk(Rg: np.ndarray, cnt: np.ndarray, starts: np.ndarray, xi, xj, with_jacobian: bool) -> dict:
+def _trrm_chunk(Rg: np.ndarray, cnt: np.ndarray, starts: np.ndarray, xi, xj, with_jacobian: bool,
+                wk: np.ndarray | None = None) -> dict:
     """TRRM terms of one edge group, per match: residual rows r (6 arrays: r_i in camera-j
     axes, then r_j), ‖θ‖, validity weight, t per edge and, with the Jacobian, the three
     forward-mode columns J_cols[c] (6 arrays) and d‖θ‖/dδ_c, for R_ij <- exp([δ]x) R_ij."""
     u = _rotate(Rg, cnt, xi)
     theta = _cross(u, xj)
-    P = _ps_from(theta, starts)
+    P = _ps_from(theta, starts, wk)
     lam, t = tv.smallest_eigenpair(P)
     t_m = tuple(_rep(t[:, k], cnt) for k in range(3))
     xj_x_t = _cross(xj, t_m)
@@ -162,7 +173,7 @@ def _trrm_chunk(Rg: np.ndarray, cnt: np.ndarray, starts: np.ndarray, xi, xj, wit
     xj_dot_u = _dot(xj, u)
     u_dot_t = _dot(u, t_m)
     theta_dot_t = _dot(theta, t_m)
-    T = -_pinv_shifted(P, lam, t) @ _dPt(theta, theta_dot_t, u, xj, xj_dot_u, u_dot_t, t_m, starts)
+    T = -_pinv_shifted(P, lam, t) @ _dPt(theta, theta_dot_t, u, xj, xj_dot_u, u_dot_t, t_m, starts, wk)
     inv_aj = np.where(a_j > 0, 1.0 / np.where(a_j > 0, a_j, 1.0), 0.0)
     inv_ai = np.where(a_i > 0, 1.0 / np.where(a_i > 0, a_i, 1.0), 0.0)
     inv_b = np.where(b > 0, 1.0 / np.where(b > 0, b, 1.0), 0.0)
@@ -195,23 +206,34 @@ def _chunks(batch: tv.EdgeBatch, chunk: int):
         m0, m1 = batch.offsets[e0], batch.offsets[e1]
         xi = tuple(np.ascontiguousarray(batch.x_i[m0:m1, k]) for k in range(3))
         xj = tuple(np.ascontiguousarray(batch.x_j[m0:m1, k]) for k in range(3))
-        yield e0, e1, m0, m1, counts[e0:e1], batch.offsets[e0:e1] - m0, xi, xj
+        wk = None if batch.weights is None else np.ascontiguousarray(batch.weights[m0:m1], dtype=float)
+        yield e0, e1, m0, m1, counts[e0:e1], batch.offsets[e0:e1] - m0, xi, xj, wk
 
 
 def trrm_normal_equations(R: np.ndarray, batch: tv.EdgeBatch, with_jacobian: bool = True,
                           chunk: int = CHUNK_MATCHES) -> tv.ResidualEvaluation:
-    """Per-edge TRRM cost (eq:ROMerr) and, optionally, JᵀJ and Jᵀr (exact Jacobian)."""
+    """Per-edge TRRM cost (eq:ROMerr) and, optionally, JᵀJ and Jᵀr (exact Jacobian).
+
+    With ``batch.weights`` w: Pˢ = Σ w θθᵀ and cost Σ w ‖r‖² (weights held fixed: one IRLS
+    round of the robust TRRM in geometry/trrm.py).
+    """
     E = batch.num_edges
     cost = np.zeros(E)
     t_all = np.zeros((E, 3))
     JtJ = np.zeros((E, 3, 3)) if with_jacobian else None
     Jtr = np.zeros((E, 3)) if with_jacobian else None
-    for e0, e1, _, _, cnt, starts, xi, xj in _chunks(batch, chunk):
-        terms = _trrm_chunk(R[e0:e1], cnt, starts, xi, xj, with_jacobian)
+    for e0, e1, _, _, cnt, starts, xi, xj, wk in _chunks(batch, chunk):
+        terms = _trrm_chunk(R[e0:e1], cnt, starts, xi, xj, with_jacobian, wk)
         t_all[e0:e1] = terms["t"]
-        cost[e0:e1] = _seg(sum(v * v for v in terms["r"]), starts)
+        r, J_cols = terms["r"], terms.get("J_cols")
+        if wk is not None:
+            root_w = np.sqrt(wk)
+            r = tuple(root_w * v for v in r)
+            if with_jacobian:
+                J_cols = [tuple(root_w * v for v in col) for col in J_cols]
+        cost[e0:e1] = _seg(sum(v * v for v in r), starts)
         if with_jacobian:
-            JtJ[e0:e1], Jtr[e0:e1] = _accumulate(terms["J_cols"], terms["r"], starts, e1 - e0)
+            JtJ[e0:e1], Jtr[e0:e1] = _accumulate(J_cols, r, starts, e1 - e0)
     return tv.ResidualEvaluation(residuals=None, cost=cost, t=t_all, JtJ=JtJ, Jtr=Jtr)
 
 
@@ -225,8 +247,8 @@ def trrm_match_terms(R: np.ndarray, batch: tv.EdgeBatch, with_jacobian: bool = T
     if with_jacobian:
         out["J"] = np.empty((M, 6, 3))
         out["db"] = np.empty((M, 3))
-    for e0, e1, m0, m1, cnt, starts, xi, xj in _chunks(batch, chunk):
-        terms = _trrm_chunk(R[e0:e1], cnt, starts, xi, xj, with_jacobian)
+    for e0, e1, m0, m1, cnt, starts, xi, xj, wk in _chunks(batch, chunk):
+        terms = _trrm_chunk(R[e0:e1], cnt, starts, xi, xj, with_jacobian, wk)
         out["t"][e0:e1] = terms["t"]
         out["r"][m0:m1] = np.stack(terms["r"], axis=1)
         out["b"][m0:m1] = terms["b"]
@@ -246,27 +268,31 @@ def epipolar_normal_equations(R: np.ndarray, batch: tv.EdgeBatch, with_jacobian:
     t_all = np.zeros((E, 3))
     JtJ = np.zeros((E, 3, 3)) if with_jacobian else None
     Jtr = np.zeros((E, 3)) if with_jacobian else None
-    for e0, e1, _, _, cnt, starts, xi, xj in _chunks(batch, chunk):
+    for e0, e1, _, _, cnt, starts, xi, xj, wk in _chunks(batch, chunk):
         scale = 1.0 / (np.sqrt(_dot(xi, xi)) * np.sqrt(_dot(xj, xj)))
         u = _rotate(R[e0:e1], cnt, xi)
         theta = tuple(scale * v for v in _cross(u, xj))
-        P = _ps_from(theta, starts)
+        P = _ps_from(theta, starts, wk)
         lam, t = tv.smallest_eigenpair(P)
         t_all[e0:e1] = t
         t_m = tuple(_rep(t[:, k], cnt) for k in range(3))
         e = _dot(theta, t_m)
-        cost[e0:e1] = _seg(e * e, starts)
+        cost[e0:e1] = _seg(e * e if wk is None else wk * e * e, starts)
         if not with_jacobian:
             continue
         # A = scale (u x_j^T - (x_j·u) I); dPt as in _dPt with the scaled A
         xj_dot_u = _dot(xj, u)
         u_dot_t = _dot(u, t_m)
-        dPt = _dPt(theta, e * scale, u, xj, xj_dot_u, u_dot_t * scale, tuple(scale * v for v in t_m), starts)
+        dPt = _dPt(theta, e * scale, u, xj, xj_dot_u, u_dot_t * scale, tuple(scale * v for v in t_m), starts, wk)
         T = -_pinv_shifted(P, lam, t) @ dPt
         J_cols = []
         for c in range(3):
             At_t_c = scale * (xj[c] * u_dot_t - xj_dot_u * t_m[c])
             dt = tuple(_rep(T[:, k, c], cnt) for k in range(3))
             J_cols.append((At_t_c + _dot(theta, dt),))
+        if wk is not None:
+            root_w = np.sqrt(wk)
+            J_cols = [(root_w * col[0],) for col in J_cols]
+            e = root_w * e
         JtJ[e0:e1], Jtr[e0:e1] = _accumulate(J_cols, (e,), starts, e1 - e0)
     return tv.ResidualEvaluation(residuals=None, cost=cost, t=t_all, JtJ=JtJ, Jtr=Jtr)

@@ -37,8 +37,23 @@ class TRRMOptions:
     #: or at a relative decrease below ``epipolar_function_tolerance``.
     epipolar_step_tolerance: float = 1e-4
     epipolar_function_tolerance: float = 1e-4
+    #: robust TRRM: "cauchy" (IRLS) or "none" (the paper's plain least squares). Real matches
+    #: contain wrong correspondences and points near the epipole whose analytic depth
+    #: (eq:analyticalDepth) is noise-dominated: their bearing residuals reach O(1) and, squared,
+    #: outweigh hundreds of good matches — both in the cost and in Pˢ, which then gives a
+    #: wrong t for everyone. IRLS weights w = 1/(1 + s/c²) enter Pˢ (Σ w θθᵀ: the noise-free
+    #: null vector is unchanged by any positive weights) and the residual rows.
+    loss: str = "cauchy"
+    #: Cauchy scale c = loss_scale_factor x 1.4826 x the edge's median per-match residual norm
+    loss_scale_factor: float = 3.0
+    #: floor of c (bearing units); noise-free data would otherwise get c = 0
+    min_loss_scale: float = 1e-9
+    #: IRLS rounds: weights are re-estimated and LM re-run this many times
+    irls_rounds: int = 2
 
     def validate(self) -> "TRRMOptions":
+        if self.loss not in ("cauchy", "none"):
+            raise ValueError(f"loss: must be 'cauchy' or 'none', got {self.loss!r}")
         if self.max_iterations < 0:
             raise ValueError("max_iterations: must be >= 0")
         for name in ("function_tolerance", "step_tolerance", "gradient_tolerance", "initial_damping"):
@@ -74,20 +89,75 @@ def optimize_rotations(R_init: np.ndarray, batch: tv.EdgeBatch, options: TRRMOpt
     if sel.size:
         sub = batch.subset(sel) if sel.size != E else batch
         initial_cost[sel] = kernels.trrm_normal_equations(R[sel], sub, with_jacobian=False).cost
+    phase1 = TRRMOptions(**{**options.__dict__, "max_iterations": options.epipolar_max_iterations,
+                             "step_tolerance": options.epipolar_step_tolerance,
+                             "function_tolerance": options.epipolar_function_tolerance})
+    if options.loss == "none" or sel.size == 0:
+        iters0 = np.zeros(E, dtype=np.int64)
+        if options.epipolar_max_iterations > 0:
+            R, _, _, iters0, _ = lm_on_rotations(R, batch, kernels.epipolar_normal_equations, phase1, edges)
+        R, _, cost, iters, conv = lm_on_rotations(R, batch, kernels.trrm_normal_equations, options, edges)
+        return R, initial_cost, cost, iters + iters0, conv
+    R0 = np.array(R_init, dtype=float).reshape(E, 3, 3)
+    sub = batch.subset(sel) if sel.size != E else batch
+    # weights at the start: t from unit-length θ first (each match one vote, so a few wrong
+    # matches with large θ cannot dictate t), then one refinement with Cauchy weights
+    w = robust_match_weights(R0[sel], sub, None, options)
+    w = robust_match_weights(R0[sel], sub, w, options)
+    weights = np.ones(batch.x_i.shape[0])
+    weights[_match_index(batch, sel)] = w
+    weighted = batch.with_weights(weights)
+    R = R0.copy()
     iters0 = np.zeros(E, dtype=np.int64)
     if options.epipolar_max_iterations > 0:
-        phase1 = TRRMOptions(**{**options.__dict__, "max_iterations": options.epipolar_max_iterations,
-                                 "step_tolerance": options.epipolar_step_tolerance,
-                                 "function_tolerance": options.epipolar_function_tolerance})
-        R, _, _, iters0, _ = lm_on_rotations(R, batch, kernels.epipolar_normal_equations, phase1, edges)
-    R, _, cost, iters, conv = lm_on_rotations(R, batch, kernels.trrm_normal_equations, options, edges)
+        R, _, _, iters0, _ = lm_on_rotations(R, weighted, kernels.epipolar_normal_equations, phase1, edges)
+    iters = np.zeros(E, dtype=np.int64)
+    conv = np.zeros(E, dtype=bool)
+    for round_ in range(max(1, options.irls_rounds)):
+        R, _, _, it, conv = lm_on_rotations(R, weighted, kernels.trrm_normal_equations, options, edges)
+        iters += it
+        if round_ + 1 < options.irls_rounds:
+            w = robust_match_weights(R[sel], sub, weights[_match_index(batch, sel)], options)
+            weights[_match_index(batch, sel)] = w
+            weighted = batch.with_weights(weights)
+    # both costs with the final weights, so that they compare
+    sub_w = weighted.subset(sel) if sel.size != E else weighted
+    cost = np.zeros(E)
+    cost[sel] = kernels.trrm_normal_equations(R[sel], sub_w, with_jacobian=False).cost
+    initial_cost[sel] = kernels.trrm_normal_equations(R0[sel], sub_w, with_jacobian=False).cost
     return R, initial_cost, cost, iters + iters0, conv
+
+
+def _match_index(batch: tv.EdgeBatch, edges: np.ndarray) -> np.ndarray:
+    counts = batch.counts[edges]
+    starts = batch.offsets[:-1][edges]
+    within = np.arange(counts.sum()) - np.repeat(np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)
+    return np.repeat(starts, counts) + within
+
+
+def robust_match_weights(R: np.ndarray, batch: tv.EdgeBatch, ps_weights: np.ndarray | None,
+                         options: TRRMOptions, kind: str = "cauchy") -> np.ndarray:
+    """Cauchy IRLS weights 1/(1 + s/c²) of every match from its TRRM residual s = ‖r‖²,
+    with t the null vector of Σ w θθᵀ (``ps_weights`` w; None: w = 1/‖θ‖², unit θ) and c
+    from the edge's median residual (options.loss_scale_factor)."""
+    if ps_weights is None:
+        theta = tv.theta_vectors(R, batch)
+        n2 = np.einsum("ma,ma->m", theta, theta)
+        ps_weights = 1.0 / np.maximum(n2, 1e-300)
+    terms = kernels.trrm_match_terms(R, batch.with_weights(ps_weights), with_jacobian=False)
+    sq = np.einsum("mk,mk->m", terms["r"], terms["r"])
+    c = np.maximum(options.loss_scale_factor * 1.4826 * np.sqrt(tv.segment_median(sq, batch)), options.min_loss_scale)
+    c2 = np.repeat(c * c, batch.counts)
+    if kind == "huber":  # weight 1 inside c: clean data keeps its plain least-squares Pˢ
+        return np.minimum(1.0, np.sqrt(c2 / np.maximum(sq, 1e-300)))
+    return 1.0 / (1.0 + sq / c2)
 
 
 def lm_on_rotations(R_init: np.ndarray, batch: tv.EdgeBatch, residual_fn, options: TRRMOptions = TRRMOptions(),
                     edges: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Lock-step LM on the rotation manifold for any per-edge least-squares ``residual_fn``
     (returning a ResidualEvaluation with cost, JtJ, Jtr) on the selected ``edges``.
+    Per-match weights travel with ``batch.weights`` (kept through the subsets).
 
     Per-edge damping and convergence; converged edges leave the batch. Returns
     (R, initial_cost, cost, iterations, converged); unselected edges are untouched.

@@ -43,6 +43,10 @@ class EdgeBatch:
     x_i: np.ndarray
     x_j: np.ndarray
     offsets: np.ndarray
+    #: optional per-match weights (M,): the fast kernels then use Σ w θθᵀ for Pˢ (any
+    #: positive weights keep the noise-free null vector exact) and weight each residual row;
+    #: robust TRRM sets them by IRLS (geometry/trrm.py)
+    weights: np.ndarray | None = None
 
     @property
     def num_edges(self) -> int:
@@ -65,7 +69,11 @@ class EdgeBatch:
         # index of every kept match: start of its edge + position inside the edge
         within = np.arange(new_offsets[-1]) - np.repeat(new_offsets[:-1], counts)
         idx = np.repeat(starts, counts) + within
-        return EdgeBatch(self.x_i[idx], self.x_j[idx], new_offsets)
+        return EdgeBatch(self.x_i[idx], self.x_j[idx], new_offsets,
+                         None if self.weights is None else self.weights[idx])
+
+    def with_weights(self, weights: np.ndarray | None) -> "EdgeBatch":
+        return EdgeBatch(self.x_i, self.x_j, self.offsets, weights)
 
     def segment_sum(self, values: np.ndarray) -> np.ndarray:
         """Per-edge sums of per-match ``values`` (M, ...) -> (E, ...)."""
@@ -440,10 +448,26 @@ def pure_rotation_residuals(R_j_from_i: np.ndarray, batch: EdgeBatch) -> np.ndar
     return 2.0 * np.maximum(2.0 * m - 2.0 * np.einsum("eab,eab->e", R_j_from_i, H), 0.0)
 
 
-def best_pure_rotation(batch: EdgeBatch) -> np.ndarray:
+def best_pure_rotation(batch: EdgeBatch, robust_iterations: int = 0) -> np.ndarray:
     """argmin_R Σ ‖x̂_j - R x̂_i‖² per edge (orthogonal Procrustes on bearings): the exact
-    minimiser of the PR/B/I form of the TRRM cost (eq:PureRotationReprojBearingError)."""
+    minimiser of the PR/B/I form of the TRRM cost (eq:PureRotationReprojBearingError).
+
+    ``robust_iterations`` > 0 re-solves with Cauchy weights (scale 3 x 1.4826 x the edge's
+    median residual) so that wrong matches do not bias it."""
     xi_hat, _ = _unit(batch.x_i)
     xj_hat, _ = _unit(batch.x_j)
-    H = outer_segment_sum(xj_hat, xi_hat, batch.offsets)
-    return so3.project_to_so3(H)
+    R = so3.project_to_so3(outer_segment_sum(xj_hat, xi_hat, batch.offsets))
+    for _ in range(robust_iterations):
+        d = xj_hat - np.einsum("mab,mb->ma", np.repeat(R, batch.counts, axis=0), xi_hat)
+        sq = np.einsum("ma,ma->m", d, d)
+        c2 = np.repeat((3.0 * 1.4826) ** 2 * segment_median(sq, batch) + 1e-30, batch.counts)
+        w = 1.0 / (1.0 + sq / c2)
+        R = so3.project_to_so3(outer_segment_sum(xj_hat * w[:, None], xi_hat, batch.offsets))
+    return R
+
+
+def segment_median(values: np.ndarray, batch: EdgeBatch) -> np.ndarray:
+    """Per-edge (upper) median of per-match ``values`` (M,), vectorised."""
+    edge = np.repeat(np.arange(batch.num_edges), batch.counts)
+    order = np.lexsort((values, edge))
+    return values[order][batch.offsets[:-1] + batch.counts // 2]
