@@ -121,9 +121,15 @@ def quiet_pycolmap(level: int = 2) -> int:
 
 
 def rotonly_command() -> list[str]:
-    """The installed console script, else the module entry point of this interpreter."""
+    """The console script of this interpreter's environment, else the one on PATH, else the
+    click entry point run by this interpreter (the package has no ``__main__``)."""
+    beside = Path(sys.executable).parent / "rotonly"
+    if beside.is_file() and os.access(beside, os.X_OK):
+        return [str(beside)]
     exe = shutil.which("rotonly")
-    return [exe] if exe else [sys.executable, "-m", "rotonly_cli"]
+    if exe:
+        return [exe]
+    return [sys.executable, "-c", "import sys; from rotonly_cli.cli import main; sys.exit(main())"]
 
 
 def run_rotonly_subprocess(method: str, input_path: Path, gt: SfMScene, work: Path, log_dir: Path) -> MethodResult:
