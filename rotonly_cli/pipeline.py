@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.errors import AlgorithmError, InputError, RotonlyError
+from rotonly_cli.io.atomic import replace_dir
 from rotonly_cli.geometry.scene import IdentificationOptions
 from rotonly_cli.geometry.trrm import TRRMOptions
 from rotonly_cli.io.types import Pose, SfMScene, Structure
@@ -270,14 +271,7 @@ class _RunLog:
 
 
 def _replace_dir(staging: Path, out_dir: Path) -> None:
-    if out_dir.exists():
-        old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".old", dir=out_dir.parent))
-        old.rmdir()
-        out_dir.rename(old)
-        staging.rename(out_dir)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        staging.rename(out_dir)
+    replace_dir(staging, out_dir)
 
 
 def _as_algorithm_error(exc: ValueError) -> RotonlyError:

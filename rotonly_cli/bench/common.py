@@ -6,15 +6,14 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import os
-import shutil
 import sys
-import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
+from rotonly_cli.io.atomic import staging_dir
 from rotonly_cli.geometry import so3
 
 
@@ -52,21 +51,8 @@ def result_dir(target: str | os.PathLike) -> Iterator[Path]:
     """A temporary sibling of ``target`` that replaces it on success (no partial outputs)."""
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
-    try:
+    with staging_dir(target) as tmp:
         yield tmp
-        if target.exists():
-            backup = target.parent / f".{target.name}.old"
-            if backup.exists():
-                shutil.rmtree(backup)
-            target.rename(backup)
-            tmp.rename(target)
-            shutil.rmtree(backup, ignore_errors=True)
-        else:
-            tmp.rename(target)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 def write_json(path: Path, payload: dict) -> None:

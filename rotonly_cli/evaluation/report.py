@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.errors import InputError
+from rotonly_cli.io.atomic import replace_dir
 from rotonly_cli.evaluation.quality import QualityReport, Stats
 
 FIGURES = {
@@ -244,15 +245,7 @@ def write_report(report: QualityReport, out_dir: str | os.PathLike) -> Path:
         (tmp_dir / "report.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
         _make_figures(report, tmp_dir)
         (tmp_dir / "report.html").write_text(_html(report))
-        if out_dir.exists():
-            # keep the old directory until the new one is in place
-            old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".old", dir=out_dir.parent))
-            old.rmdir()
-            out_dir.rename(old)
-            tmp_dir.rename(out_dir)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            tmp_dir.rename(out_dir)
+        replace_dir(tmp_dir, out_dir)  # keeps the old directory until the new one is in place
     except BaseException:
         shutil.rmtree(tmp_dir, ignore_errors=True)
         raise
