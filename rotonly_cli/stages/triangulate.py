@@ -66,8 +66,8 @@ def triangulate_graph(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.nd
         np.all(np.isfinite(centers), axis=1)
     edges = [k for k in graph.active_edges()
              if posed[row_of[graph.edges[k].i]] and posed[row_of[graph.edges[k].j]]]
-    tracks, obs_xy = graph_tracks(graph, scene.normalized, edges)
     R = np.where(posed[:, None, None], R_cam_from_world, np.eye(3))
+    tracks, obs_xy = graph_tracks(graph, scene.normalized, edges, R)
     C = np.where(posed[:, None], centers, 0.0)
     result = triangulate_tracks(R, C, tracks.track_id, tracks.view, obs_xy, tracks.num_tracks, options)
     valid = result.valid
