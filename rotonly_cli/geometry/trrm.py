@@ -72,9 +72,6 @@ class TRRMResult:
     converged: np.ndarray  # (E,) bool
     kinds: np.ndarray  # (E,) SceneKind
     identification: Identification
-    #: (M,) Cauchy IRLS weight of every match at the refined rotation (1 = fits, -> 0 =
-    #: gross outlier); ones for edges that are not REGULAR or when ``loss == "none"``
-    match_weights: np.ndarray | None = None
 
 
 def optimize_rotations(R_init: np.ndarray, batch: tv.EdgeBatch, options: TRRMOptions = TRRMOptions(),
@@ -262,11 +259,5 @@ def refine(R_init: np.ndarray, batch: tv.EdgeBatch, options: TRRMOptions = TRRMO
         conv[idx] = True
     eig = tv.symmetric_eigenvalues3(tv.ps_matrices(R, batch))
     ident = Identification(kinds=kinds, detection_value=v_rs, pure_rotation_ratio=rho, ps_eigenvalues=eig)
-    match_weights = np.ones(batch.x_i.shape[0])
-    if options.loss != "none" and regular.size:
-        sub = batch.subset(regular) if regular.size != E else batch
-        w = robust_match_weights(R[regular], sub, None, options)
-        match_weights[_match_index(batch, regular)] = robust_match_weights(R[regular], sub, w, options)
-    return TRRMResult(match_weights=match_weights, rotations=R, translation_directions=t, initial_cost=c0, cost=c1,
-                      iterations=iters,
+    return TRRMResult(rotations=R, translation_directions=t, initial_cost=c0, cost=c1, iterations=iters,
                       converged=conv, kinds=kinds, identification=ident)
