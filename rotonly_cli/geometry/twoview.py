@@ -467,13 +467,14 @@ def best_pure_rotation(batch: EdgeBatch, robust_iterations: int = 0) -> np.ndarr
 
 
 def segment_median(values: np.ndarray, batch: EdgeBatch) -> np.ndarray:
-    """Per-edge (upper) median of non-negative per-match ``values`` (M,), vectorised: one sort
-    of edge + value / scale (each edge's values land in [edge, edge + 1))."""
+    """Per-edge (upper) median of non-negative per-match ``values`` (M,), vectorised: one
+    argsort of edge + value / edge max (each edge's values land in [edge, edge + 1)), then the
+    original value is gathered, so the result does not depend on the other edges."""
     values = np.asarray(values, dtype=float)
     if values.size == 0:
         return np.zeros(batch.num_edges)
+    edge_max = np.maximum.reduceat(values, batch.offsets[:-1])
+    scale = np.repeat(edge_max * (1.0 + 1e-9) + 1e-300, batch.counts)
     edge = np.repeat(np.arange(batch.num_edges, dtype=float), batch.counts)
-    scale = float(values.max()) * (1.0 + 1e-9) + 1e-300
-    keys = np.sort(edge + values / scale)
-    pick = batch.offsets[:-1] + batch.counts // 2
-    return np.maximum(keys[pick] - np.arange(batch.num_edges), 0.0) * scale
+    order = np.argsort(edge + values / scale, kind="stable")
+    return values[order[batch.offsets[:-1] + batch.counts // 2]]
