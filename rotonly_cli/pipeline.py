@@ -174,12 +174,14 @@ def output_scene(run: Run) -> SfMScene:
 def write_outputs(out_dir: Path, run: Run) -> SfMScene:
     """OUT/sfm_data.json (OpenMVG) and OUT/sparse/ (COLMAP binary model)."""
     from rotonly_cli.io import colmap, openmvg
-    from rotonly_cli.stages.convert import colmap_to_openmvg
+    from rotonly_cli.stages.convert import colmap_to_openmvg, renumber_views_by_name
 
     scene = output_scene(run)
     if not scene.poses:
         raise AlgorithmError("no view received a pose (rotation and centre)")
-    openmvg_scene = colmap_to_openmvg(scene) if run.input_kind == "colmap-db" else scene
+    # COLMAP input: OpenMVG ids in file-name order (what OpenMVG's own tools, evalQuality
+    # included, expect); the COLMAP model keeps the database's ids
+    openmvg_scene = renumber_views_by_name(colmap_to_openmvg(scene)) if run.input_kind == "colmap-db" else scene
     openmvg.write_sfm_data(out_dir / "sfm_data.json", openmvg_scene)
     colmap.write_model(out_dir / "sparse", scene, binary=True)
     umask = os.umask(0)

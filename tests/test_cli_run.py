@@ -144,3 +144,35 @@ def test_fewer_than_two_usable_images_exit_1(tmp_path, capsys):
     assert _rotonly("run", HERZ_JESU / "database.db", "-o", tmp_path / "out", "--min-inliers", "100000") == 1
     assert "fewer than two usable images" in capsys.readouterr().err
     assert not (tmp_path / "out").exists() and list(tmp_path.iterdir()) == []
+
+
+def test_colmap_input_gives_openmvg_ids_in_file_name_order(tmp_path):
+    """OpenMVG's evalQuality pairs cameras by pose id: the sfm_data.json written from a
+    COLMAP database numbers views 0..n-1 in file-name order (as SfMInit_ImageListing does)."""
+    import json
+
+    from rotonly_cli.pipeline import run_pipeline
+
+    out = tmp_path / "out"
+    run_pipeline(FIXTURES / "herzjesu_p8" / "database.db", out)
+    doc = json.loads((out / "sfm_data.json").read_text())
+    views = sorted((v["key"], v["value"]["ptr_wrapper"]["data"]["filename"],
+                    v["value"]["ptr_wrapper"]["data"]["id_pose"]) for v in doc["views"])
+    names = [name for _, name, _ in views]
+    assert names == sorted(names)
+    assert all(key == pose for key, _, pose in views)
+    # every landmark observation still points at the right image after renumbering: the
+    # points reproject onto their stored observation pixels
+    from rotonly_cli.io import openmvg
+
+    scene = openmvg.read_sfm_data(out / "sfm_data.json")
+    assert len(scene.poses) == 8
+    errors = []
+    for obs, X, pixels in list(zip(scene.structure.observations, scene.structure.points,
+                                   scene.structure.observation_pixels))[:300]:
+        for (view_id, _), pixel in zip(obs, pixels):
+            pose = scene.poses[view_id]
+            focal, ppx, ppy = scene.intrinsics[scene.views[view_id].intrinsics_id].params[:3]
+            x = pose.R_cam_from_world @ (X - pose.center)
+            errors.append(np.linalg.norm(focal * x[:2] / x[2] + [ppx, ppy] - pixel))
+    assert np.median(errors) < 1.0

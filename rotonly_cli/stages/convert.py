@@ -66,6 +66,27 @@ def colmap_to_openmvg(scene: SfMScene) -> SfMScene:
     return to_openmvg_scene(shifted)
 
 
+def renumber_views_by_name(scene: SfMScene) -> SfMScene:
+    """View (and pose) ids 0..n-1 in file-name order, as ``openMVG_main_SfMInit_ImageListing``
+    numbers them. OpenMVG's evalQuality pairs the estimate with the ground truth by pose id
+    (formats.md §3.4), so an sfm_data.json numbered in COLMAP's database order would be
+    compared against the wrong cameras."""
+    order = sorted(scene.views, key=lambda v: (scene.views[v].name, v))
+    new_id = {old: new for new, old in enumerate(order)}
+    if all(old == new for old, new in new_id.items()):
+        return scene
+    views = {new_id[old]: replace(scene.views[old], id=new_id[old], pose_id=new_id[old]) for old in order}
+    structure = scene.structure
+    if structure is not None:
+        structure = replace(structure, observations=[[(new_id[v], k) for v, k in obs]
+                                                     for obs in structure.observations])
+    return replace(scene, views=views, structure=structure,
+                   poses={new_id[v]: p for v, p in scene.poses.items()},
+                   keypoints={new_id[v]: k for v, k in scene.keypoints.items()},
+                   normalized={new_id[v]: x for v, x in scene.normalized.items()},
+                   pairs={})
+
+
 def detect_input(path: Path) -> str:
     """"colmap-db", "openmvg" (an sfm_data.json) or "colmap-model"; InputError otherwise."""
     from rotonly_cli.io.colmap import SQLITE_MAGIC, is_model_dir
