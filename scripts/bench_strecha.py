@@ -224,31 +224,10 @@ def pycolmap_rotation_averaging(num_views: int, edge_views: np.ndarray, R_j_from
                                 num_inliers: np.ndarray, weighted: bool, seed: int = 0) -> np.ndarray:
     """``pycolmap.run_rotation_averaging`` (algorithms.md §2.3) with default options (Geman-McClure,
     σ = 5°); ``weighted``: ``reweighting = INLIER_MATCH_COUNT``. (n, 3, 3), NaN if unregistered."""
-    import pycolmap
+    from rotonly_cli.baselines.references import pycolmap_rotation_averaging as reference
 
-    rec = pycolmap.Reconstruction()
-    rec.add_camera_with_trivial_rig(pycolmap.Camera.create_from_model_id(
-        1, pycolmap.CameraModelId.PINHOLE, 1000.0, 1000, 1000))
-    for v in range(num_views):
-        rec.add_image_with_trivial_frame(pycolmap.Image(name=f"{v}", camera_id=1, image_id=v + 1))
-    graph = pycolmap.PoseGraph()
-    for e, (i, j) in enumerate(edge_views):
-        edge = pycolmap.PoseGraphEdge(pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(R_j_from_i[e], dtype=float)),
-                                                       np.zeros(3)))
-        edge.num_matches = int(num_inliers[e])  # spanning-tree weight (and the reweighting's)
-        graph.add_edge(int(i) + 1, int(j) + 1, edge)
-    options = pycolmap.RotationEstimatorOptions()
-    options.random_seed = seed
-    if weighted:
-        options.reweighting = pycolmap.RotationAveragingReweighting.INLIER_MATCH_COUNT
-    out = np.full((num_views, 3, 3), np.nan)
-    if not pycolmap.run_rotation_averaging(options, graph, rec, []):
-        return out
-    for v in range(num_views):
-        image = rec.images[v + 1]
-        if image.has_pose:
-            out[v] = np.asarray(image.cam_from_world().rotation.matrix())
-    return out
+    return reference(num_views, edge_views, R_j_from_i, num_matches=np.asarray(num_inliers), seed=seed,
+                     weighted=weighted)
 
 
 def run_pycolmap_stored(database: Path, gt: SfMScene) -> list[MethodResult]:
@@ -470,24 +449,14 @@ def main(argv: list[str] | None = None) -> int:
 def write_results(results_dir: Path, payload: dict, table: str, log_dir: Path) -> None:
     """results.json, table.md and logs/ (subprocess output) into a temporary sibling of RESULTS_DIR,
     renamed over it at the end (no partial results)."""
+    from rotonly_cli.io.atomic import staging_dir
+
     results_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{results_dir.name}.", dir=results_dir.parent))
-    try:
+    with staging_dir(results_dir) as tmp:
         (tmp / "results.json").write_text(json.dumps(payload, indent=1, default=float) + "\n")
         (tmp / "table.md").write_text(table + "\n")
         if log_dir.is_dir():
             shutil.copytree(log_dir, tmp / "logs")
-        if results_dir.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{results_dir.name}.old", dir=results_dir.parent))
-            old.rmdir()
-            results_dir.rename(old)
-            tmp.rename(results_dir)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            tmp.rename(results_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 if __name__ == "__main__":

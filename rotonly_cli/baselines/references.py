@@ -34,8 +34,9 @@ def chatterjee(num_views: int, edge_views: np.ndarray, R_j_from_i: np.ndarray, f
 
 def pycolmap_rotation_averaging(num_views: int, edge_views: np.ndarray, R_j_from_i: np.ndarray,
                                 num_matches: np.ndarray | None = None, weight_type: str = "GEMAN_MCCLURE",
-                                seed: int = 0) -> np.ndarray:
-    """``pycolmap.run_rotation_averaging`` on the relative rotations; (n, 3, 3), NaN if unregistered."""
+                                seed: int = 0, weighted: bool = False) -> np.ndarray:
+    """``pycolmap.run_rotation_averaging`` on the relative rotations (algorithms.md §2.3);
+    ``weighted``: ``reweighting = INLIER_MATCH_COUNT``. (n, 3, 3), NaN if unregistered."""
     import pycolmap
 
     edge_views = np.asarray(edge_views, dtype=np.int64).reshape(-1, 2)
@@ -53,6 +54,8 @@ def pycolmap_rotation_averaging(num_views: int, edge_views: np.ndarray, R_j_from
     options = pycolmap.RotationEstimatorOptions()
     options.weight_type = getattr(pycolmap.RotationWeightType, weight_type)
     options.random_seed = int(seed)
+    if weighted:
+        options.reweighting = pycolmap.RotationAveragingReweighting.INLIER_MATCH_COUNT
     out = np.full((num_views, 3, 3), np.nan)
     if not pycolmap.run_rotation_averaging(options, graph, rec, []):
         return out
