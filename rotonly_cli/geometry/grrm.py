@@ -300,19 +300,10 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
     n = R.shape[0]
     if not 0 <= fixed_view < n:
         raise ValueError(f"fixed_view: must be in [0, {n})")
-    if options.robust_translation and batch.num_edges:
-        # each edge's t from Σ w θθᵀ with Huber IRLS weights of its matches (weight 1 within
-        # 3 robust sigmas, so clean data is untouched): wrong matches with large θ would
-        # otherwise tilt t for the whole edge
-        from rotonly_cli.geometry.trrm import TRRMOptions, robust_match_weights
-
-        R_ij = R[edge_views[:, 1]] @ np.swapaxes(R[edge_views[:, 0]], 1, 2)
-        w = robust_match_weights(R_ij, batch, None, TRRMOptions(), kind="huber")
-        w = robust_match_weights(R_ij, batch, w, TRRMOptions(), kind="huber")
-        batch = batch.with_weights(w)
     problem = _Problem(n, edge_views, batch, obs_ids)
     free = np.ones(3 * n, dtype=bool)
     free[3 * fixed_view:3 * fixed_view + 3] = False
+    R_input = R
     V, S, B = problem.evaluate(R, with_jacobian=True)
     sq = np.einsum("gk,gk->g", V, V)
     scale = options.loss_scale
@@ -322,7 +313,6 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
         scale = max(options.loss_scale_factor * 1.4826 * med, 1e-12)
     rho, drho = _robust(sq, options.loss, scale)
     cost = float(rho.sum())
-    initial_cost = cost
     if options.epipolar_max_iterations > 0 and batch.num_edges:
         # the λ_min phase only proposes a start: keep it if GRRM's own cost agrees it is
         # better (on weak geometry, e.g. far points, λ_min's optimum can be worse)
@@ -334,6 +324,24 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
         if float(rho1.sum()) < cost:
             R, V, S, B, sq, rho, drho, cost = R1, V1, S1, B1, sq1, rho1, drho1, float(rho1.sum())
         log.info("GRRM λ_min phase: %d iterations, start %s", it1, "taken" if R is R1 else "kept")
+    if options.robust_translation and batch.num_edges:
+        # each edge's t from Σ w θθᵀ with Huber IRLS weights of its matches (weight 1 within
+        # 3 robust sigmas, so clean data is untouched): wrong matches with large θ would
+        # otherwise tilt t for the whole edge. Weighed at the chosen start, after the λ_min
+        # phase (weights from a start far off would down-weight good matches).
+        from rotonly_cli.geometry.trrm import TRRMOptions, robust_match_weights
+
+        R_ij = R[edge_views[:, 1]] @ np.swapaxes(R[edge_views[:, 0]], 1, 2)
+        w = robust_match_weights(R_ij, batch, None, TRRMOptions(), kind="huber")
+        w = robust_match_weights(R_ij, batch, w, TRRMOptions(), kind="huber")
+        problem.batch = batch.with_weights(w)
+        V, S, B = problem.evaluate(R, with_jacobian=True)
+        sq = np.einsum("gk,gk->g", V, V)
+        rho, drho = _robust(sq, options.loss, scale)
+        cost = float(rho.sum())
+    # the initial cost of the problem that is optimised (same weights and scale as the end)
+    V0, _, _ = problem.evaluate(R_input, with_jacobian=False)
+    initial_cost = float(_robust(np.einsum("gk,gk->g", V0, V0), options.loss, scale)[0].sum())
     history: list[dict] = []
     mu = options.initial_damping
     converged = False
