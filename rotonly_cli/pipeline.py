@@ -15,9 +15,7 @@ renames it at the end, so a failed run leaves no partial OUT.
 from __future__ import annotations
 
 import logging
-import os
 import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -25,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.errors import AlgorithmError, InputError, RotonlyError
-from rotonly_cli.io.atomic import replace_dir
+from rotonly_cli.io.atomic import check_replaceable, make_staging_dir, ordinary_permissions, replace_dir
 from rotonly_cli.geometry.scene import IdentificationOptions
 from rotonly_cli.geometry.trrm import TRRMOptions
 from rotonly_cli.io.types import Pose, SfMScene, Structure
@@ -184,9 +182,7 @@ def write_outputs(out_dir: Path, run: Run) -> SfMScene:
     openmvg_scene = renumber_views_by_name(colmap_to_openmvg(scene)) if run.input_kind == "colmap-db" else scene
     openmvg.write_sfm_data(out_dir / "sfm_data.json", openmvg_scene)
     colmap.write_model(out_dir / "sparse", scene, binary=True)
-    umask = os.umask(0)
-    os.umask(umask)
-    (out_dir / "sparse").chmod(0o777 & ~umask)  # write_model stages in a 0700 mkdtemp folder
+    ordinary_permissions(out_dir / "sparse")  # write_model stages in a 0700 mkdtemp folder
     return scene
 
 
@@ -237,14 +233,7 @@ def evaluate_against(gt_path: str | Path, estimate: SfMScene, report_dir: Path, 
 
 def check_out_dir(out_dir: Path) -> None:
     """OUT may be new, empty, or a previous workspace (replaced); anything else: InputError."""
-    if not out_dir.exists():
-        return
-    if not out_dir.is_dir():
-        raise InputError("exists and is not a folder", path=str(out_dir), field="-o")
-    foreign = sorted(p.name for p in out_dir.iterdir() if p.name not in WORKSPACE_ENTRIES)
-    if foreign:
-        raise InputError(f"exists and holds files that are not a rotonly workspace ({', '.join(foreign[:3])})",
-                         path=str(out_dir), field="-o")
+    check_replaceable(out_dir, WORKSPACE_ENTRIES, "a rotonly workspace")
 
 
 class _RunLog:
@@ -272,10 +261,6 @@ class _RunLog:
         self.handler.close()
 
 
-def _replace_dir(staging: Path, out_dir: Path) -> None:
-    replace_dir(staging, out_dir)
-
-
 def _as_algorithm_error(exc: ValueError) -> RotonlyError:
     return exc if isinstance(exc, RotonlyError) else AlgorithmError(str(exc))
 
@@ -291,11 +276,7 @@ def run_pipeline(input_path: str | Path, out_dir: str | Path, options: RunOption
     check_out_dir(out_dir)
     if out_dir.exists() and input_path.resolve().is_relative_to(out_dir.resolve()):
         raise InputError("the input lies inside OUT, which would be replaced", path=str(input_path), field="-o")
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".tmp", dir=out_dir.parent))
-    umask = os.umask(0)
-    os.umask(umask)
-    staging.chmod(0o777 & ~umask)  # mkdtemp makes 0700; OUT is an ordinary folder
+    staging = make_staging_dir(out_dir)
     start = time.perf_counter()
     try:
         with _RunLog(staging):
@@ -309,7 +290,7 @@ def run_pipeline(input_path: str | Path, out_dir: str | Path, options: RunOption
                 summary = _finish(staging, out_dir, run, done, start)
             except ValueError as exc:
                 raise _as_algorithm_error(exc) from exc
-        _replace_dir(staging, out_dir)
+        replace_dir(staging, out_dir)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

@@ -38,6 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
+from rotonly_cli.bench.common import code_version
+from rotonly_cli.io.atomic import make_staging_dir, replace_dir, staging_dir
+
 STAGES = ("load", "identify", "refine", "average", "optimize", "translate", "triangulate", "export")
 STAGE_TITLES = {"optimize": "GRRM"}
 GRRM_TARGET_S = 60.0
@@ -87,8 +90,7 @@ def simulate_to(out_dir: Path, num_views: int, num_points: int, setup: str, wind
     problem = simulate_multiview(setup, num_views=num_views, num_points=num_points, window=window,
                                  max_height=max_height, init="perturbed", rng=seed)
     simulate_s = time.perf_counter() - start
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    tmp = make_staging_dir(out_dir)
     try:
         start = time.perf_counter()
         write_database(tmp / "database.db", problem.scene)
@@ -106,9 +108,7 @@ def simulate_to(out_dir: Path, num_views: int, num_points: int, setup: str, wind
                 "simulate_s": simulate_s, "write_database_s": write_s,
                 "simulate_peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
         (tmp / "simulation.json").write_text(json.dumps(info, indent=1) + "\n")
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        tmp.rename(out_dir)
+        replace_dir(tmp, out_dir)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -183,13 +183,6 @@ def measure(scene_dir: Path, out_json: Path) -> None:
 
 # ============================================================================ parent
 
-def code_version() -> str:
-    """``git describe`` of the checkout the benchmark imports (``-dirty``: uncommitted edits)."""
-    try:
-        return subprocess.run(["git", "describe", "--always", "--dirty"], cwd=Path(__file__).resolve().parent,
-                              capture_output=True, text=True, timeout=10).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return ""
 
 
 def run_child(args: list[str], timeout: float) -> tuple[float, subprocess.CompletedProcess]:
@@ -302,16 +295,9 @@ def main(argv: list[str] | None = None) -> int:
                "results": results}
     out_dir = args.output.resolve()
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
-    try:
+    with staging_dir(out_dir) as tmp:
         (tmp / "results.json").write_text(json.dumps(payload, indent=1, default=float) + "\n")
         (tmp / "table.md").write_text(table + "\n")
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        tmp.rename(out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     print(f"\nwrote {out_dir}/results.json and table.md", file=sys.stderr)
     return 0
 

@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rotonly_cli.bench.common import code_version
 from rotonly_cli.evaluation.quality import evaluate
 from rotonly_cli.io import openmvg, strecha
 from rotonly_cli.io.types import Pose, SfMScene, View
@@ -101,13 +102,6 @@ def rotations_scene(names: dict[int, str], rotations: dict[int, np.ndarray],
 
 # ============================================================================ rotonly
 
-def code_version() -> str:
-    """``git describe`` of the checkout the benchmark imports (``-dirty``: uncommitted edits)."""
-    try:
-        return subprocess.run(["git", "describe", "--always", "--dirty"], cwd=Path(__file__).resolve().parent,
-                              capture_output=True, text=True, timeout=10).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return ""
 
 
 def quiet_pycolmap(level: int = 2) -> int:

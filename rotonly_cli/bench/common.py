@@ -120,3 +120,14 @@ def plot_curves(path: Path, panels: dict[str, dict[str, tuple[list, list]]], xla
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def code_version() -> str:
+    """``git describe`` of the rotonly checkout that is running (``-dirty``: uncommitted edits)."""
+    import subprocess
+
+    try:
+        return subprocess.run(["git", "describe", "--always", "--dirty"], cwd=Path(__file__).resolve().parent,
+                              capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return ""

@@ -9,14 +9,11 @@ from __future__ import annotations
 import html
 import json
 import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from rotonly_cli.errors import InputError
-from rotonly_cli.io.atomic import replace_dir
+from rotonly_cli.io.atomic import check_replaceable, staging_dir
 from rotonly_cli.evaluation.quality import QualityReport, Stats
 
 FIGURES = {
@@ -228,25 +225,9 @@ acos(clamp(trace/3)) (not a geodesic angle). Median convention: {e(report.median
 def write_report(report: QualityReport, out_dir: str | os.PathLike) -> Path:
     """Write report.json, report.html and the PNGs into ``out_dir`` (replaced atomically)."""
     out_dir = Path(out_dir)
-    if out_dir.exists():
-        # never replace a directory we did not write (e.g. a typo pointing at a project folder)
-        if not out_dir.is_dir():
-            raise InputError("exists and is not a directory", path=str(out_dir), field="-o")
-        foreign = sorted(p.name for p in out_dir.iterdir() if p.name not in OUTPUT_FILES)
-        if foreign:
-            raise InputError(f"exists and holds files that are not an eval report ({', '.join(foreign[:3])}...)",
-                             path=str(out_dir), field="-o")
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp_dir = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".tmp", dir=out_dir.parent))
-    umask = os.umask(0)
-    os.umask(umask)
-    tmp_dir.chmod(0o777 & ~umask)  # mkdtemp makes 0700; the report is an ordinary folder
-    try:
+    check_replaceable(out_dir, OUTPUT_FILES, "an eval report")
+    with staging_dir(out_dir) as tmp_dir:
         (tmp_dir / "report.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
         _make_figures(report, tmp_dir)
         (tmp_dir / "report.html").write_text(_html(report))
-        replace_dir(tmp_dir, out_dir)  # keeps the old directory until the new one is in place
-    except BaseException:
-        shutil.rmtree(tmp_dir, ignore_errors=True)
-        raise
     return out_dir
