@@ -27,6 +27,11 @@ logger = logging.getLogger(__name__)
 MIN_MATCH_WEIGHT = 0.25
 
 
+#: per-edge keep masks of the last global rotations: translate and triangulate ask for the
+#: same edges at the same rotations, so the robust weights are computed once per edge
+_KEEP_CACHE: dict[tuple, np.ndarray] = {}
+
+
 def inlier_matches(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: list[int],
                    R_cam_from_world: np.ndarray, min_match_weight: float = MIN_MATCH_WEIGHT) -> list[np.ndarray]:
     """The matches of ``edges`` without gross outliers at the global rotations."""
@@ -37,17 +42,23 @@ def inlier_matches(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: l
     if min_match_weight <= 0 or not edges:
         return matches
     index = view_index(graph)
-    R_ij = np.stack([R_cam_from_world[index[graph.edges[k].j]] @ R_cam_from_world[index[graph.edges[k].i]].T
-                     for k in edges])
-    batch = edge_batch(graph, normalized, edges)
-    with np.errstate(all="ignore"):
-        w = robust_match_weights(R_ij, batch, None, TRRMOptions())
-        w = robust_match_weights(R_ij, batch, w, TRRMOptions())
-    out = []
-    for row, m in enumerate(matches):
-        keep = w[batch.offsets[row]:batch.offsets[row + 1]] >= min_match_weight
-        out.append(m[keep] if keep.sum() >= 6 else m)
-    return out
+    R_ij = {k: R_cam_from_world[index[graph.edges[k].j]] @ R_cam_from_world[index[graph.edges[k].i]].T
+            for k in edges}
+    key = {k: (graph.edges[k].i, graph.edges[k].j, hash(graph.edges[k].matches.tobytes()), R_ij[k].tobytes(),
+               min_match_weight) for k in edges}
+    missing = [k for k in edges if key[k] not in _KEEP_CACHE]
+    if missing:
+        if len(_KEEP_CACHE) > 100_000:
+            _KEEP_CACHE.clear()
+        batch = edge_batch(graph, normalized, missing)
+        R = np.stack([R_ij[k] for k in missing])
+        with np.errstate(all="ignore"):
+            w = robust_match_weights(R, batch, None, TRRMOptions())
+            w = robust_match_weights(R, batch, w, TRRMOptions())
+        for row, k in enumerate(missing):
+            keep = w[batch.offsets[row]:batch.offsets[row + 1]] >= min_match_weight
+            _KEEP_CACHE[key[k]] = keep if keep.sum() >= 6 else np.ones_like(keep)
+    return [m[_KEEP_CACHE[key[k]]] for k, m in zip(edges, matches)]
 
 
 def graph_tracks(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: list[int],
