@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.bench.common import (
-    error_deg, fmt, markdown_table, parallel_map, plot_curves, result_dir, stats, write_json)
+    error_deg, fmt, markdown_table, parallel_map, result_dir, stats, write_json)
 from rotonly_cli.bench.twoview import METHODS as TWOVIEW_METHODS
 from rotonly_cli.bench.twoview import refine_per_edge
 from rotonly_cli.errors import InputError

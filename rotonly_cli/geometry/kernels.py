@@ -210,6 +210,12 @@ def _chunks(batch: tv.EdgeBatch, chunk: int):
         yield e0, e1, m0, m1, counts[e0:e1], batch.offsets[e0:e1] - m0, xi, xj, wk
 
 
+def _outputs(E: int, with_jacobian: bool):
+    """Zeroed per-edge cost (E,), t (E, 3) and, with the Jacobian, JᵀJ (E, 3, 3), Jᵀr (E, 3)."""
+    return (np.zeros(E), np.zeros((E, 3)), np.zeros((E, 3, 3)) if with_jacobian else None,
+            np.zeros((E, 3)) if with_jacobian else None)
+
+
 def trrm_normal_equations(R: np.ndarray, batch: tv.EdgeBatch, with_jacobian: bool = True,
                           chunk: int = CHUNK_MATCHES) -> tv.ResidualEvaluation:
     """Per-edge TRRM cost (eq:ROMerr) and, optionally, JᵀJ and Jᵀr (exact Jacobian).
@@ -217,11 +223,7 @@ def trrm_normal_equations(R: np.ndarray, batch: tv.EdgeBatch, with_jacobian: boo
     With ``batch.weights`` w: Pˢ = Σ w θθᵀ and cost Σ w ‖r‖² (weights held fixed: one IRLS
     round of the robust TRRM in geometry/trrm.py).
     """
-    E = batch.num_edges
-    cost = np.zeros(E)
-    t_all = np.zeros((E, 3))
-    JtJ = np.zeros((E, 3, 3)) if with_jacobian else None
-    Jtr = np.zeros((E, 3)) if with_jacobian else None
+    cost, t_all, JtJ, Jtr = _outputs(batch.num_edges, with_jacobian)
     for e0, e1, _, _, cnt, starts, xi, xj, wk in _chunks(batch, chunk):
         terms = _trrm_chunk(R[e0:e1], cnt, starts, xi, xj, with_jacobian, wk)
         t_all[e0:e1] = terms["t"]
@@ -263,11 +265,7 @@ def trrm_match_terms(R: np.ndarray, batch: tv.EdgeBatch, with_jacobian: bool = T
 def epipolar_normal_equations(R: np.ndarray, batch: tv.EdgeBatch, with_jacobian: bool = True,
                               chunk: int = CHUNK_MATCHES) -> tv.ResidualEvaluation:
     """Per-edge λ_min(Pˢ) of bearing-normalised θ (twoview.epipolar_residuals), JᵀJ, Jᵀr."""
-    E = batch.num_edges
-    cost = np.zeros(E)
-    t_all = np.zeros((E, 3))
-    JtJ = np.zeros((E, 3, 3)) if with_jacobian else None
-    Jtr = np.zeros((E, 3)) if with_jacobian else None
+    cost, t_all, JtJ, Jtr = _outputs(batch.num_edges, with_jacobian)
     for e0, e1, _, _, cnt, starts, xi, xj, wk in _chunks(batch, chunk):
         scale = 1.0 / (np.sqrt(_dot(xi, xi)) * np.sqrt(_dot(xj, xj)))
         u = _rotate(R[e0:e1], cnt, xi)

@@ -310,12 +310,14 @@ class _JsonFields:
             raise self.fail(f"{where}.{key}" if where else key, "missing field")
         return obj[key]
 
-    def array(self, obj: Any, key: str, where: str) -> list:
+    def typed(self, obj: Any, key: str, where: str, kind: type, label: str) -> Any:
         value = self.member(obj, key, where)
-        if not isinstance(value, list):
-            raise self.fail(f"{where}.{key}" if where else key,
-                            f"expected an array, got {type(value).__name__}")
+        if not isinstance(value, kind):
+            raise self.fail(f"{where}.{key}" if where else key, f"expected {label}, got {type(value).__name__}")
         return value
+
+    def array(self, obj: Any, key: str, where: str) -> list:
+        return self.typed(obj, key, where, list, "an array")
 
     def uint(self, obj: Any, key: str, where: str) -> int:
         # cereal reads unsigned fields with rapidjson GetUint(): JSON integers only (§1.2).
@@ -325,11 +327,7 @@ class _JsonFields:
         return value
 
     def string(self, obj: Any, key: str, where: str) -> str:
-        value = self.member(obj, key, where)
-        if not isinstance(value, str):
-            raise self.fail(f"{where}.{key}" if where else key,
-                            f"expected a string, got {type(value).__name__}")
-        return value
+        return self.typed(obj, key, where, str, "a string")
 
     def number(self, obj: Any, key: str, where: str) -> float:
         value = self.member(obj, key, where)
