@@ -17,11 +17,17 @@ import shutil
 import struct
 import tempfile
 import warnings
+from dataclasses import dataclass
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+try:  # optional accelerator of the sfm_data.json writer (same bytes without it)
+    import orjson as _orjson
+except ImportError:  # pragma: no cover - depends on the environment
+    _orjson = None
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.io.types import Intrinsics, PairMatches, Pose, SfMScene, Structure, View
@@ -538,33 +544,55 @@ def _view_size(scene: SfMScene, view: View) -> tuple[int, int]:
     return intrinsic.width, intrinsic.height
 
 
-def _landmark_pixels(scene: SfMScene, point_index: int,
-                     track: list[tuple[int, int]]) -> np.ndarray:
-    """Pixel (COLMAP convention) of each observation of one landmark: stored positions, else
-    the view's keypoints, else the projection of the point through the view's camera."""
+@dataclass
+class _FlatStructure:
+    """Landmarks in document order (point id ascending, observations by view id), as flat
+    arrays: ``track_lengths`` (N,), ``view_feature`` (M, 2), ``pixels`` (M, 2) in OpenMVG's
+    pixel convention."""
+
+    point_ids: np.ndarray
+    points: np.ndarray
+    track_lengths: np.ndarray
+    view_feature: np.ndarray
+    pixels: np.ndarray
+
+
+def _landmark_pixels(scene: SfMScene, point_of_observation: np.ndarray,
+                     view_feature: np.ndarray) -> np.ndarray:
+    """(M, 2) pixel (COLMAP convention) of each observation, computed per view: the view's
+    keypoint, else the projection of the point through the view's camera (stored landmark
+    pixels are used by the caller before this)."""
     structure = scene.structure
     assert structure is not None
-    if structure.observation_pixels is not None:
-        return np.asarray(structure.observation_pixels[point_index], dtype=np.float64)
-    pixels = np.empty((len(track), 2))
-    for row, (view_id, feature_index) in enumerate(track):
+    pixels = np.empty((len(view_feature), 2))
+    view_ids, feature_ids = view_feature[:, 0], view_feature[:, 1]
+    for view_id in np.unique(view_ids).tolist():
+        rows = np.flatnonzero(view_ids == view_id)
         keypoints = scene.keypoints.get(view_id)
-        if keypoints is not None and 0 <= feature_index < len(keypoints):
-            pixels[row] = keypoints[feature_index]
+        if keypoints is not None:
+            keypoints = np.asarray(keypoints, dtype=np.float64).reshape(-1, 2)
+            has_keypoint = (feature_ids[rows] >= 0) & (feature_ids[rows] < len(keypoints))
+            pixels[rows[has_keypoint]] = keypoints[feature_ids[rows[has_keypoint]]]
+            rows = rows[~has_keypoint]
+        if not rows.size:
             continue
         pose, view = scene.poses.get(view_id), scene.views.get(view_id)
         intrinsic = None if view is None else scene.intrinsics.get(view.intrinsics_id)
         if pose is None or intrinsic is None:
+            point_index = int(point_of_observation[rows[0]])
             raise InputError(f"no pixel position for observation (view {view_id}, feature "
-                             f"{feature_index})", field=f"structure[{point_index}]")
-        point_in_camera = pose.R_cam_from_world @ (structure.points[point_index] - pose.center)
-        pixels[row] = distort_project(intrinsic, point_in_camera[:2] / point_in_camera[2])[0]
+                             f"{int(feature_ids[rows[0]])})", field=f"structure[{point_index}]")
+        # x_cam = R (X - c)  (architecture.md "Conventions")
+        points_in_camera = (np.asarray(structure.points, dtype=np.float64)[point_of_observation[rows]]
+                            - np.asarray(pose.center, dtype=np.float64).reshape(1, 3)
+                            ) @ np.asarray(pose.R_cam_from_world, dtype=np.float64).T
+        pixels[rows] = distort_project(intrinsic, points_in_camera[:, :2] / points_in_camera[:, 2:3])
     return pixels
 
 
-def _structure_rows(scene: SfMScene) -> list[tuple[int, list, list, list]]:
-    """Landmarks ready for JSON, sorted by point id: (point id, X, [(view, id_feat)] sorted by
-    view, [x in OpenMVG pixels]); values validated and converted to Python numbers once."""
+def _flat_structure(scene: SfMScene) -> _FlatStructure:
+    """Landmarks ready for the writer, validated, with vectorised sorting and pixel
+    conversion (no Python loop per landmark)."""
     structure = scene.structure
     assert structure is not None
     point_ids = np.asarray(structure.point_ids, dtype=np.int64).reshape(-1)
@@ -572,33 +600,48 @@ def _structure_rows(scene: SfMScene) -> list[tuple[int, list, list, list]]:
         raise InputError("point id outside uint32", field="structure.point_ids")
     if len(np.unique(point_ids)) != point_ids.size:
         raise InputError("duplicate point id", field="structure.point_ids")
-    order = np.argsort(point_ids, kind="stable").tolist()
-    tracks, pixel_blocks = [], []
-    for point_index in order:
-        track = structure.observations[point_index]
-        by_view = sorted(range(len(track)), key=lambda row: track[row][0])
-        if len({view_id for view_id, _ in track}) != len(track):
-            raise InputError("two observations in one view (OpenMVG keys them by view)",
-                             field=f"structure[{int(point_ids[point_index])}]")
-        tracks.append([(int(track[row][0]), int(track[row][1])) for row in by_view])
-        pixels = np.asarray(_landmark_pixels(scene, point_index, track), dtype=np.float64)
-        pixel_blocks.append(pixels.reshape(-1, 2)[by_view])
-    counts = [len(track) for track in tracks]
-    flat_tracks = np.array([pair for track in tracks for pair in track],
-                           dtype=np.int64).reshape(-1, 2)
-    if flat_tracks.size and (flat_tracks.min() < 0 or flat_tracks.max() > 0xFFFFFFFF):
+    track_lengths, view_feature = structure.flat_observations()
+    if len(track_lengths) != point_ids.size:
+        raise InputError("one observation list per point expected", field="structure.observations")
+    if view_feature.size and (view_feature.min() < 0 or view_feature.max() > 0xFFFFFFFF):
         raise InputError("view id or id_feat outside uint32", field="structure.observations")
-    # One vectorised pixel-convention conversion for all observations.
-    flat_pixels = _to_openmvg_pixels(np.concatenate(pixel_blocks) if pixel_blocks
-                                     else np.zeros((0, 2)))
-    points = _json_floats(np.asarray(structure.points, dtype=np.float64)[order], "structure.X")
-    pixels_list = _json_floats(flat_pixels, "structure.x")
-    rows, start = [], 0
-    for position, point_index in enumerate(order):
-        rows.append((int(point_ids[point_index]), points[position], tracks[position],
-                     pixels_list[start:start + counts[position]]))
-        start += counts[position]
-    return rows
+    point_of_observation = np.repeat(np.arange(point_ids.size), track_lengths)
+    pixels = structure.flat_observation_pixels(track_lengths)
+    if pixels is None:
+        pixels = _landmark_pixels(scene, point_of_observation, view_feature)
+
+    # Document order: points by id, each track by view id (both sorts stable).
+    point_order = np.argsort(point_ids, kind="stable")
+    rank_of_point = np.empty_like(point_order)
+    rank_of_point[point_order] = np.arange(point_order.size)
+    observation_order = np.lexsort((view_feature[:, 0], rank_of_point[point_of_observation]))
+    sorted_points = rank_of_point[point_of_observation][observation_order]
+    sorted_views = view_feature[observation_order, 0]
+    repeated = (sorted_points[1:] == sorted_points[:-1]) & (sorted_views[1:] == sorted_views[:-1])
+    if np.any(repeated):
+        point_index = point_order[sorted_points[np.flatnonzero(repeated)[0]]]
+        raise InputError("two observations in one view (OpenMVG keys them by view)",
+                         field=f"structure[{int(point_ids[point_index])}]")
+    points = np.asarray(structure.points, dtype=np.float64).reshape(-1, 3)[point_order]
+    pixels = _to_openmvg_pixels(pixels[observation_order])
+    if not np.all(np.isfinite(points)):
+        raise InputError("non-finite value cannot be written to OpenMVG JSON", field="structure.X")
+    if not np.all(np.isfinite(pixels)):
+        raise InputError("non-finite value cannot be written to OpenMVG JSON", field="structure.x")
+    return _FlatStructure(point_ids[point_order], points, track_lengths[point_order],
+                          view_feature[observation_order], pixels)
+
+
+def _structure_rows(scene: SfMScene) -> list[tuple[int, list, list, list]]:
+    """Landmarks as Python values, sorted by point id: (point id, X, [(view, id_feat)] sorted
+    by view, [x in OpenMVG pixels]) (for :func:`sfm_data_document`)."""
+    flat = _flat_structure(scene)
+    ends = np.cumsum(flat.track_lengths).tolist()
+    starts = [0] + ends[:-1]
+    tracks = [tuple(pair) for pair in flat.view_feature.tolist()]
+    pixels = flat.pixels.tolist()
+    return [(point_id, point, tracks[start:end], pixels[start:end]) for point_id, point, start, end
+            in zip(flat.point_ids.tolist(), flat.points.tolist(), starts, ends)]
 
 
 # Text templates reproducing json.dumps(indent=4) for landmarks, ~10x faster than the
@@ -608,30 +651,95 @@ def _indent(level: int) -> str:
 
 
 _OBSERVATION_TEMPLATE = (
-    " " * 20 + "{" + _indent(6) + '"key": %d,' + _indent(6) + '"value": {' + _indent(7)
-    + '"id_feat": %d,' + _indent(7) + '"x": [' + _indent(8) + "%r," + _indent(8) + "%r"
+    " " * 20 + "{" + _indent(6) + '"key": %s,' + _indent(6) + '"value": {' + _indent(7)
+    + '"id_feat": %s,' + _indent(7) + '"x": [' + _indent(8) + "%s," + _indent(8) + "%s"
     + _indent(7) + "]" + _indent(6) + "}" + _indent(5) + "}")
 _LANDMARK_HEAD = (
-    " " * 8 + "{" + _indent(3) + '"key": %d,' + _indent(3) + '"value": {' + _indent(4)
-    + '"X": [' + _indent(5) + "%r," + _indent(5) + "%r," + _indent(5) + "%r" + _indent(4)
+    " " * 8 + "{" + _indent(3) + '"key": %s,' + _indent(3) + '"value": {' + _indent(4)
+    + '"X": [' + _indent(5) + "%s," + _indent(5) + "%s," + _indent(5) + "%s" + _indent(4)
     + "],")
 _LANDMARK_TAIL = _indent(3) + "}" + _indent(2) + "}"
 
 
+# Literal text between the values of one landmark / one observation (the templates split at
+# their placeholders): _LANDMARK_HEAD = H0 id H1 X0 H2 X1 H3 X2 H4, an observation
+# = B0 view B1 id_feat B2 x0 B3 x1 B4.
+_HEAD_TEXTS = _LANDMARK_HEAD.split("%s")
+_OBSERVATION_TEXTS = _OBSERVATION_TEMPLATE.split("%s")
+_OPEN_OBSERVATIONS = _HEAD_TEXTS[4] + _indent(4) + '"observations": [\n' + _OBSERVATION_TEXTS[0]
+_NEXT_OBSERVATION = _OBSERVATION_TEXTS[4] + ",\n" + _OBSERVATION_TEXTS[0]
+_CLOSE_OBSERVATIONS = _OBSERVATION_TEXTS[4] + _indent(4) + "]" + _LANDMARK_TAIL
+_CLOSE_NO_OBSERVATIONS = _HEAD_TEXTS[4] + _indent(4) + '"observations": []' + _LANDMARK_TAIL
+
+
+def _integer_texts(values: np.ndarray) -> list[str]:
+    """``str`` of every int64 (orjson, when installed, formats them in C: same text)."""
+    values = np.ascontiguousarray(values, dtype=np.int64).reshape(-1)
+    if _orjson is None or not values.size:
+        return list(map(str, values.tolist()))
+    return _orjson.dumps(values, option=_orjson.OPT_SERIALIZE_NUMPY)[1:-1].decode("ascii").split(",")
+
+
+def _float_reprs(values: np.ndarray) -> list[str]:
+    """``repr`` of every float64 (Python's shortest round-trip form, what json writes).
+
+    orjson, when installed, formats a whole array in C (~30x faster than repr per float);
+    its digits are the same shortest round-trip digits and, where Python writes positional
+    notation (1e-4 <= |x| < 1e16, or 0), the same text, so only the values outside that
+    range (exponent notation: orjson writes ``1e16``, Python ``1e+16``) go through repr.
+    test_io_openmvg compares both paths."""
+    values = np.ascontiguousarray(values, dtype=np.float64).reshape(-1)
+    if _orjson is None or not values.size:
+        return list(map(repr, values.tolist()))
+    texts = _orjson.dumps(values, option=_orjson.OPT_SERIALIZE_NUMPY)[1:-1].decode("ascii").split(",")
+    magnitude = np.abs(values)
+    exponent_form = np.flatnonzero(((magnitude < 1e-4) | (magnitude >= 1e16)) & (magnitude != 0))
+    for index in exponent_form.tolist():
+        texts[index] = repr(float(values[index]))
+    return texts
+
+
 def _structure_text(scene: SfMScene) -> str:
-    landmarks = []
-    for point_id, point, track, pixels in _structure_rows(scene):
-        head = _LANDMARK_HEAD % (point_id, *point)
-        if not track:
-            landmarks.append(head + _indent(4) + '"observations": []' + _LANDMARK_TAIL)
-            continue
-        observations = ",\n".join(_OBSERVATION_TEMPLATE % (view_id, feature_index, *pixel)
-                                   for (view_id, feature_index), pixel in zip(track, pixels))
-        landmarks.append(head + _indent(4) + '"observations": [\n' + observations + _indent(4)
-                         + "]" + _LANDMARK_TAIL)
-    if not landmarks:
+    """The ``structure`` array exactly as json.dumps(indent=4) writes it, as one join of
+    literal texts and value texts (ids as integers, coordinates by :func:`_float_reprs`):
+    no Python loop per landmark or observation."""
+    flat = _flat_structure(scene)
+    num_points = flat.point_ids.size
+    if not num_points:
         return "[]"
-    return "[\n" + ",\n".join(landmarks) + _indent(1) + "]"
+    lengths = flat.track_lengths
+    # Value slots: per landmark id, X (3), then per observation view, id_feat, x (2).
+    num_values = 4 * num_points + 4 * len(flat.view_feature)
+    landmark_start = 4 * np.arange(num_points) + 4 * (np.cumsum(lengths) - lengths)
+    observation_start = np.repeat(landmark_start + 4, lengths) + 4 * _rank_within_track(lengths)
+    values = np.empty(num_values, dtype=object)
+    values[landmark_start] = _integer_texts(flat.point_ids)
+    values[(landmark_start[:, None] + np.arange(1, 4)).reshape(-1)] = _float_reprs(flat.points)
+    values[(observation_start[:, None] + np.arange(2)).reshape(-1)] = _integer_texts(flat.view_feature)
+    values[(observation_start[:, None] + np.arange(2, 4)).reshape(-1)] = _float_reprs(flat.pixels)
+
+    # texts[s] precedes value slot s; texts[-1] ends the array.
+    closing = np.where(lengths > 0, _CLOSE_OBSERVATIONS, _CLOSE_NO_OBSERVATIONS).astype(object)
+    texts = np.empty(num_values + 1, dtype=object)
+    texts[landmark_start[1:]] = closing[:-1] + (",\n" + _HEAD_TEXTS[0])
+    texts[0] = "[\n" + _HEAD_TEXTS[0]
+    for offset in range(1, 4):
+        texts[landmark_start + offset] = _HEAD_TEXTS[offset]
+        texts[observation_start + offset] = _OBSERVATION_TEXTS[offset]
+    texts[observation_start] = _NEXT_OBSERVATION
+    texts[landmark_start[lengths > 0] + 4] = _OPEN_OBSERVATIONS
+    texts[-1] = closing[-1] + _indent(1) + "]"
+    pieces = np.empty(2 * num_values + 1, dtype=object)
+    pieces[0::2] = texts
+    pieces[1::2] = values
+    return "".join(pieces.tolist())
+
+
+def _rank_within_track(track_lengths: np.ndarray) -> np.ndarray:
+    """0, 1, ..., k-1 for every track of length k, concatenated."""
+    total = int(track_lengths.sum())
+    track_starts = np.repeat(np.cumsum(track_lengths) - track_lengths, track_lengths)
+    return np.arange(total) - track_starts
 
 
 def sfm_data_document(scene: SfMScene, include_structure: bool = True) -> dict:

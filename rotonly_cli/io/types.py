@@ -19,8 +19,11 @@ Conventions (architecture.md "Conventions"):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import chain
 
 import numpy as np
+
+from rotonly_cli.errors import InputError
 
 
 @dataclass
@@ -81,6 +84,29 @@ class Structure:
     # Optional per point (k, 2) pixel positions of its observations (COLMAP convention),
     # aligned with ``observations``: OpenMVG stores them in each landmark (``x``).
     observation_pixels: list[np.ndarray] | None = None
+
+    def flat_observations(self) -> tuple[np.ndarray, np.ndarray]:
+        """All observations as arrays, for the vectorised writers: ``track_lengths`` (N,)
+        int64 and ``view_feature`` (M, 2) int64 rows (view_id, keypoint_index), tracks
+        concatenated in point order."""
+        track_lengths = np.fromiter(map(len, self.observations), dtype=np.int64,
+                                    count=len(self.observations))
+        total = int(track_lengths.sum())
+        flat = np.fromiter(chain.from_iterable(chain.from_iterable(self.observations)),
+                           dtype=np.int64, count=2 * total)
+        return track_lengths, flat.reshape(total, 2)
+
+    def flat_observation_pixels(self, track_lengths: np.ndarray) -> np.ndarray | None:
+        """``observation_pixels`` concatenated to (M, 2) (None if not stored); InputError if
+        their counts differ from ``track_lengths``."""
+        if self.observation_pixels is None:
+            return None
+        blocks = [np.asarray(block, dtype=np.float64).reshape(-1, 2) for block in self.observation_pixels]
+        if len(blocks) != len(track_lengths) or not np.array_equal(
+                np.fromiter(map(len, blocks), dtype=np.int64, count=len(blocks)), track_lengths):
+            raise InputError("observation_pixels do not match the observations",
+                             field="structure.observation_pixels")
+        return np.concatenate(blocks) if blocks else np.zeros((0, 2))
 
 
 @dataclass
