@@ -25,7 +25,7 @@ import sqlite3
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -439,8 +439,9 @@ def _fill_database(pycolmap, database, scene: SfMScene, view_offset: int,
 
 # ============================================================================ sparse model
 
-def _reconstruction(pycolmap, scene: SfMScene):
-    """pycolmap.Reconstruction of the posed views of ``scene`` (+ its structure)."""
+def _reconstruction(pycolmap, scene: SfMScene, posed: list[int], extra_points2D: dict[int, np.ndarray]):
+    """pycolmap.Reconstruction of the cameras and posed views of ``scene`` (points2D = the
+    view's keypoints, then ``extra_points2D``), without 3D points."""
     reconstruction = pycolmap.Reconstruction()
     view_offset = _id_offset(scene.views)
     camera_offset = _id_offset(scene.intrinsics)
@@ -448,28 +449,6 @@ def _reconstruction(pycolmap, scene: SfMScene):
         intrinsic = to_colmap_intrinsics(scene.intrinsics[intrinsic_id])
         reconstruction.add_camera_with_trivial_rig(
             _pycolmap_camera(intrinsic, intrinsic_id + camera_offset))
-
-    # points2D of each image: its keypoints, plus, for observations without a keypoint, the
-    # stored landmark pixel (or the projection) appended at the end.
-    structure = scene.structure
-    points2D: dict[int, list[np.ndarray]] = {}
-    extra_index: dict[tuple[int, int], int] = {}
-    posed = [view_id for view_id in sorted(scene.views) if view_id in scene.poses]
-    for view_id in posed:
-        keypoints = scene.keypoints.get(view_id)
-        points2D[view_id] = [np.zeros((0, 2)) if keypoints is None
-                             else np.asarray(keypoints, dtype=np.float64).reshape(-1, 2)]
-    if structure is not None:
-        for point_index, track in enumerate(structure.observations):
-            for row, (view_id, feature) in enumerate(track):
-                if view_id not in points2D:
-                    continue
-                if 0 <= feature < len(points2D[view_id][0]) or (view_id, feature) in extra_index:
-                    continue
-                pixel = _observation_pixel(scene, point_index, row)
-                extra_index[(view_id, feature)] = sum(len(p) for p in points2D[view_id])
-                points2D[view_id].append(pixel.reshape(1, 2))
-
     for view_id in posed:
         view = scene.views[view_id]
         if view.intrinsics_id not in scene.intrinsics:
@@ -478,29 +457,152 @@ def _reconstruction(pycolmap, scene: SfMScene):
         R = np.asarray(pose.R_cam_from_world, dtype=np.float64)
         cam_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ np.asarray(
             pose.center, dtype=np.float64).reshape(3))
-        image = pycolmap.Image(name=view.name, keypoints=np.concatenate(points2D[view_id]),
+        keypoints = scene.keypoints.get(view_id)
+        keypoints = (np.zeros((0, 2)) if keypoints is None
+                     else np.asarray(keypoints, dtype=np.float64).reshape(-1, 2))
+        image = pycolmap.Image(name=view.name, keypoints=np.concatenate([keypoints, extra_points2D[view_id]]),
                                camera_id=view.intrinsics_id + camera_offset,
                                image_id=view_id + view_offset)
         reconstruction.add_image_with_trivial_frame(image, cam_from_world)
+    return reconstruction
 
-    if structure is not None:
-        point_offset = _id_offset(np.asarray(structure.point_ids).tolist())
-        colors = (np.zeros((len(structure.points), 3), np.uint8) if structure.colors is None
-                  else np.asarray(structure.colors, dtype=np.uint8))
-        for point_index, track in enumerate(structure.observations):
-            elements = []
-            for view_id, feature in track:
-                if view_id not in points2D:
-                    continue  # unposed view: not in the model
-                point2D_index = extra_index.get((view_id, feature), feature)
-                elements.append(pycolmap.TrackElement(view_id + view_offset, point2D_index))
-            if not elements:
-                continue
-            point3D = pycolmap.Point3D(
-                xyz=np.asarray(structure.points[point_index], dtype=np.float64),
-                color=colors[point_index], track=pycolmap.Track(elements))
-            reconstruction.add_point3D_with_id(
-                int(structure.point_ids[point_index]) + point_offset, point3D)  # ids > 0
+
+@dataclass
+class _ModelPoints:
+    """3D points in COLMAP terms, tracks flattened: per point ``point3D_ids``, ``xyz``,
+    ``colors``, ``track_lengths``; per track element ``image_ids``, ``point2D_indices``."""
+
+    point3D_ids: np.ndarray
+    xyz: np.ndarray
+    colors: np.ndarray
+    track_lengths: np.ndarray
+    image_ids: np.ndarray
+    point2D_indices: np.ndarray
+
+
+def _model_points(scene: SfMScene, posed: list[int]) -> tuple[_ModelPoints, dict[int, np.ndarray]]:
+    """Tracks of ``scene.structure`` restricted to posed views, and per posed view the extra
+    points2D appended after its keypoints: observations whose keypoint index is out of
+    range get the stored landmark pixel (or the projection), once per (view, index), in
+    order of first use. Observations in unposed views are left out; points left without
+    observations are not in the model."""
+    extra_points2D = {view_id: np.zeros((0, 2)) for view_id in posed}
+    structure = scene.structure
+    if structure is None:
+        empty = np.zeros(0, dtype=np.int64)
+        return _ModelPoints(empty, np.zeros((0, 3)), np.zeros((0, 3), np.uint8), empty, empty, empty), extra_points2D
+    track_lengths, view_feature = structure.flat_observations()
+    point_of_observation = np.repeat(np.arange(len(track_lengths)), track_lengths)
+    posed_ids = np.asarray(posed, dtype=np.int64)
+    num_keypoints = np.array([0 if scene.keypoints.get(view_id) is None else len(scene.keypoints[view_id])
+                              for view_id in posed], dtype=np.int64)
+    view_row = np.minimum(np.searchsorted(posed_ids, view_feature[:, 0]), max(len(posed) - 1, 0))
+    in_model = (posed_ids[view_row] == view_feature[:, 0]) if len(posed) else np.zeros(len(view_feature), bool)
+    features = view_feature[:, 1]
+    point2D_indices = features.copy()
+    is_extra = in_model & ((features < 0) | (features >= num_keypoints[view_row]))
+    extra_observations = np.flatnonzero(is_extra)
+    if extra_observations.size:  # rare (not in the pipeline): a Python loop is fine
+        row_in_track = np.arange(len(view_feature)) - np.repeat(np.cumsum(track_lengths) - track_lengths,
+                                                                track_lengths)
+        first_use: dict[tuple[int, int], int] = {}
+        extras: dict[int, list[np.ndarray]] = {view_id: [] for view_id in posed}
+        for observation in extra_observations.tolist():
+            key = (int(view_feature[observation, 0]), int(features[observation]))
+            if key not in first_use:
+                view_id = key[0]
+                first_use[key] = int(num_keypoints[view_row[observation]]) + len(extras[view_id])
+                extras[view_id].append(_observation_pixel(scene, int(point_of_observation[observation]),
+                                                          int(row_in_track[observation])).reshape(1, 2))
+            point2D_indices[observation] = first_use[key]
+        extra_points2D.update({view_id: np.concatenate(blocks) for view_id, blocks in extras.items() if blocks})
+
+    in_model_per_point = np.bincount(point_of_observation[in_model], minlength=len(track_lengths))
+    kept = in_model_per_point > 0
+    point_ids = np.asarray(structure.point_ids, dtype=np.int64).reshape(-1)
+    point_offset = _id_offset(point_ids.tolist())
+    colors = (np.zeros((len(track_lengths), 3), np.uint8) if structure.colors is None
+              else np.asarray(structure.colors, dtype=np.uint8).reshape(-1, 3))
+    view_offset = _id_offset(scene.views)
+    points = _ModelPoints(
+        point3D_ids=point_ids[kept] + point_offset,
+        xyz=np.asarray(structure.points, dtype=np.float64).reshape(-1, 3)[kept],
+        colors=colors[kept], track_lengths=in_model_per_point[kept],
+        image_ids=view_feature[in_model, 0] + view_offset, point2D_indices=point2D_indices[in_model])
+    return points, extra_points2D
+
+
+# points3D.bin record head (formats.md §4.8): id, xyz, rgb, error, track length
+_POINT3D_HEAD = np.dtype([("id", "<u8"), ("xyz", "<f8", 3), ("rgb", "u1", 3), ("error", "<f8"),
+                          ("track_length", "<u8")])
+_TRACK_ELEMENT = np.dtype([("image_id", "<u4"), ("point2D_idx", "<u4")])
+_POINT2D = np.dtype([("xy", "<f8", 2), ("point3D_id", "<u8")])
+_NO_POINT3D = np.uint64(0xFFFFFFFFFFFFFFFF)  # images.bin: point2D without 3D point (-1)
+
+
+def _points3D_bin(points: _ModelPoints) -> bytes:
+    """points3D.bin with the given tracks and ERROR -1 (recomputed by pycolmap), assembled
+    with numpy: one record = head, then track elements (formats.md §4.8)."""
+    num_points = len(points.point3D_ids)
+    heads = np.zeros(num_points, dtype=_POINT3D_HEAD)
+    heads["id"], heads["xyz"], heads["rgb"] = points.point3D_ids, points.xyz, points.colors
+    heads["error"], heads["track_length"] = -1.0, points.track_lengths
+    elements = np.zeros(len(points.image_ids), dtype=_TRACK_ELEMENT)
+    elements["image_id"], elements["point2D_idx"] = points.image_ids, points.point2D_indices
+    head_size, element_size = _POINT3D_HEAD.itemsize, _TRACK_ELEMENT.itemsize
+    record_start = 8 + head_size * np.arange(num_points) + element_size * (
+        np.cumsum(points.track_lengths) - points.track_lengths)
+    payload = np.zeros(8 + head_size * num_points + element_size * len(elements), dtype=np.uint8)
+    payload[:8] = np.frombuffer(np.uint64(num_points).tobytes(), dtype=np.uint8)
+    payload[(record_start[:, None] + np.arange(head_size)).reshape(-1)] = heads.view(np.uint8)
+    element_start = (np.repeat(record_start + head_size, points.track_lengths)
+                     + element_size * (np.arange(len(elements)) - np.repeat(
+                         np.cumsum(points.track_lengths) - points.track_lengths, points.track_lengths)))
+    payload[(element_start[:, None] + np.arange(element_size)).reshape(-1)] = elements.view(np.uint8)
+    return payload.tobytes()
+
+
+def _link_points2D(images_bin: bytes, points: _ModelPoints) -> bytes:
+    """images.bin as pycolmap wrote it (no 3D points) with each track element's point2D
+    pointing at its 3D point. A keypoint claimed by two points is an error (pycolmap's
+    AddPoint3D refuses it too)."""
+    payload = bytearray(images_bin)
+    point3D_of_element = np.repeat(points.point3D_ids, points.track_lengths).astype(np.uint64)
+    (num_images,), offset = np.frombuffer(payload, "<u8", 1, 0), 8
+    for _ in range(int(num_images)):
+        image_id = int(np.frombuffer(payload, "<u4", 1, offset)[0])
+        offset += 4 + 7 * 8 + 4  # id, qw qx qy qz tx ty tz, camera id
+        offset = payload.index(b"\0", offset) + 1  # NUL-terminated name
+        num_points2D = int(np.frombuffer(payload, "<u8", 1, offset)[0])
+        offset += 8
+        points2D = np.frombuffer(payload, _POINT2D, num_points2D, offset)  # a view: writes go to payload
+        mine = np.flatnonzero(points.image_ids == image_id)
+        if mine.size:
+            point2D_indices, point3D_ids = points.point2D_indices[mine], point3D_of_element[mine]
+            order = np.lexsort((point3D_ids, point2D_indices))
+            point2D_indices, point3D_ids = point2D_indices[order], point3D_ids[order]
+            claimed_twice = (point2D_indices[1:] == point2D_indices[:-1]) & (point3D_ids[1:] != point3D_ids[:-1])
+            if np.any(claimed_twice):
+                index = int(point2D_indices[1:][claimed_twice][0])
+                raise InputError(f"keypoint {index} of image {image_id} observed by two 3D points",
+                                 field="structure.observations")
+            points2D["point3D_id"][point2D_indices] = point3D_ids
+        offset += num_points2D * _POINT2D.itemsize
+    return bytes(payload)
+
+
+def _model_reconstruction(pycolmap, scene: SfMScene, workdir: Path):
+    """The sparse model of ``scene`` as a pycolmap.Reconstruction: cameras and images built
+    with pycolmap, the 3D points written as points3D.bin with numpy (no Python object per
+    point or track element) and read back by pycolmap (its reader links everything)."""
+    posed = [view_id for view_id in sorted(scene.views) if view_id in scene.poses]
+    points, extra_points2D = _model_points(scene, posed)
+    _reconstruction(pycolmap, scene, posed, extra_points2D).write_binary(str(workdir))
+    images_path = workdir / "images.bin"
+    images_path.write_bytes(_link_points2D(images_path.read_bytes(), points))
+    (workdir / "points3D.bin").write_bytes(_points3D_bin(points))
+    reconstruction = pycolmap.Reconstruction(str(workdir))
+    reconstruction.update_point_3d_errors()  # points3D ERROR = mean reprojection error (px)
     return reconstruction
 
 
@@ -526,11 +628,11 @@ def write_model(out_dir: PathLike, scene: SfMScene, binary: bool = True) -> None
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError("exists and is not a directory", path=str(out_dir))
-    reconstruction = _reconstruction(pycolmap, scene)
-    reconstruction.update_point_3d_errors()  # points3D ERROR = mean reprojection error (px)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     try:
+        with tempfile.TemporaryDirectory(prefix=f".{out_dir.name}.points.", dir=out_dir.parent) as workdir:
+            reconstruction = _model_reconstruction(pycolmap, scene, Path(workdir))
         if binary:
             reconstruction.write_binary(str(staging))
         else:
