@@ -4,7 +4,9 @@ once (``geometry.triangulation``), coloured from the images when they can be fou
 from __future__ import annotations
 
 import logging
+import os
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +20,23 @@ logger = logging.getLogger(__name__)
 GREY = 128
 
 
+def _read_images(paths: list[Path]) -> Iterator[np.ndarray | None]:
+    """BGR images in order (None where missing or unreadable), decoded on a thread per
+    core: JPEG decoding is most of this stage's time and OpenCV releases the GIL while
+    decoding. A generator, so only a few decoded images are alive at once."""
+    import cv2
+    from concurrent.futures import ThreadPoolExecutor
+
+    def read(path: Path) -> np.ndarray | None:
+        return cv2.imread(str(path), cv2.IMREAD_COLOR) if path.is_file() else None
+
+    if len(paths) < 2:
+        yield from map(read, paths)
+        return
+    with ThreadPoolExecutor(max_workers=min(len(paths), os.cpu_count() or 1)) as pool:
+        yield from pool.map(read, paths)
+
+
 def point_colors(scene: SfMScene, image_root: str | Path | None, view_ids: list[int], obs_point: np.ndarray,
                  obs_view_row: np.ndarray, obs_feature: np.ndarray, num_points: int) -> tuple[np.ndarray, dict]:
     """Mean RGB of each point over its observations' pixels (COLMAP pixel convention: the
@@ -26,12 +45,10 @@ def point_colors(scene: SfMScene, image_root: str | Path | None, view_ids: list[
     hits = np.zeros(num_points)
     missing: list[str] = []
     if image_root is not None:
-        import cv2
-
-        for row in np.unique(obs_view_row):
+        rows = np.unique(obs_view_row).tolist()
+        images = _read_images([Path(image_root) / scene.views[view_ids[row]].name for row in rows])
+        for row, image in zip(rows, images):
             view = scene.views[view_ids[row]]
-            path = Path(image_root) / view.name
-            image = cv2.imread(str(path), cv2.IMREAD_COLOR) if path.is_file() else None
             if image is None:
                 missing.append(view.name)
                 continue
@@ -40,8 +57,10 @@ def point_colors(scene: SfMScene, image_root: str | Path | None, view_ids: list[
             u = np.clip(np.floor(pixels[:, 0]).astype(np.int64), 0, image.shape[1] - 1)
             v = np.clip(np.floor(pixels[:, 1]).astype(np.int64), 0, image.shape[0] - 1)
             rgb = image[v, u, ::-1].astype(float)  # OpenCV is BGR
-            np.add.at(sums, obs_point[mask], rgb)
-            np.add.at(hits, obs_point[mask], 1.0)
+            # sums of small integers: exact in any order (bincount is ~10x faster than add.at)
+            for channel in range(3):
+                sums[:, channel] += np.bincount(obs_point[mask], weights=rgb[:, channel], minlength=num_points)
+            hits += np.bincount(obs_point[mask], minlength=num_points)
     else:
         missing = ["(no image folder)"]
     colors = np.full((num_points, 3), GREY, dtype=np.uint8)
@@ -76,8 +95,9 @@ def triangulate_graph(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.nd
     colors, color_report = point_colors(scene, image_root, view_ids, kept.track_id, kept.view, kept.feature,
                                         kept.num_tracks)
     obs_view_id = np.asarray(view_ids, dtype=np.int64)[kept.view]
-    observations = [list(zip(obs_view_id[a:b].tolist(), kept.feature[a:b].tolist()))
-                    for a, b in zip(kept.offsets[:-1], kept.offsets[1:])]
+    pairs = list(zip(obs_view_id.tolist(), kept.feature.tolist()))  # one tuple per observation
+    offsets = np.asarray(kept.offsets).tolist()
+    observations = [pairs[a:b] for a, b in zip(offsets[:-1], offsets[1:])]
     structure = Structure(point_ids=np.arange(kept.num_tracks, dtype=np.int64), points=points, colors=colors,
                           observations=observations)
     error = result.mean_reprojection_error[valid]

@@ -1,0 +1,47 @@
+"""Point colours: mean RGB over the observations' pixels, images decoded on threads."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from rotonly_cli.io.types import SfMScene, View
+from rotonly_cli.stages.triangulate import GREY, point_colors
+
+
+def test_point_colors_are_mean_rgb_of_observed_pixels(tmp_path):
+    rng = np.random.default_rng(4)
+    scene = SfMScene()
+    view_ids = [3, 5, 8, 9]
+    images = {}
+    for view_id in view_ids:
+        scene.views[view_id] = View(view_id, f"sub/img{view_id}.png", 1)
+        scene.keypoints[view_id] = rng.uniform(0, 40, (30, 2))
+        scene.keypoints[view_id][0] = [40.0, 30.0]  # the far edge: clipped to the last pixel
+        if view_id != 8:  # view 8: missing image -> its observations give no colour
+            images[view_id] = rng.integers(0, 256, (30, 40, 3), dtype=np.uint8)  # BGR
+            (tmp_path / "sub").mkdir(exist_ok=True)
+            assert cv2.imwrite(str(tmp_path / "sub" / f"img{view_id}.png"), images[view_id])
+    num_points = 50
+    obs_point = rng.integers(0, num_points - 1, 120)  # point 49 is never observed
+    obs_view_row = rng.integers(0, 4, 120)
+    obs_feature = rng.integers(0, 30, 120)
+    colors, report = point_colors(scene, tmp_path, view_ids, obs_point, obs_view_row, obs_feature, num_points)
+
+    sums, hits = np.zeros((num_points, 3)), np.zeros(num_points)
+    for point, row, feature in zip(obs_point, obs_view_row, obs_feature):
+        view_id = view_ids[row]
+        if view_id not in images:
+            continue
+        u, v = np.minimum(np.floor(scene.keypoints[view_id][feature]).astype(int), [39, 29])
+        sums[point] += images[view_id][v, u, ::-1]
+        hits[point] += 1
+    expected = np.full((num_points, 3), GREY, dtype=np.uint8)
+    expected[hits > 0] = np.round(sums[hits > 0] / hits[hits > 0, None]).astype(np.uint8)
+    np.testing.assert_array_equal(colors, expected)
+    assert report["images_missing"] == ["sub/img8.png"]
+    assert report["points_coloured"] == int((hits > 0).sum()) and 30 < report["points_coloured"] < 49
+    assert tuple(colors[49]) == (GREY, GREY, GREY)
+
+    grey, report = point_colors(scene, None, view_ids, obs_point, obs_view_row, obs_feature, num_points)
+    assert np.all(grey == GREY) and report["points_coloured"] == 0
