@@ -59,6 +59,9 @@ class GRRMOptions:
     #: brings starts a degree or more off into GRRM's basin; 0 disables it
     epipolar_max_iterations: int = 10
     epipolar_step_tolerance: float = 1e-4  #: rad; this phase only has to reach the basin
+    #: Hessian with the robust loss's second-order term (see _robust_curvature): same
+    #: optimum, fewer iterations than plain IRLS weights
+    robust_hessian: bool = True
     #: per-edge t from IRLS-weighted Pˢ (weights fixed at the start; see trrm.TRRMOptions.loss)
     robust_translation: bool = True
 
@@ -84,6 +87,12 @@ class GRRMResult:
     loss_scale: float = 0.0
 
 
+#: contributions per block in _Problem (blocks of ~1 MB arrays stay in cache, and no
+#: per-iteration temporary grows with the problem: arrays above glibc's 32 MB mmap
+#: threshold would be page-faulted afresh on every allocation)
+_CHUNK = 1 << 15
+
+
 class _Problem:
     """The fixed structure of a GRRM problem: edges, matches, observation groups, and the
     sparsity pattern of the normal equations (computed once, refilled every iteration).
@@ -93,6 +102,12 @@ class _Problem:
     δ_e) and C (3E x 3n) chains δ_e = δ_j - R_ij δ_i. Then JᵀJ = Cᵀ (J_eᵀ J_e) C with
     J_eᵀ J_e = Σ_g Σ_{c, c' in g} B_cᵀ B_c' at block (e_c, e_c'): the pairs of contributions
     inside each observation are enumerated once; each iteration only refills the blocks.
+
+    Layout (for speed): contributions are held sorted by observation, so per-observation
+    sums are segment sums over contiguous runs and the pairs of an observation are
+    neighbours; all per-contribution work runs block by block (``_CHUNK`` contributions,
+    block edges on observation boundaries), each 3-vector / 3x3 block as 1-D component
+    arrays (structure of arrays): a 3x3 product is 27 elementwise multiply-adds.
     """
 
     def __init__(self, n: int, edge_views: np.ndarray, batch: tv.EdgeBatch, obs_ids: np.ndarray):
@@ -102,89 +117,167 @@ class _Problem:
         self.E = batch.num_edges
         self.edge_views = edge_views
         self.batch = batch
-        self.edge_of_match = np.repeat(np.arange(batch.num_edges), batch.counts)
         self.M = batch.x_i.shape[0]
+        edge_of_match = np.repeat(np.arange(batch.num_edges), batch.counts)
         # every match contributes to two observations: (view i, its keypoint) and (view j, ...)
-        groups, self.group = np.unique(np.concatenate([obs_ids[:, 0], obs_ids[:, 1]]), return_inverse=True)
-        self.num_groups = len(groups)
-        self.edge_of_contribution = np.concatenate([self.edge_of_match, self.edge_of_match])
-        # contributions sorted by observation; pairs (a < b) inside each observation, as
-        # positions in that sorted order (so the gathers below stay local in memory)
-        self.order = np.argsort(self.group, kind="stable")
-        sizes = np.bincount(self.group, minlength=self.num_groups)
-        offsets = np.concatenate([[0], np.cumsum(sizes)])
+        _, group = np.unique(np.concatenate([obs_ids[:, 0], obs_ids[:, 1]]), return_inverse=True)
+        # contributions sorted by observation (contribution c < M: side i of match c, else
+        # side j of match c - M); pairs (a < b) inside each observation are positions in that
+        # sorted order, ascending in a (tracks.pairs_within_tracks)
+        self.order = np.argsort(group, kind="stable")
+        self.sizes = np.bincount(group)
+        self.num_groups = len(self.sizes)
+        self.starts = np.concatenate([[0], np.cumsum(self.sizes)[:-1]])
+        self.group_sorted = np.repeat(np.arange(self.num_groups), self.sizes)
+        self.edge_sorted = np.concatenate([edge_of_match, edge_of_match])[self.order]
+        offsets = np.concatenate([[0], np.cumsum(self.sizes)])
         self.pair_a, self.pair_b = pairs_within_tracks(offsets)
-        edge_sorted = self.edge_of_contribution[self.order]
-        self.edge_sorted = edge_sorted
-        key = edge_sorted[self.pair_a] * self.E + edge_sorted[self.pair_b]
+        key = self.edge_sorted[self.pair_a] * self.E + self.edge_sorted[self.pair_b]
         self.block_keys, self.pair_block = np.unique(key, return_inverse=True)
         self.block_row = self.block_keys // self.E
         self.block_col = self.block_keys % self.E
-        # sums over pairs / contributions as sparse selector products (one C loop each)
-        P, K, Nc = len(self.pair_a), len(self.block_keys), len(self.edge_sorted)
-        self.pair_selector = sp.csc_matrix((np.ones(P), (self.pair_block, np.arange(P))), shape=(K, P))
-        self.diag_selector = sp.csr_matrix((np.ones(Nc), (self.edge_sorted, np.arange(Nc))), shape=(self.E, Nc))
+        # blocks of sorted contributions, cut at observation starts: (s0, s1, g0, g1, p0, p1)
+        cuts = np.unique(np.searchsorted(offsets, np.arange(0, 2 * self.M, _CHUNK), side="right") - 1)
+        g_bounds = np.concatenate([cuts, [self.num_groups]])
+        s_bounds = offsets[g_bounds]
+        p_bounds = np.searchsorted(self.pair_a, s_bounds)
+        self.blocks = [(int(s_bounds[k]), int(s_bounds[k + 1]), int(g_bounds[k]), int(g_bounds[k + 1]),
+                        int(p_bounds[k]), int(p_bounds[k + 1])) for k in range(len(cuts))]
+        self._table: np.ndarray | None = None  # (2M, 16) per-contribution terms, reused
+        self._B: np.ndarray | None = None  # (9, 2M) Jacobian blocks, reused
 
     def relative(self, R: np.ndarray) -> np.ndarray:
         return R[self.edge_views[:, 1]] @ np.swapaxes(R[self.edge_views[:, 0]], 1, 2)
 
+    def _match_table(self, R_ij: np.ndarray, with_jacobian: bool) -> np.ndarray:
+        """Per-contribution terms in match order, row-major (one 128-byte row per
+        contribution, so the gather into observation order is one cache miss each):
+        columns 0-2 the residual (in the camera of the observation), 3 the ω numerator,
+        4-6 its derivative, 7-15 the residual's derivative (7 + 3a + c = d res_a / dδ_c),
+        w.r.t. the left perturbation of the contribution's edge."""
+        M = self.M
+        if self._table is None:
+            self._table = np.empty((2 * M, 16))
+        table = self._table
+        width = 16 if with_jacobian else 4
+        for e0, e1, m0, m1, cnt, starts, xi, xj, wk in kernels._chunks(self.batch, kernels.CHUNK_MATCHES):
+            terms = kernels._trrm_chunk(R_ij[e0:e1], cnt, starts, xi, xj, with_jacobian, wk)
+            Rm = [np.repeat(R_ij[e0:e1].reshape(-1, 9)[:, k], cnt) for k in range(9)]  # Rm[3b + a] = R_ij[b, a]
+            r = terms["r"]  # 6 arrays: r_i in camera-j axes, then r_j
+            side_i = np.empty((width, m1 - m0))
+            side_j = np.empty((width, m1 - m0))
+            for a in range(3):
+                # R_ij^T r: view i's residual in camera i
+                side_i[a] = Rm[a] * r[0] + Rm[3 + a] * r[1] + Rm[6 + a] * r[2]
+                side_j[a] = r[3 + a]
+            side_i[3] = side_j[3] = terms["b"] * terms["w"]  # ω numerators (eq:weight); invalid weigh 0
+            if with_jacobian:
+                # d(R^T v) = R^T (dv + [v]x δ) for R <- exp([δ]x) R
+                hat = ((None, -r[2], r[1]), (r[2], None, -r[0]), (-r[1], r[0], None))
+                for c in range(3):
+                    J = terms["J_cols"][c]  # dr / dδ_c, 6 arrays
+                    side_i[4 + c] = side_j[4 + c] = terms["db"][c] * terms["w"]
+                    d_in_j = [J[k] if hat[k][c] is None else J[k] + hat[k][c] for k in range(3)]
+                    for a in range(3):
+                        side_i[7 + 3 * a + c] = Rm[a] * d_in_j[0] + Rm[3 + a] * d_in_j[1] + Rm[6 + a] * d_in_j[2]
+                        side_j[7 + 3 * a + c] = J[3 + a]
+            table[m0:m1, :width] = side_i.T
+            table[M + m0:M + m1, :width] = side_j.T
+        return table
+
     def evaluate(self, R: np.ndarray, with_jacobian: bool):
         """Per-observation residuals V (G, 3), the weight sums S (G,), and optionally the
-        per-contribution Jacobian blocks B (2M, 3, 3) w.r.t. their edge's δ_e."""
-        R_ij = self.relative(R)
-        terms = kernels.trrm_match_terms(R_ij, self.batch, with_jacobian=with_jacobian)
-        R_ij_m = R_ij[self.edge_of_match]  # (M, 3, 3)
-        r_i_in_j = terms["r"][:, :3]
-        r_i = np.einsum("mba,mb->ma", R_ij_m, r_i_in_j)  # R_ij^T r: view i's residual in camera i
-        r_j = terms["r"][:, 3:]
-        b = terms["b"] * terms["w"]  # ω numerators (eq:weight); invalid matches weigh 0
-        res = np.concatenate([r_i, r_j])  # (2M, 3)
-        b2 = np.concatenate([b, b])
-        S = np.bincount(self.group, weights=b2, minlength=self.num_groups)
-        safe_S = np.where(S > 0, S, 1.0)
-        V = np.stack([np.bincount(self.group, weights=b2 * res[:, k], minlength=self.num_groups)
-                      for k in range(3)], axis=1) / safe_S[:, None]
-        if not with_jacobian:
-            return V, S, None
-        J = terms["J"]
-        db = terms["db"] * terms["w"][:, None]
-        # d(R^T v) = R^T (dv + [v]x δ) for R <- exp([δ]x) R
-        dr_i = np.einsum("mba,mbc->mac", R_ij_m, J[:, :3, :] + so3.hat(r_i_in_j))
-        dres = np.concatenate([dr_i, J[:, 3:, :]])  # (2M, 3, 3)
-        db2 = np.concatenate([db, db])
-        g = self.group
-        # dV_g = Σ_c [(res_c - V_g) db_c^T + b_c dres_c] / S_g   (ω = b / S, eq:weight)
-        B = ((res - V[g])[:, :, None] * db2[:, None, :] + b2[:, None, None] * dres) * (1.0 / safe_S)[g][:, None, None]
+        per-contribution Jacobian blocks B (9, 2M) w.r.t. their edge's δ_e, in sorted order
+        (row a*3+c of B = dV_a / dδ_c). B is a buffer of this problem, valid until the next
+        evaluation with the Jacobian."""
+        width = 16 if with_jacobian else 4
+        table = self._match_table(self.relative(R), with_jacobian)
+        V = np.empty((self.num_groups, 3))
+        S = np.empty(self.num_groups)
+        if with_jacobian and self._B is None:
+            self._B = np.empty((9, 2 * self.M))
+        B = self._B if with_jacobian else None
+        for s0, s1, g0, g1, _, _ in self.blocks:
+            cols = np.ascontiguousarray(table[self.order[s0:s1], :width].T)
+            res, b = cols[0:3], cols[3]
+            seg = self.starts[g0:g1] - s0
+            sizes = self.sizes[g0:g1]
+            S_blk = np.add.reduceat(b, seg)
+            inv_S = 1.0 / np.where(S_blk > 0, S_blk, 1.0)
+            V_blk = np.add.reduceat(b * res, seg, axis=1) * inv_S
+            S[g0:g1] = S_blk
+            V[g0:g1] = V_blk.T
+            if not with_jacobian:
+                continue
+            inv_S_c = np.repeat(inv_S, sizes)
+            b_over_S = b * inv_S_c
+            db, dres = cols[4:7], cols[7:16]
+            # dV_g = Σ_c [(res_c - V_g) db_c^T + b_c dres_c] / S_g   (ω = b / S, eq:weight)
+            for a in range(3):
+                dev = (res[a] - np.repeat(V_blk[a], sizes)) * inv_S_c
+                for c in range(3):
+                    B[3 * a + c, s0:s1] = dev * db[c] + b_over_S * dres[3 * a + c]
         return V, S, B
 
     def chain_matrix(self, R: np.ndarray) -> sp.csr_matrix:
         """C (3E x 3n): δ_e = δ_j - R_ij δ_i."""
         return _chain(R, self.edge_views, self.n)
 
-    def normal_equations(self, R: np.ndarray, V: np.ndarray, B: np.ndarray, row_weight: np.ndarray):
-        """(JᵀWJ (3n x 3n, sparse), JᵀW V (3n,)) with per-observation weights W = ρ'."""
+    def normal_equations(self, R: np.ndarray, V: np.ndarray, B: np.ndarray, row_weight: np.ndarray,
+                         radial_curvature: np.ndarray | None = None):
+        """(JᵀWJ (3n x 3n, sparse), JᵀW V (3n,)) with per-observation weights W = ρ'.
+
+        ``radial_curvature`` β_g (G,): the Hessian block of observation g becomes
+        ρ' J_gᵀ (I - β_g v̂ v̂ᵀ) J_g (v̂ = V_g / ‖V_g‖), the robust loss's second-order term
+        (see :func:`_robust_curvature`); the gradient is unchanged."""
         E = self.E
-        w_c = row_weight[self.group]
-        # J_eᵀ W V per edge: Σ_c B_cᵀ w_g V_g
-        BtV = np.einsum("cab,ca->cb", B, V[self.group] * w_c[:, None])
-        g_edge = np.stack([np.bincount(self.edge_of_contribution, weights=BtV[:, k], minlength=E)
-                           for k in range(3)], axis=1).ravel()
-        Bs = B[self.order].reshape(-1, 9)
-        wBs = Bs * w_c[self.order][:, None]
-
-        def products(Ba, Bb):  # per pair B_aᵀ B_b, flattened (P, 9)
-            return np.einsum("pka,pkb->pab", Ba.reshape(-1, 3, 3), Bb.reshape(-1, 3, 3)).reshape(-1, 9)
-
-        # diagonal pairs (c, c): blocks (e_c, e_c)
-        diag = np.asarray(self.diag_selector @ products(wBs, Bs)).reshape(E, 3, 3)
-        # pairs c < c' inside one observation: blocks (e_c, e_c') and their transposes
         K = len(self.block_keys)
+        g_edge = np.zeros((E, 3))
+        diag = np.zeros((E, 9))
         off = np.zeros((K, 9))
-        step = 1 << 18
-        for p0 in range(0, len(self.pair_a), step):
-            pa = self.pair_a[p0:p0 + step]
-            pb = self.pair_b[p0:p0 + step]
-            off += self.pair_selector[:, p0:p0 + len(pa)] @ products(wBs[pa], Bs[pb])
+        corrected = radial_curvature is not None and np.any(radial_curvature > 0)
+        if corrected:
+            # I - β v̂v̂ᵀ = (I - α v̂v̂ᵀ)² with α = 1 - sqrt(1 - β): scale every block once,
+            # B_c <- (I - α v̂ v̂ᵀ) B_c, and the pair products stay as they are
+            norm = np.sqrt(np.einsum("gk,gk->g", V, V))
+            v_hat = V / np.where(norm > 0, norm, 1.0)[:, None]
+            alpha = 1.0 - np.sqrt(1.0 - np.clip(radial_curvature, 0.0, 1.0))
+
+        def products(Ba, Bb, weight, index, length):  # Σ over index of weight B_aᵀ B_b, (length, 9)
+            out = np.empty((length, 9))
+            for p in range(3):
+                wa = [weight * Ba[p], weight * Ba[3 + p], weight * Ba[6 + p]]
+                for q in range(3):
+                    out[:, 3 * p + q] = np.bincount(index, weights=wa[0] * Bb[q] + wa[1] * Bb[3 + q] + wa[2] * Bb[6 + q],
+                                                    minlength=length)
+            return out
+
+        for s0, s1, g0, g1, p0, p1 in self.blocks:
+            sizes = self.sizes[g0:g1]
+            w = np.repeat(row_weight[g0:g1], sizes)
+            wV = [np.repeat(V[g0:g1, a] * row_weight[g0:g1], sizes) for a in range(3)]
+            Bb = B[:, s0:s1]
+            edges = self.edge_sorted[s0:s1]
+            # J_eᵀ W V per edge: Σ_c B_cᵀ w_g V_g
+            for c in range(3):
+                g_edge[:, c] += np.bincount(edges, weights=Bb[c] * wV[0] + Bb[3 + c] * wV[1] + Bb[6 + c] * wV[2],
+                                            minlength=E)
+            if corrected:
+                av = [np.repeat(alpha[g0:g1] * v_hat[g0:g1, a], sizes) for a in range(3)]
+                v_c = [np.repeat(v_hat[g0:g1, a], sizes) for a in range(3)]
+                Bb = Bb.copy()
+                for c in range(3):
+                    q = v_c[0] * Bb[c] + v_c[1] * Bb[3 + c] + v_c[2] * Bb[6 + c]  # (v̂ᵀ B)_c
+                    for a in range(3):
+                        Bb[3 * a + c] -= av[a] * q
+            # diagonal pairs (c, c): blocks (e_c, e_c)
+            diag += products(Bb, Bb, w, edges, E)
+            # pairs c < c' inside one observation: blocks (e_c, e_c') and their transposes
+            if p1 > p0:
+                pa = self.pair_a[p0:p1] - s0
+                pb = self.pair_b[p0:p1] - s0
+                off += products(Bb.take(pa, axis=1), Bb.take(pb, axis=1), w[pa], self.pair_block[p0:p1], K)
+        diag = diag.reshape(E, 3, 3)
         off = off.reshape(K, 3, 3)
         rows = np.concatenate([np.arange(E), self.block_row, self.block_col])
         cols = np.concatenate([np.arange(E), self.block_col, self.block_row])
@@ -194,7 +287,25 @@ class _Problem:
         Sel = sp.csr_matrix((np.ones(len(rows)), (rows, np.arange(len(rows)))), shape=(E, len(rows)))
         H = sp.kron(Sel, sp.identity(3), format="csr") @ H
         C = self.chain_matrix(R)
-        return (C.T @ H @ C).tocsc(), C.T @ g_edge
+        return (C.T @ H @ C).tocsc(), C.T @ g_edge.ravel()
+
+
+def _robust_curvature(sq_norm: np.ndarray, loss: str, scale: float) -> np.ndarray:
+    """β = -2 s ρ''(s) / ρ'(s), clamped to [0, 1]: with it, ρ'(I - β v̂v̂ᵀ) is the exact
+    Hessian of ρ(‖V‖²) w.r.t. V (up to the factor 2), kept positive semi-definite.
+
+    Without it (plain IRLS weights ρ') LM converges only linearly under a robust loss
+    (measured ratio ~0.5 per iteration on Strecha); this is Triggs et al.'s correction
+    ("Bundle adjustment — a modern synthesis", §4.3), which Ceres applies only for ρ'' > 0.
+    Here ρ'' < 0 (Cauchy, Huber) and the clamp β ≤ 1 drops only the radial curvature of
+    observations beyond the loss scale, so the damped system stays positive definite.
+    """
+    if loss == "none":
+        return np.zeros_like(sq_norm)
+    u = sq_norm / (scale * scale)
+    if loss == "huber":
+        return (u > 1.0).astype(float)
+    return np.minimum(2.0 * u / (1.0 + u), 1.0)  # cauchy
 
 
 def _robust(sq_norm: np.ndarray, loss: str, scale: float) -> tuple[np.ndarray, np.ndarray]:
@@ -304,25 +415,24 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
     free = np.ones(3 * n, dtype=bool)
     free[3 * fixed_view:3 * fixed_view + 3] = False
     R_input = R
-    V, S, B = problem.evaluate(R, with_jacobian=True)
+    # costs only (no Jacobian) until the start and the match weights are settled
+    V, S, _ = problem.evaluate(R, with_jacobian=False)
     sq = np.einsum("gk,gk->g", V, V)
     scale = options.loss_scale
     if scale is None:
         active = S > 0
         med = np.median(np.sqrt(sq[active])) if np.any(active) else 0.0
         scale = max(options.loss_scale_factor * 1.4826 * med, 1e-12)
-    rho, drho = _robust(sq, options.loss, scale)
-    cost = float(rho.sum())
+    cost = float(_robust(sq, options.loss, scale)[0].sum())
     if options.epipolar_max_iterations > 0 and batch.num_edges:
         # the λ_min phase only proposes a start: keep it if GRRM's own cost agrees it is
         # better (on weak geometry, e.g. far points, λ_min's optimum can be worse)
         R1, it1 = epipolar_phase(R, edge_views, batch, free, options.epipolar_max_iterations,
                                  options.epipolar_step_tolerance)
-        V1, S1, B1 = problem.evaluate(R1, with_jacobian=True)
-        sq1 = np.einsum("gk,gk->g", V1, V1)
-        rho1, drho1 = _robust(sq1, options.loss, scale)
-        if float(rho1.sum()) < cost:
-            R, V, S, B, sq, rho, drho, cost = R1, V1, S1, B1, sq1, rho1, drho1, float(rho1.sum())
+        V1, _, _ = problem.evaluate(R1, with_jacobian=False)
+        cost1 = float(_robust(np.einsum("gk,gk->g", V1, V1), options.loss, scale)[0].sum())
+        if cost1 < cost:
+            R, cost = R1, cost1
         log.info("GRRM λ_min phase: %d iterations, start %s", it1, "taken" if R is R1 else "kept")
     if options.robust_translation and batch.num_edges:
         # each edge's t from Σ w θθᵀ with Huber IRLS weights of its matches (weight 1 within
@@ -335,13 +445,18 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
         w = robust_match_weights(R_ij, batch, None, TRRMOptions(), kind="huber")
         w = robust_match_weights(R_ij, batch, w, TRRMOptions(), kind="huber")
         problem.batch = batch.with_weights(w)
-        V, S, B = problem.evaluate(R, with_jacobian=True)
-        sq = np.einsum("gk,gk->g", V, V)
-        rho, drho = _robust(sq, options.loss, scale)
-        cost = float(rho.sum())
-    # the initial cost of the problem that is optimised (same weights and scale as the end)
-    V0, _, _ = problem.evaluate(R_input, with_jacobian=False)
-    initial_cost = float(_robust(np.einsum("gk,gk->g", V0, V0), options.loss, scale)[0].sum())
+        # the initial cost of the problem that is optimised (same weights and scale as the end)
+        V0, _, _ = problem.evaluate(R_input, with_jacobian=False)
+        initial_cost = float(_robust(np.einsum("gk,gk->g", V0, V0), options.loss, scale)[0].sum())
+    elif R is R_input:
+        initial_cost = cost
+    else:
+        V0, _, _ = problem.evaluate(R_input, with_jacobian=False)
+        initial_cost = float(_robust(np.einsum("gk,gk->g", V0, V0), options.loss, scale)[0].sum())
+    V, S, B = problem.evaluate(R, with_jacobian=True)
+    sq = np.einsum("gk,gk->g", V, V)
+    rho, drho = _robust(sq, options.loss, scale)
+    cost = float(rho.sum())
     history: list[dict] = []
     mu = options.initial_damping
     converged = False
@@ -351,7 +466,8 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
     for iteration in range(1, options.max_iterations + 1):
         t0 = time.perf_counter()
         # IRLS form of the robust loss: observation weights ρ'(s)
-        JtJ, grad = problem.normal_equations(R, V, B, drho)
+        curvature = _robust_curvature(sq, options.loss, scale) if options.robust_hessian else None
+        JtJ, grad = problem.normal_equations(R, V, B, drho, curvature)
         JtJ = JtJ[free][:, free]
         grad = grad[free]
         accepted = False
@@ -406,9 +522,10 @@ def grrm_residuals(R_cam_from_world, edge_views, batch: tv.EdgeBatch, obs_ids, w
     V, _, B = problem.evaluate(R, with_jacobian)
     if not with_jacobian:
         return V, None
-    nc = len(B)
-    rows = (3 * problem.group)[:, None, None] + np.arange(3)[None, :, None]
-    cols = (3 * problem.edge_of_contribution)[:, None, None] + np.arange(3)[None, None, :]
-    J_e = sp.csr_matrix((B.ravel(), (np.broadcast_to(rows, (nc, 3, 3)).ravel(), np.broadcast_to(cols, (nc, 3, 3)).ravel())),
+    nc = B.shape[1]
+    blocks = B.T.reshape(nc, 3, 3)
+    rows = (3 * problem.group_sorted)[:, None, None] + np.arange(3)[None, :, None]
+    cols = (3 * problem.edge_sorted)[:, None, None] + np.arange(3)[None, None, :]
+    J_e = sp.csr_matrix((blocks.ravel(), (np.broadcast_to(rows, (nc, 3, 3)).ravel(), np.broadcast_to(cols, (nc, 3, 3)).ravel())),
                         shape=(3 * problem.num_groups, 3 * problem.E))
     return V, (J_e @ problem.chain_matrix(R)).tocsr()
