@@ -7,6 +7,7 @@ import logging
 import os
 import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -20,43 +21,60 @@ logger = logging.getLogger(__name__)
 GREY = 128
 
 
-def _read_images(paths: list[Path]) -> Iterator[np.ndarray | None]:
-    """BGR images in order (None where missing or unreadable), decoded on a thread per
-    core: JPEG decoding is most of this stage's time and OpenCV releases the GIL while
-    decoding. A generator, so only a few decoded images are alive at once."""
+def _read_images(paths: list[Path], threads: int) -> Iterator[np.ndarray | None]:
+    """BGR images in order (None where missing or unreadable); with ``threads`` > 1 decoded
+    on that many threads (OpenCV releases the GIL while decoding). A generator, so only a
+    few decoded images are alive at once."""
     import cv2
-    from concurrent.futures import ThreadPoolExecutor
 
     def read(path: Path) -> np.ndarray | None:
         return cv2.imread(str(path), cv2.IMREAD_COLOR) if path.is_file() else None
 
-    if len(paths) < 2:
+    if threads < 2 or len(paths) < 2:
         yield from map(read, paths)
         return
-    with ThreadPoolExecutor(max_workers=min(len(paths), os.cpu_count() or 1)) as pool:
+    with ThreadPoolExecutor(max_workers=min(len(paths), threads)) as pool:
         yield from pool.map(read, paths)
 
 
+def keypoint_colors(scene: SfMScene, image_root: str | Path, view_ids: list[int],
+                    threads: int = os.cpu_count() or 1) -> dict[int, np.ndarray | None]:
+    """RGB (n, 3) uint8 of every keypoint of each view, from the pixel holding it (COLMAP
+    pixel convention: (u, v) lies in pixel floor(u), floor(v)); None where the image (or
+    the keypoints) cannot be read."""
+    readable = [view_id for view_id in view_ids if view_id in scene.keypoints]
+    paths = [Path(image_root) / scene.views[view_id].name for view_id in readable]
+    colors: dict[int, np.ndarray | None] = dict.fromkeys(view_ids)
+    for view_id, image in zip(readable, _read_images(paths, threads)):
+        if image is None:
+            continue
+        pixels = np.asarray(scene.keypoints[view_id], dtype=np.float64).reshape(-1, 2)
+        u = np.clip(np.floor(pixels[:, 0]).astype(np.int64), 0, image.shape[1] - 1)
+        v = np.clip(np.floor(pixels[:, 1]).astype(np.int64), 0, image.shape[0] - 1)
+        colors[view_id] = image[v, u, ::-1]  # OpenCV is BGR
+    return colors
+
+
 def point_colors(scene: SfMScene, image_root: str | Path | None, view_ids: list[int], obs_point: np.ndarray,
-                 obs_view_row: np.ndarray, obs_feature: np.ndarray, num_points: int) -> tuple[np.ndarray, dict]:
-    """Mean RGB of each point over its observations' pixels (COLMAP pixel convention: the
-    pixel holding (u, v) is floor(u), floor(v)); grey where no image could be read."""
+                 obs_view_row: np.ndarray, obs_feature: np.ndarray, num_points: int,
+                 keypoint_rgb: dict[int, np.ndarray | None] | None = None) -> tuple[np.ndarray, dict]:
+    """Mean RGB of each point over its observations' pixels; grey where no image could be
+    read. ``keypoint_rgb``: :func:`keypoint_colors` of (at least) the observing views, if
+    already computed."""
     sums = np.zeros((num_points, 3))
     hits = np.zeros(num_points)
     missing: list[str] = []
     if image_root is not None:
         rows = np.unique(obs_view_row).tolist()
-        images = _read_images([Path(image_root) / scene.views[view_ids[row]].name for row in rows])
-        for row, image in zip(rows, images):
-            view = scene.views[view_ids[row]]
-            if image is None:
-                missing.append(view.name)
+        observing = [view_ids[row] for row in rows]
+        if keypoint_rgb is None or any(view_id not in keypoint_rgb for view_id in observing):
+            keypoint_rgb = keypoint_colors(scene, image_root, observing)
+        for row, view_id in zip(rows, observing):
+            if keypoint_rgb[view_id] is None:
+                missing.append(scene.views[view_id].name)
                 continue
             mask = obs_view_row == row
-            pixels = scene.keypoints[view.id][obs_feature[mask]]
-            u = np.clip(np.floor(pixels[:, 0]).astype(np.int64), 0, image.shape[1] - 1)
-            v = np.clip(np.floor(pixels[:, 1]).astype(np.int64), 0, image.shape[0] - 1)
-            rgb = image[v, u, ::-1].astype(float)  # OpenCV is BGR
+            rgb = keypoint_rgb[view_id][obs_feature[mask]].astype(float)
             # sums of small integers: exact in any order (bincount is ~10x faster than add.at)
             for channel in range(3):
                 sums[:, channel] += np.bincount(obs_point[mask], weights=rgb[:, channel], minlength=num_points)
@@ -86,14 +104,22 @@ def triangulate_graph(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.nd
     edges = [k for k in graph.active_edges()
              if posed[row_of[graph.edges[k].i]] and posed[row_of[graph.edges[k].j]]]
     R = np.where(posed[:, None, None], R_cam_from_world, np.eye(3))
-    tracks, obs_xy = graph_tracks(graph, scene.normalized, edges, R)
-    C = np.where(posed[:, None], centers, 0.0)
-    result = triangulate_tracks(R, C, tracks.track_id, tracks.view, obs_xy, tracks.num_tracks, options)
-    valid = result.valid
-    kept = tracks.subset(valid)
-    points = result.points_in_world[valid]
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        # JPEG decoding (for the colours) on a second thread while this one triangulates:
+        # one decoder thread, the images of every view an edge touches, keypoint colours
+        # only kept (no decoded image stays alive)
+        edge_views = sorted({graph.edges[k].i for k in edges} | {graph.edges[k].j for k in edges})
+        colors_future = (pool.submit(keypoint_colors, scene, image_root, edge_views, 1)
+                         if image_root is not None else None)
+        tracks, obs_xy = graph_tracks(graph, scene.normalized, edges, R)
+        C = np.where(posed[:, None], centers, 0.0)
+        result = triangulate_tracks(R, C, tracks.track_id, tracks.view, obs_xy, tracks.num_tracks, options)
+        valid = result.valid
+        kept = tracks.subset(valid)
+        points = result.points_in_world[valid]
+        keypoint_rgb = None if colors_future is None else colors_future.result()
     colors, color_report = point_colors(scene, image_root, view_ids, kept.track_id, kept.view, kept.feature,
-                                        kept.num_tracks)
+                                        kept.num_tracks, keypoint_rgb)
     obs_view_id = np.asarray(view_ids, dtype=np.int64)[kept.view]
     pairs = list(zip(obs_view_id.tolist(), kept.feature.tolist()))  # one tuple per observation
     offsets = np.asarray(kept.offsets).tolist()
