@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 
 from rotonly_cli.io.types import SfMScene, View
-from rotonly_cli.stages.triangulate import GREY, point_colors
+from rotonly_cli.stages.triangulate import GREY, keypoint_colors, point_colors
 
 
 def test_point_colors_are_mean_rgb_of_observed_pixels(tmp_path):
@@ -45,3 +45,18 @@ def test_point_colors_are_mean_rgb_of_observed_pixels(tmp_path):
 
     grey, report = point_colors(scene, None, view_ids, obs_point, obs_view_row, obs_feature, num_points)
     assert np.all(grey == GREY) and report["points_coloured"] == 0
+
+    # precomputed keypoint colours (as triangulate_graph prefetches them on a thread)
+    sequential = keypoint_colors(scene, tmp_path, view_ids, threads=1)
+    threaded = keypoint_colors(scene, tmp_path, view_ids, threads=2)
+    assert sequential[8] is None and threaded[8] is None
+    for view_id in (3, 5, 9):
+        np.testing.assert_array_equal(sequential[view_id], threaded[view_id])
+        assert sequential[view_id].shape == (30, 3) and sequential[view_id].dtype == np.uint8
+    np.testing.assert_array_equal(sequential[3][0], images[3][29, 39, ::-1])
+    again, _ = point_colors(scene, tmp_path, view_ids, obs_point, obs_view_row, obs_feature, num_points, sequential)
+    np.testing.assert_array_equal(again, expected)
+    partial = {3: sequential[3]}  # views missing from the prefetch are read again
+    again, report = point_colors(scene, tmp_path, view_ids, obs_point, obs_view_row, obs_feature, num_points, partial)
+    np.testing.assert_array_equal(again, expected)
+    assert report["images_missing"] == ["sub/img8.png"]
