@@ -687,7 +687,7 @@ def _float_reprs(values: np.ndarray) -> list[str]:
     its digits are the same shortest round-trip digits and, where Python writes positional
     notation (1e-4 <= |x| < 1e16, or 0), the same text, so only the values outside that
     range (exponent notation: orjson writes ``1e16``, Python ``1e+16``) go through repr.
-    test_io_openmvg compares both paths."""
+    test_io_fastwrite compares both paths with repr."""
     values = np.ascontiguousarray(values, dtype=np.float64).reshape(-1)
     if _orjson is None or not values.size:
         return list(map(repr, values.tolist()))
@@ -700,9 +700,10 @@ def _float_reprs(values: np.ndarray) -> list[str]:
 
 
 def _structure_text(scene: SfMScene) -> str:
-    """The ``structure`` array exactly as json.dumps(indent=4) writes it, as one join of
-    literal texts and value texts (ids as integers, coordinates by :func:`_float_reprs`):
-    no Python loop per landmark or observation."""
+    """The ``structure`` array exactly as json.dumps(indent=4) writes it (at indent level
+    1), as one join of literal texts and value texts (ids as integers, coordinates by
+    :func:`_float_reprs`): no Python loop per landmark or observation. (str.join and one
+    encode are ~2x faster than bytes.join over the ~10⁶ pieces.)"""
     flat = _flat_structure(scene)
     num_points = flat.point_ids.size
     if not num_points:
@@ -719,7 +720,9 @@ def _structure_text(scene: SfMScene) -> str:
     values[(observation_start[:, None] + np.arange(2, 4)).reshape(-1)] = _float_reprs(flat.pixels)
 
     # texts[s] precedes value slot s; texts[-1] ends the array.
-    closing = np.where(lengths > 0, _CLOSE_OBSERVATIONS, _CLOSE_NO_OBSERVATIONS).astype(object)
+    closing = np.empty(num_points, dtype=object)
+    closing[:] = _CLOSE_NO_OBSERVATIONS
+    closing[lengths > 0] = _CLOSE_OBSERVATIONS
     texts = np.empty(num_values + 1, dtype=object)
     texts[landmark_start[1:]] = closing[:-1] + (",\n" + _HEAD_TEXTS[0])
     texts[0] = "[\n" + _HEAD_TEXTS[0]
@@ -834,14 +837,14 @@ def _umask() -> int:
     return mask
 
 
-def _atomic_write_bytes(path: PathLike, payload: bytes) -> None:
+def _atomic_write_bytes(path: PathLike, payload: bytes | list[bytes]) -> None:
     """Write next to the target and rename: no partially written outputs."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(handle, "wb") as stream:
-            stream.write(payload)
+            stream.writelines([payload] if isinstance(payload, bytes) else payload)
         os.chmod(temporary, 0o666 & ~_umask())  # mkstemp makes 0600; give normal permissions
         os.replace(temporary, path)
     except BaseException:
@@ -849,20 +852,27 @@ def _atomic_write_bytes(path: PathLike, payload: bytes) -> None:
         raise
 
 
-def sfm_data_bytes(scene: SfMScene, include_structure: bool = True) -> bytes:
-    """Deterministic pretty JSON (4-space indent like cereal's rapidjson PrettyWriter)."""
+def _sfm_data_chunks(scene: SfMScene, include_structure: bool) -> list[bytes]:
+    """sfm_data.json in consecutive pieces: the structure array (most of the file) is
+    built apart and not copied into the small document."""
     document = sfm_data_document(scene, include_structure=False)
     text = json.dumps(document, indent=4, ensure_ascii=False, allow_nan=False)
-    if include_structure and scene.structure is not None:
-        marker = '\n    "structure": [],\n'
-        assert text.count(marker) == 1
-        text = text.replace(marker, f'\n    "structure": {_structure_text(scene)},\n')
-    return text.encode("utf-8")
+    if not include_structure or scene.structure is None:
+        return [text.encode("utf-8")]
+    marker = '\n    "structure": [],\n'
+    head, tail = text.split(marker)  # exactly one occurrence
+    return [(head + '\n    "structure": ').encode("utf-8"), _structure_text(scene).encode("ascii"),
+            (",\n" + tail).encode("utf-8")]
+
+
+def sfm_data_bytes(scene: SfMScene, include_structure: bool = True) -> bytes:
+    """Deterministic pretty JSON (4-space indent like cereal's rapidjson PrettyWriter)."""
+    return b"".join(_sfm_data_chunks(scene, include_structure))
 
 
 def write_sfm_data(path: PathLike, scene: SfMScene, include_structure: bool = True) -> None:
     """Write ``scene`` as an OpenMVG 2.1-loadable ``sfm_data.json`` (atomically)."""
-    _atomic_write_bytes(path, sfm_data_bytes(scene, include_structure))
+    _atomic_write_bytes(path, _sfm_data_chunks(scene, include_structure))
 
 
 # ============================================================================ .feat files
