@@ -34,13 +34,16 @@ def _mean_err_deg(R, R_gt):
     return float(alignment.rotation_errors_after_alignment(R, R_gt)[0].mean())
 
 
-def test_residual_is_weighted_mean_of_two_view_residuals():
-    """eq:GRRMRes2 for one observation seen by three views, computed by hand from TRRM."""
+@pytest.mark.parametrize("residual", ["bearing", "image"])
+def test_residual_is_weighted_mean_of_two_view_residuals(residual):
+    """eq:GRRMRes2 for one observation seen by three views, computed by hand from TRRM: the
+    ‖θ‖-weighted mean of the bearing residuals x̂ - ŝ, or of the image-plane residuals
+    x/x_z - ŝ/ŝ_z (eq:GRRMRes1: reprojection X^i_ijk = Y/Y_3, eq:PA2)."""
     from rotonly_cli.geometry import twoview as tv
 
     p, prob, R_gt = _problem(noise=1.0, seed=3, views=6, window=2)
     R = so3.exp(np.random.default_rng(0).normal(scale=0.003, size=(6, 3))) @ R_gt
-    V, _ = grrm.grrm_residuals(R, prob.edge_views, prob.batch, prob.obs_ids)
+    V, _ = grrm.grrm_residuals(R, prob.edge_views, prob.batch, prob.obs_ids, residual=residual)
     ids = np.unique(np.concatenate([prob.obs_ids[:, 0], prob.obs_ids[:, 1]]))
     # pick an observation that belongs to at least two edges
     counts = np.bincount(np.searchsorted(ids, np.concatenate([prob.obs_ids[:, 0], prob.obs_ids[:, 1]])))
@@ -60,29 +63,39 @@ def test_residual_is_weighted_mean_of_two_view_residuals():
                 row = k - offsets[e]
                 w = np.linalg.norm(theta[row])  # ω numerator, eq:weight
                 r = R_ij.T @ ev.residuals[row, :3] if side == 0 else ev.residuals[row, 3:]
+                if residual == "image":
+                    x = (sub.x_i if side == 0 else sub.x_j)[row]
+                    s_hat = x / np.linalg.norm(x) - r  # the reprojection's bearing
+                    r = x / x[2] - s_hat / s_hat[2]
+                    assert r[2] == 0.0
                 num += w * r
                 den += w
     assert den > 0
     np.testing.assert_allclose(V[g], num / den, atol=1e-14)
 
 
-def test_jacobian_matches_central_differences():
+@pytest.mark.parametrize("residual", ["bearing", "image"])
+def test_jacobian_matches_central_differences(residual):
     p, prob, R_gt = _problem(noise=2.0, seed=4, views=6, window=2)
     R = so3.exp(np.random.default_rng(1).normal(scale=0.005, size=(6, 3))) @ R_gt
-    V, J = grrm.grrm_residuals(R, prob.edge_views, prob.batch, prob.obs_ids, with_jacobian=True)
+    V, J = grrm.grrm_residuals(R, prob.edge_views, prob.batch, prob.obs_ids, with_jacobian=True, residual=residual)
     J = J.toarray()
     h = 1e-6
     J_fd = np.zeros_like(J)
     for col in range(3 * len(R)):
         d = np.zeros((len(R), 3))
         d.flat[col] = h
-        Vp, _ = grrm.grrm_residuals(so3.exp(d) @ R, prob.edge_views, prob.batch, prob.obs_ids)
-        Vm, _ = grrm.grrm_residuals(so3.exp(-d) @ R, prob.edge_views, prob.batch, prob.obs_ids)
+        Vp, _ = grrm.grrm_residuals(so3.exp(d) @ R, prob.edge_views, prob.batch, prob.obs_ids, residual=residual)
+        Vm, _ = grrm.grrm_residuals(so3.exp(-d) @ R, prob.edge_views, prob.batch, prob.obs_ids, residual=residual)
         J_fd[:, col] = (Vp - Vm).ravel() / (2 * h)
     assert np.max(np.abs(J - J_fd)) / np.max(np.abs(J)) < 1e-6
 
 
-def test_normal_equations_equal_explicit_jacobian_products():
+@pytest.mark.parametrize("chunk", [1 << 15, 97])
+def test_normal_equations_equal_explicit_jacobian_products(chunk, monkeypatch):
+    """Also with blocks of 97 contributions: block edges fall on observation boundaries and
+    the pairs of every observation stay inside one block."""
+    monkeypatch.setattr(grrm, "_CHUNK", chunk)
     p, prob, R_gt = _problem(noise=1.0, seed=5, views=8, window=3)
     R = so3.exp(np.random.default_rng(2).normal(scale=0.003, size=(8, 3))) @ R_gt
     problem = grrm._Problem(8, prob.edge_views, prob.batch, prob.obs_ids)
@@ -95,6 +108,20 @@ def test_normal_equations_equal_explicit_jacobian_products():
     g_ref = J.T @ (np.repeat(w, 3) * V.ravel())
     assert np.max(np.abs(A.toarray() - A_ref)) <= 1e-12 * np.abs(A_ref).max()
     assert np.max(np.abs(g - g_ref)) <= 1e-12 * np.abs(g_ref).max()
+
+
+def test_robust_hessian_same_optimum_fewer_iterations():
+    """The loss's second-order term (Triggs' correction) changes the steps, not the minimum."""
+    p, prob, R_gt = _problem("circular", noise=2.0, seed=9, views=10, window=3)
+    R0 = _l1_irls_start(p, prob)
+    tight = dict(step_tolerance=1e-10, function_tolerance=0.0, max_iterations=100)
+    plain = grrm.optimize_global_rotations(R0, prob.edge_views, prob.batch, prob.obs_ids,
+                                           options=grrm.GRRMOptions(robust_hessian=False, **tight))
+    second = grrm.optimize_global_rotations(R0, prob.edge_views, prob.batch, prob.obs_ids,
+                                            options=grrm.GRRMOptions(robust_hessian=True, **tight))
+    assert np.max(so3.geodesic_angle(plain.R_cam_from_world, second.R_cam_from_world)) < 1e-8
+    assert abs(plain.cost - second.cost) <= 1e-10 * plain.cost
+    assert second.iterations < plain.iterations, (second.iterations, plain.iterations)
 
 
 @pytest.mark.parametrize("setup", ["circular", "linear"])
