@@ -16,8 +16,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from rotonly_cli.errors import InputError
 
@@ -83,6 +81,9 @@ def build_tracks(pair_keys: Sequence[tuple[int, int]], pair_matches: Sequence[np
         Components that contain two keypoints of one view are dropped
         (counted in ``num_inconsistent``).
     """
+    from scipy.sparse import coo_matrix  # lazily, like io.viewgraph
+    from scipy.sparse.csgraph import connected_components
+
     if len(pair_keys) != len(pair_matches):
         raise InputError("pair_keys and pair_matches differ in length", field="pair_matches")
     views_a, feats_a, views_b, feats_b = [], [], [], []

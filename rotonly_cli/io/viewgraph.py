@@ -20,8 +20,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from rotonly_cli.io.types import View
 
@@ -105,6 +103,10 @@ class ViewGraph:
 
 def components(view_ids: list[int], edges: list[tuple[int, int]]) -> dict[int, int]:
     """Connected-component label of every view id (scipy union-find, no per-edge Python)."""
+    # scipy lazily: its import (~0.3 s) is not needed by commands that only load this module
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     index = {v: k for k, v in enumerate(view_ids)}
     if edges:
         rows = np.array([index[i] for i, _ in edges])
