@@ -73,10 +73,9 @@ def kind_mask(kinds: np.ndarray, kind: SceneKind) -> np.ndarray:
 
 def detection_values(batch: tv.EdgeBatch) -> np.ndarray:
     """v_rs = max(λ_min(Gⁱ)/m, λ_min(Gʲ)/m), G = Σ X X^T of z = 1 points (eq:case2IdentifyingMatrixBasic)."""
-    xi = batch.x_i / batch.x_i[:, 2:3]
-    xj = batch.x_j / batch.x_j[:, 2:3]
-    G_i = tv.outer_segment_sum(xi, xi, batch.offsets)
-    G_j = tv.outer_segment_sum(xj, xj, batch.offsets)
+    from rotonly_cli.geometry.kernels import point_moments  # kernels imports twoview only
+
+    G_i, G_j = point_moments(batch)
     m = batch.counts.astype(float)
     lam_i = tv.symmetric_eigenvalues3(G_i)[:, 0]
     lam_j = tv.symmetric_eigenvalues3(G_j)[:, 0]
@@ -87,21 +86,25 @@ def pure_rotation_ratios(R_j_from_i: np.ndarray, batch: tv.EdgeBatch) -> np.ndar
     """ρ = f_pure(R*) / f_TRRM(R_ij) per edge (module docstring), with per-match medians in
     place of sums and a robust R*, so that a few wrong matches (large in both models) cannot
     make a regular edge look like a pure rotation."""
-    from rotonly_cli.geometry.kernels import trrm_match_terms  # kernels imports twoview only
+    return _ratios_and_ps(R_j_from_i, batch)[0]
 
-    R_star = tv.best_pure_rotation(batch, robust_iterations=2)
-    xi_hat = batch.x_i / np.linalg.norm(batch.x_i, axis=1, keepdims=True)
-    xj_hat = batch.x_j / np.linalg.norm(batch.x_j, axis=1, keepdims=True)
-    d = xj_hat - np.einsum("mab,mb->ma", np.repeat(R_star, batch.counts, axis=0), xi_hat)
-    pure_sq = 2.0 * np.einsum("ma,ma->m", d, d)  # both views (eq:PureRotationReprojBearingError)
+
+def _ratios_and_ps(R_j_from_i: np.ndarray, batch: tv.EdgeBatch) -> tuple[np.ndarray, np.ndarray]:
+    """ρ per edge and, as a by-product of the same pass, the unweighted Pˢ (E, 3, 3)."""
+    from rotonly_cli.geometry import kernels  # kernels imports twoview only
+
+    table = kernels.MatchTable.from_batch(batch.with_weights(None))
+    R_star = kernels.best_pure_rotation(table, robust_iterations=2)
+    pure_sq = 2.0 * kernels.rotated_bearing_sq(R_star, table)  # both views (eq:PureRotationReprojBearingError)
     # t from unit-length θ (Σ θθᵀ/‖θ‖²): each match one vote, so wrong matches with large θ
     # cannot dictate t (the noise-free null vector is the same)
-    theta = tv.theta_vectors(R_j_from_i, batch)
-    unit = batch.with_weights(1.0 / np.maximum(np.einsum("ma,ma->m", theta, theta), 1e-300))
-    r = trrm_match_terms(R_j_from_i, unit, with_jacobian=False)["r"]
-    trrm_sq = np.einsum("mk,mk->m", r, r)
+    trrm_sq = np.empty(table.data.shape[1])
+    out = kernels.trrm_evaluate(np.asarray(R_j_from_i, dtype=float).reshape(-1, 3, 3), table, unit_theta=True,
+                                sq_out=trrm_sq, plain_ps=True)
     tiny = 1e-24  # 0/0 on noise-free pure rotation -> ρ = 1
-    return (tv.segment_median(pure_sq, batch) + tiny) / (tv.segment_median(trrm_sq, batch) + tiny)
+    rho = (kernels.segment_median(pure_sq, table.offsets) + tiny) / \
+        (kernels.segment_median(trrm_sq, table.offsets) + tiny)
+    return rho, out["ps"]
 
 
 def classify(v_rs: np.ndarray, rho: np.ndarray, options: IdentificationOptions) -> np.ndarray:
@@ -128,8 +131,7 @@ def identify(R_j_from_i: np.ndarray, batch: tv.EdgeBatch,
     """Identify every edge at the given rotations (see :func:`classify` for the order)."""
     options.validate()
     v_rs = detection_values(batch)
-    rho = pure_rotation_ratios(R_j_from_i, batch)
-    P = tv.ps_matrices(R_j_from_i, batch)
+    rho, P = _ratios_and_ps(R_j_from_i, batch)
     eig = tv.symmetric_eigenvalues3(P)
     kinds = classify(v_rs, rho, options)
     return Identification(kinds=kinds, detection_value=v_rs, pure_rotation_ratio=rho, ps_eigenvalues=eig)
