@@ -71,8 +71,34 @@ class BatchRefinement:
                                  detection_value=float(self.detection_values[e]))
 
 
+def _pack(xs_i: Sequence, xs_j: Sequence) -> _tv.EdgeBatch:
+    """geometry.twoview.pack_edges, checked in bulk: when every edge is a pair of float64
+    (m, 2) or (m, 3) arrays with m >= MIN_MATCHES, they are concatenated and checked for
+    NaN/inf once; anything else goes through pack_edges, which names the bad edge."""
+    def plain(a, b) -> tuple | None:
+        if not (isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and a.ndim == 2 and b.ndim == 2
+                and a.dtype == np.float64 and b.dtype == np.float64 and a.shape[0] == b.shape[0] >= _tv.MIN_MATCHES):
+            return None
+        return a.shape[1], b.shape[1]
+
+    if len(xs_i) == 0 or len(xs_i) != len(xs_j):
+        return _tv.pack_edges(xs_i, xs_j)
+    shapes = {plain(a, b) for a, b in zip(xs_i, xs_j)}
+    if len(shapes) != 1 or next(iter(shapes)) not in ((2, 2), (3, 3)):
+        return _tv.pack_edges(xs_i, xs_j)
+    x_i = np.concatenate(xs_i)
+    x_j = np.concatenate(xs_j)
+    if not (np.isfinite(x_i).all() and np.isfinite(x_j).all()):
+        return _tv.pack_edges(xs_i, xs_j)
+    if x_i.shape[1] == 2:
+        ones = np.ones((x_i.shape[0], 1))
+        x_i, x_j = np.hstack([x_i, ones]), np.hstack([x_j, ones])
+    counts = np.fromiter((a.shape[0] for a in xs_i), dtype=np.int64, count=len(xs_i))
+    return _tv.EdgeBatch(x_i, x_j, np.concatenate([[0], np.cumsum(counts)]))
+
+
 def _prepare(R_j_from_i, xs_i: Sequence, xs_j: Sequence) -> tuple[np.ndarray, _tv.EdgeBatch]:
-    batch = _tv.pack_edges(xs_i, xs_j)
+    batch = _pack(xs_i, xs_j)
     R = _tv.as_rotations(R_j_from_i, "R_j_from_i", batch=batch.num_edges).reshape(-1, 3, 3)
     return R, batch
 

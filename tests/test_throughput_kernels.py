@@ -161,3 +161,21 @@ def test_batched_refinement_equals_loop_on_ragged_edges():
         assert single.kind == batched.kinds[e]
         assert np.array_equal(single.rotation, batched.rotations[e])
         assert single.iterations == batched.iterations[e]
+
+
+def test_bulk_packing_equals_pack_edges():
+    from rotonly_cli.twoview import _pack
+
+    rng = np.random.default_rng(12)
+    for cols in (2, 3):
+        xs = [rng.random((n, cols)) for n in (6, 40, 13)]
+        ys = [rng.random((n, cols)) for n in (6, 40, 13)]
+        got, ref = _pack(xs, ys), tv.pack_edges(xs, ys)
+        assert np.array_equal(got.x_i, ref.x_i) and np.array_equal(got.x_j, ref.x_j)
+        assert np.array_equal(got.offsets, ref.offsets)
+    mixed = _pack([rng.random((8, 2)), rng.random((8, 3))], [rng.random((8, 2)), rng.random((8, 3))])
+    assert mixed.x_i.shape == (16, 3) and np.all(mixed.x_i[:8, 2] == 1.0)
+    bad = [rng.random((8, 2)), rng.random((8, 2))]
+    bad[1][3, 0] = np.nan
+    with pytest.raises(ValueError, match=r"x_i\[1\]"):
+        _pack(bad, [rng.random((8, 2)), rng.random((8, 2))])
