@@ -14,8 +14,8 @@ import numpy as np
 
 from rotonly_cli.geometry import kernels, so3
 from rotonly_cli.geometry import twoview as tv
-from rotonly_cli.geometry.scene import (Identification, IdentificationOptions, SceneKind, classify,
-                                        detection_values, kind_mask, pure_rotation_ratios)
+from rotonly_cli.geometry.scene import (Identification, IdentificationOptions, SceneKind, _ratios_and_ps, classify,
+                                        detection_values, kind_mask)
 
 
 @dataclass(frozen=True)
@@ -361,20 +361,17 @@ def refine(R_init: np.ndarray, batch: tv.EdgeBatch, options: TRRMOptions = TRRMO
     singular = v_rs < identification_options.rotation_singular_threshold
     candidates = np.flatnonzero(~singular)
     R, c0, c1, iters, conv = optimize_rotations(R_init, batch, options, edges=candidates)
-    rho = np.full(E, np.inf)
-    rho[singular] = pure_rotation_ratios(R_init[singular], batch.subset(np.flatnonzero(singular))) \
-        if singular.any() else rho[singular]
-    if candidates.size:
-        sub = batch.subset(candidates) if candidates.size != E else batch
-        rho[candidates] = pure_rotation_ratios(R[candidates], sub)
+    # ρ of every edge at its rotation (singular edges keep R_init) and, from the same pass,
+    # the plain Pˢ at the returned rotations for the identification eigenvalues
+    rho, P_plain = _ratios_and_ps(R, batch)
     kinds = classify(v_rs, rho, identification_options)
     regular = np.flatnonzero(kind_mask(kinds, SceneKind.REGULAR))
     pure = np.flatnonzero(kind_mask(kinds, SceneKind.PURE_ROTATION))
     t = np.zeros((E, 3))
     if regular.size:
+        # closed-form t: null vector of the plain Pˢ with the chirality sign (= twoview.translation_directions)
         sub = batch.subset(regular) if regular.size != E else batch
-        t_reg, _, _ = tv.translation_directions(R[regular], sub)
-        t[regular] = t_reg
+        t[regular] = kernels.trrm_evaluate(R[regular], kernels.MatchTable.from_batch(sub.with_weights(None)))["t"]
     if pure.size:
         sub = batch.subset(pure)
         R_pure = tv.best_pure_rotation(sub)
@@ -382,11 +379,12 @@ def refine(R_init: np.ndarray, batch: tv.EdgeBatch, options: TRRMOptions = TRRMO
         c1[pure] = tv.pure_rotation_residuals(R_pure, sub)
         R[pure] = R_pure
         conv[pure] = True
+        P_plain[pure] = tv.ps_matrices(R_pure, sub)
     if singular.any():
         idx = np.flatnonzero(singular)
         c0[idx] = c1[idx] = kernels.trrm_normal_equations(R_init[idx], batch.subset(idx), with_jacobian=False).cost
         conv[idx] = True
-    eig = tv.symmetric_eigenvalues3(tv.ps_matrices(R, batch))
+    eig = tv.symmetric_eigenvalues3(P_plain)
     ident = Identification(kinds=kinds, detection_value=v_rs, pure_rotation_ratio=rho, ps_eigenvalues=eig)
     return TRRMResult(rotations=R, translation_directions=t, initial_cost=c0, cost=c1, iterations=iters,
                       converged=conv, kinds=kinds, identification=ident)
