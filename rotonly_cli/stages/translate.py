@@ -32,6 +32,10 @@ MIN_MATCH_WEIGHT = 0.25
 _KEEP_CACHE: dict[tuple, np.ndarray] = {}
 
 
+#: [key, Tracks] of the last graph_tracks call (Tracks is immutable)
+_LAST_TRACKS: list = []
+
+
 def inlier_matches(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: list[int],
                    R_cam_from_world: np.ndarray, min_match_weight: float = MIN_MATCH_WEIGHT) -> list[np.ndarray]:
     """The matches of ``edges`` without gross outliers at the global rotations."""
@@ -68,7 +72,16 @@ def graph_tracks(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: lis
     index = view_index(graph)
     matches = [graph.edges[k].matches for k in edges] if R_cam_from_world is None else \
         inlier_matches(graph, normalized, edges, R_cam_from_world)
-    tracks = build_tracks([(index[graph.edges[k].i], index[graph.edges[k].j]) for k in edges], matches)
+    pair_keys = [(index[graph.edges[k].i], index[graph.edges[k].j]) for k in edges]
+    # translate and triangulate usually ask for the same tracks (no PURE_ROTATION edge):
+    # the last ones are kept, keyed by the pairs and their matches
+    key = (len(index), tuple(pair_keys), tuple(hash(m.tobytes()) for m in matches),
+           tuple(m.shape[0] for m in matches))
+    if _LAST_TRACKS and _LAST_TRACKS[0] == key:
+        tracks = _LAST_TRACKS[1]
+    else:
+        tracks = build_tracks(pair_keys, matches)
+        _LAST_TRACKS[:] = [key, tracks]
     per_view = [normalized.get(v, np.zeros((0, 2))) for v in graph.view_ids()]
     return tracks, gather_observations(tracks, per_view)
 

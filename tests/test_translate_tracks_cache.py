@@ -1,0 +1,41 @@
+"""graph_tracks reuses the tracks of its previous call only for the same pairs and matches."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rotonly_cli.geometry.tracks import build_tracks
+from rotonly_cli.io.types import View
+from rotonly_cli.io.viewgraph import Edge, ViewGraph
+from rotonly_cli.stages import translate
+
+
+def _graph(rng: np.random.Generator) -> tuple[ViewGraph, dict[int, np.ndarray]]:
+    graph = ViewGraph(views={v: View(v, f"{v}.jpg", 1) for v in (2, 4, 7)})
+    for i, j in ((2, 4), (2, 7), (4, 7)):
+        matches = np.stack([rng.permutation(50)[:30], rng.permutation(50)[:30]], axis=1)
+        graph.edges.append(Edge(i, j, np.eye(3), np.zeros(3), matches))
+    normalized = {v: rng.normal(size=(50, 2)) for v in (2, 4, 7)}
+    return graph, normalized
+
+
+def test_graph_tracks_reuses_only_identical_inputs():
+    graph, normalized = _graph(np.random.default_rng(0))
+    translate._LAST_TRACKS.clear()
+    tracks, obs_xy = translate.graph_tracks(graph, normalized, [0, 1, 2])
+    expected = build_tracks([(0, 1), (0, 2), (1, 2)], [edge.matches for edge in graph.edges])
+    np.testing.assert_array_equal(tracks.track_id, expected.track_id)
+    np.testing.assert_array_equal(tracks.feature, expected.feature)
+    assert tracks.num_tracks > 5
+    again, obs_again = translate.graph_tracks(graph, normalized, [0, 1, 2])
+    assert again is tracks  # same pairs and matches: reused
+    np.testing.assert_array_equal(obs_again, obs_xy)
+
+    graph.edges[1].matches = graph.edges[1].matches[:-3]  # other matches: rebuilt
+    changed, _ = translate.graph_tracks(graph, normalized, [0, 1, 2])
+    assert changed is not tracks
+    rebuilt = build_tracks([(0, 1), (0, 2), (1, 2)], [edge.matches for edge in graph.edges])
+    np.testing.assert_array_equal(changed.track_id, rebuilt.track_id)
+    np.testing.assert_array_equal(changed.view, rebuilt.view)
+    fewer_edges, _ = translate.graph_tracks(graph, normalized, [0, 2])  # other pairs: rebuilt
+    assert fewer_edges.num_observations < changed.num_observations
