@@ -38,4 +38,7 @@ def test_graph_tracks_reuses_only_identical_inputs():
     np.testing.assert_array_equal(changed.track_id, rebuilt.track_id)
     np.testing.assert_array_equal(changed.view, rebuilt.view)
     fewer_edges, _ = translate.graph_tracks(graph, normalized, [0, 2])  # other pairs: rebuilt
-    assert fewer_edges.num_observations < changed.num_observations
+    expected = build_tracks([(0, 1), (1, 2)], [graph.edges[0].matches, graph.edges[2].matches])
+    assert fewer_edges is not changed and fewer_edges.num_observations == expected.num_observations
+    np.testing.assert_array_equal(fewer_edges.feature, expected.feature)
+    assert expected.num_observations != changed.num_observations
