@@ -179,3 +179,16 @@ def test_bulk_packing_equals_pack_edges():
     bad[1][3, 0] = np.nan
     with pytest.raises(ValueError, match=r"x_i\[1\]"):
         _pack(bad, [rng.random((8, 2)), rng.random((8, 2))])
+
+
+def test_refined_translation_and_eigenvalues_equal_twoview_at_the_result():
+    problems, batch, R = _mixed_batch(seed=13, noise_px=1.0)
+    res = twoview.refine_rotations(R, [p.x_i for p in problems], [p.x_j for p in problems])
+    regular = np.flatnonzero([k == twoview.SceneKind.REGULAR for k in res.kinds])
+    assert regular.size >= 4
+    t_ref, P, _ = tv.translation_directions(res.rotations[regular], batch.subset(regular))
+    assert np.max(np.abs(res.translation_directions[regular] - t_ref)) < 1e-12
+    # ρ is decided at the TRRM result; PURE_ROTATION edges then get the Procrustes rotation
+    rho_ref = np.array([twoview.identify_scene(res.rotations[e], problems[e].x_i, problems[e].x_j).pure_rotation_ratio
+                        for e in regular])
+    assert np.max(np.abs(res.pure_rotation_ratios[regular] - rho_ref) / rho_ref) < 1e-12

@@ -474,19 +474,27 @@ def _lean_group(R: np.ndarray, cnt: np.ndarray, starts: np.ndarray, d: np.ndarra
     if plain_ps:
         out["ps"][rows] = (sums[6:] if nsum == 12 else P6).T
     lam, t = smallest_eigenpair_lean(*P6)
-    tm = rep(t.T, cnt, axis=1)
-    t0, t1, t2 = tm[0], tm[1], tm[2]
     ni2, nj2 = d[NXI2], d[NXJ2]
-    xt = xj0 * t0 + xj1 * t1 + xj2 * t2
-    ut = u0 * t0 + u1 * t1 + u2 * t2
     ux = u0 * xj0 + u1 * xj1 + u2 * xj2
-    # chirality (twoview.chirality_sign): depths in view i and j via the dot identities
-    depth_i = ux * xt - nj2 * ut
-    depth_j = ni2 * xt - ux * ut
-    front = ((depth_i > 0) & (depth_j > 0)).view(np.int8)
-    back = ((depth_i < 0) & (depth_j < 0)).view(np.int8)
-    vote = np.add.reduceat(front, starts, dtype=np.int64) - np.add.reduceat(back, starts, dtype=np.int64)
-    sign = np.where(vote < 0, -1.0, 1.0)
+
+    def chirality(t: np.ndarray):
+        """t per match, x_j·t, u·t and the chirality sign per edge (twoview.chirality_sign):
+        the depths in views i and j from the dot identities."""
+        tm = rep(t.T, cnt, axis=1)
+        xt = xj0 * tm[0] + xj1 * tm[1] + xj2 * tm[2]
+        ut = u0 * tm[0] + u1 * tm[1] + u2 * tm[2]
+        depth_i = ux * xt - nj2 * ut
+        depth_j = ni2 * xt - ux * ut
+        front = ((depth_i > 0) & (depth_j > 0)).view(np.int8)
+        back = ((depth_i < 0) & (depth_j < 0)).view(np.int8)
+        vote = np.add.reduceat(front, starts, dtype=np.int64) - np.add.reduceat(back, starts, dtype=np.int64)
+        return tm, xt, ut, np.where(vote < 0, -1.0, 1.0)
+
+    if plain_ps:  # t of the plain Pˢ with its chirality sign (= twoview.translation_directions)
+        t_plain = t if nsum == 6 else smallest_eigenpair_lean(*sums[6:])[1]
+        out["t_plain"][rows] = t_plain * chirality(t_plain)[3][:, None]
+    tm, xt, ut, sign = chirality(t)
+    t0, t1, t2 = tm[0], tm[1], tm[2]
     out["t"][rows] = t * sign[:, None]
     sg = rep(sign, cnt)
     aj = np.sqrt(np.maximum(nj2 - xt * xt, 0.0))  # ‖x_j × t‖
@@ -601,7 +609,8 @@ def trrm_evaluate(R: np.ndarray, table: MatchTable, jacobian: np.ndarray | bool 
 
     ``evaluate`` (E,) bool: the edges to evaluate (default all; ``jacobian`` implies it).
     ``sq_out`` (M,): per-match ‖r‖² (validity-masked, without weights) of evaluated edges.
-    ``plain_ps``: also return the unweighted Pˢ (E, 3, 3) (identification eigenvalues).
+    ``plain_ps``: also return the unweighted Pˢ (E, 3, 3) (identification eigenvalues) and
+    its null vector with the chirality sign, ``t_plain`` (= twoview.translation_directions).
     Per-edge results do not depend on which other edges are evaluated with them.
     """
     E = table.num_edges
@@ -613,6 +622,7 @@ def trrm_evaluate(R: np.ndarray, table: MatchTable, jacobian: np.ndarray | bool 
         out["Jtr"] = np.zeros((E, 3))
     if plain_ps:
         out["ps"] = np.zeros((E, 6))
+        out["t_plain"] = np.zeros((E, 3))
     data, w_all = table.data, table.weights
     for e0, e1 in table.groups:
         m0, m1 = table.offsets[e0], table.offsets[e1]

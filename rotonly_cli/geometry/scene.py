@@ -89,8 +89,9 @@ def pure_rotation_ratios(R_j_from_i: np.ndarray, batch: tv.EdgeBatch) -> np.ndar
     return _ratios_and_ps(R_j_from_i, batch)[0]
 
 
-def _ratios_and_ps(R_j_from_i: np.ndarray, batch: tv.EdgeBatch) -> tuple[np.ndarray, np.ndarray]:
-    """ρ per edge and, as a by-product of the same pass, the unweighted Pˢ (E, 3, 3)."""
+def _ratios_and_ps(R_j_from_i: np.ndarray, batch: tv.EdgeBatch) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """ρ per edge and, as by-products of the same pass, the unweighted Pˢ (E, 3, 3) and its
+    null vector with the chirality sign (E, 3) (twoview.translation_directions)."""
     from rotonly_cli.geometry import kernels  # kernels imports twoview only
 
     table = kernels.MatchTable.from_batch(batch.with_weights(None))
@@ -104,7 +105,7 @@ def _ratios_and_ps(R_j_from_i: np.ndarray, batch: tv.EdgeBatch) -> tuple[np.ndar
     tiny = 1e-24  # 0/0 on noise-free pure rotation -> ρ = 1
     rho = (kernels.segment_median(pure_sq, table.offsets) + tiny) / \
         (kernels.segment_median(trrm_sq, table.offsets) + tiny)
-    return rho, out["ps"]
+    return rho, out["ps"], out["t_plain"]
 
 
 def classify(v_rs: np.ndarray, rho: np.ndarray, options: IdentificationOptions) -> np.ndarray:
@@ -131,7 +132,7 @@ def identify(R_j_from_i: np.ndarray, batch: tv.EdgeBatch,
     """Identify every edge at the given rotations (see :func:`classify` for the order)."""
     options.validate()
     v_rs = detection_values(batch)
-    rho, P = _ratios_and_ps(R_j_from_i, batch)
+    rho, P, _ = _ratios_and_ps(R_j_from_i, batch)
     eig = tv.symmetric_eigenvalues3(P)
     kinds = classify(v_rs, rho, options)
     return Identification(kinds=kinds, detection_value=v_rs, pure_rotation_ratio=rho, ps_eigenvalues=eig)
