@@ -137,3 +137,14 @@ def test_sparse_model_without_structure_and_shared_keypoint(tmp_path):
         colmap.write_model(tmp_path / "bad", scene)
     assert not (tmp_path / "bad").exists()
     assert not any(path.name.startswith(".") for path in tmp_path.iterdir())
+
+
+def test_sparse_model_without_posed_views(tmp_path):
+    scene = _scene(np.random.default_rng(2), 1, True, True)
+    scene.poses = {}
+    _reference_model(scene, tmp_path / "reference", True)
+    colmap.write_model(tmp_path / "fast", scene)
+    for name in ("cameras.bin", "images.bin", "points3D.bin", "frames.bin", "rigs.bin"):
+        assert (tmp_path / "fast" / name).read_bytes() == (tmp_path / "reference" / name).read_bytes()
+    model = pycolmap.Reconstruction(str(tmp_path / "fast"))
+    assert (model.num_images(), model.num_points3D(), model.num_cameras()) == (0, 0, 2)

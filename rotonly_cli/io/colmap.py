@@ -488,7 +488,7 @@ def _model_points(scene: SfMScene, posed: list[int]) -> tuple[_ModelPoints, dict
     observations are not in the model."""
     extra_points2D = {view_id: np.zeros((0, 2)) for view_id in posed}
     structure = scene.structure
-    if structure is None:
+    if structure is None or not posed:  # no posed view: no 3D point is in the model
         empty = np.zeros(0, dtype=np.int64)
         return _ModelPoints(empty, np.zeros((0, 3)), np.zeros((0, 3), np.uint8), empty, empty, empty), extra_points2D
     track_lengths, view_feature = structure.flat_observations()
@@ -496,8 +496,8 @@ def _model_points(scene: SfMScene, posed: list[int]) -> tuple[_ModelPoints, dict
     posed_ids = np.asarray(posed, dtype=np.int64)
     num_keypoints = np.array([0 if scene.keypoints.get(view_id) is None else len(scene.keypoints[view_id])
                               for view_id in posed], dtype=np.int64)
-    view_row = np.minimum(np.searchsorted(posed_ids, view_feature[:, 0]), max(len(posed) - 1, 0))
-    in_model = (posed_ids[view_row] == view_feature[:, 0]) if len(posed) else np.zeros(len(view_feature), bool)
+    view_row = np.minimum(np.searchsorted(posed_ids, view_feature[:, 0]), len(posed) - 1)
+    in_model = posed_ids[view_row] == view_feature[:, 0]
     features = view_feature[:, 1]
     point2D_indices = features.copy()
     is_extra = in_model & ((features < 0) | (features >= num_keypoints[view_row]))
