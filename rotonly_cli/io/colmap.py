@@ -1,7 +1,10 @@
 """COLMAP databases and sparse models <-> rotonly dataclasses (formats.md §4).
 
 Everything goes through pycolmap 4.2.1 (``Database``, ``Reconstruction``, ``Camera``): blob
-layouts, pair ids and camera models are pycolmap's business, not re-implemented here.
+layouts, pair ids and camera models are pycolmap's business, not re-implemented here. One
+exception for speed: the sparse-model writer assembles ``points3D.bin`` (and the point links
+of ``images.bin``) with numpy (formats.md §4.8) and has pycolmap read them back, compute the
+errors and write the final model, instead of one Python object per point and observation.
 
 Conventions kept at this boundary (architecture.md "Conventions", formats.md §4.3/§4.5):
 - view id = COLMAP image id, intrinsics id = COLMAP camera id (COLMAP ids are > 0, so a scene
