@@ -540,7 +540,6 @@ _POINT3D_HEAD = np.dtype([("id", "<u8"), ("xyz", "<f8", 3), ("rgb", "u1", 3), ("
                           ("track_length", "<u8")])
 _TRACK_ELEMENT = np.dtype([("image_id", "<u4"), ("point2D_idx", "<u4")])
 _POINT2D = np.dtype([("xy", "<f8", 2), ("point3D_id", "<u8")])
-_NO_POINT3D = np.uint64(0xFFFFFFFFFFFFFFFF)  # images.bin: point2D without 3D point (-1)
 
 
 def _points3D_bin(points: _ModelPoints) -> bytes:
@@ -571,6 +570,8 @@ def _link_points2D(images_bin: bytes, points: _ModelPoints) -> bytes:
     AddPoint3D refuses it too)."""
     payload = bytearray(images_bin)
     point3D_of_element = np.repeat(points.point3D_ids, points.track_lengths).astype(np.uint64)
+    by_image = np.argsort(points.image_ids, kind="stable")  # track elements grouped by image
+    sorted_image_ids = points.image_ids[by_image]
     (num_images,), offset = np.frombuffer(payload, "<u8", 1, 0), 8
     for _ in range(int(num_images)):
         image_id = int(np.frombuffer(payload, "<u4", 1, offset)[0])
@@ -579,7 +580,8 @@ def _link_points2D(images_bin: bytes, points: _ModelPoints) -> bytes:
         num_points2D = int(np.frombuffer(payload, "<u8", 1, offset)[0])
         offset += 8
         points2D = np.frombuffer(payload, _POINT2D, num_points2D, offset)  # a view: writes go to payload
-        mine = np.flatnonzero(points.image_ids == image_id)
+        mine = by_image[np.searchsorted(sorted_image_ids, image_id, "left"):
+                        np.searchsorted(sorted_image_ids, image_id, "right")]
         if mine.size:
             point2D_indices, point3D_ids = points.point2D_indices[mine], point3D_of_element[mine]
             order = np.lexsort((point3D_ids, point2D_indices))
