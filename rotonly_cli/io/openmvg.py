@@ -566,8 +566,11 @@ def _landmark_pixels(scene: SfMScene, point_of_observation: np.ndarray,
     assert structure is not None
     pixels = np.empty((len(view_feature), 2))
     view_ids, feature_ids = view_feature[:, 0], view_feature[:, 1]
-    for view_id in np.unique(view_ids).tolist():
-        rows = np.flatnonzero(view_ids == view_id)
+    by_view = np.argsort(view_ids, kind="stable")  # observations grouped by view
+    unique_views, group_start = np.unique(view_ids[by_view], return_index=True)
+    group_end = np.append(group_start[1:], len(by_view))
+    for view_id, start, end in zip(unique_views.tolist(), group_start.tolist(), group_end.tolist()):
+        rows = by_view[start:end]
         keypoints = scene.keypoints.get(view_id)
         if keypoints is not None:
             keypoints = np.asarray(keypoints, dtype=np.float64).reshape(-1, 2)
