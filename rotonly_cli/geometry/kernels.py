@@ -434,8 +434,11 @@ def _pinv_times(P6, lam: np.ndarray, t: np.ndarray, D: np.ndarray) -> np.ndarray
     return _pinv_shifted(P, lam, t) @ D
 
 
+COST, GRADIENT, NORMAL = 0, 1, 2  #: what _lean_group computes: cost; + Jᵀr; + JᵀJ and Jᵀr
+
+
 def _lean_group(R: np.ndarray, cnt: np.ndarray, starts: np.ndarray, d: np.ndarray, w: np.ndarray | None,
-                jacobian: bool, unit_theta: bool, out: dict, rows: np.ndarray, sq_out: np.ndarray | None,
+                mode: int, unit_theta: bool, out: dict, rows: np.ndarray, sq_out: np.ndarray | None,
                 plain_ps: bool) -> None:
     """TRRM terms of one edge group (edges ``rows`` of the outputs), one pass.
 
@@ -520,7 +523,7 @@ def _lean_group(R: np.ndarray, cnt: np.ndarray, starts: np.ndarray, d: np.ndarra
     if sq_out is not None:
         sq_out[:] = sq
     rw = valid if w is None else w * valid  # residual weight
-    if not jacobian:
+    if mode == COST:
         out["cost"][rows] = np.add.reduceat(sq if w is None else w * sq, starts)
         return
     # dt/dδ = -(Pˢ - λI)^+ (dPˢ t)/dδ, dPˢ t = Σ pw [(θ·t) A + θ (Aᵀt)ᵀ], A = u x_jᵀ - (u·x_j) I
@@ -540,6 +543,9 @@ def _lean_group(R: np.ndarray, cnt: np.ndarray, starts: np.ndarray, d: np.ndarra
     np.multiply(pu2, xj2, out=acc[8]); acc[8] += wt[2] * At2; acc[8] -= pux  # noqa: E702
     dPt = np.add.reduceat(acc[:9], starts, axis=1).T.reshape(-1, 3, 3)
     T = -_pinv_times(P6, lam, t, dPt)  # unsigned t; the sign rides on bs and kb
+    if mode == GRADIENT:
+        _adjoint_gradient(locals(), acc, out, rows)
+        return
     Tm = rep(T.reshape(-1, 9).T, cnt, axis=1)  # Tm[3k + c] = dt_k / dδ_c
     inv_aj = (aj > 0) / np.maximum(aj, 1e-300)
     inv_ai = (ai > 0) / np.maximum(ai, 1e-300)
@@ -601,11 +607,59 @@ def _lean_group(R: np.ndarray, cnt: np.ndarray, starts: np.ndarray, d: np.ndarra
     out["Jtr"][rows] = sums[6:9].T
 
 
+def _adjoint_gradient(v: dict, acc: np.ndarray, out: dict, rows: np.ndarray) -> None:
+    """Jᵀr = ½ ∇_δ Σ w ‖r‖² by reverse mode through the forward pass of _lean_group (its
+    locals ``v``): about a third of the work of the three forward-mode Jacobian columns.
+
+    Adjoints (x̄ = ∂f/∂x, f = ½ Σ w ‖r‖²): ŝ = s/‖s‖ gives s̄ = -(w/‖s‖)(r - ŝ(ŝ·r)); then
+    through s_j = a_j u + b_s t, s_i = a_i x_j - b_s t, a_j = ‖x_j × t‖, a_i = ‖u × t‖,
+    b = ‖θ‖ (x_j × θ̄ = (b̄/b)(‖x_j‖² u - (u·x_j) x_j)); finally du = δ × u gives u × ū,
+    and dt = T δ gives Tᵀ Σ t̄."""
+    u0, u1, u2, xj0, xj1, xj2 = v["u0"], v["u1"], v["u2"], v["xj0"], v["xj1"], v["xj2"]
+    t0, t1, t2 = v["t0"], v["t1"], v["t2"]
+    hj0, hj1, hj2, hi0, hi1, hi2 = v["hj0"], v["hj1"], v["hj2"], v["hi0"], v["hi1"], v["hi2"]
+    rj0, rj1, rj2, ri0, ri1, ri2 = v["rj0"], v["rj1"], v["rj2"], v["ri0"], v["ri1"], v["ri2"]
+    rw, aj, ai, b, bs, sg = v["rw"], v["aj"], v["ai"], v["b"], v["bs"], v["sg"]
+    xt, ut, ux, nj2 = v["xt"], v["ut"], v["ux"], v["nj2"]
+    kj = -(rw * v["isj"])
+    alpha = hj0 * rj0 + hj1 * rj1 + hj2 * rj2
+    sjb = ((rj0 - hj0 * alpha) * kj, (rj1 - hj1 * alpha) * kj, (rj2 - hj2 * alpha) * kj)
+    ki = -(rw * v["isi"])
+    alpha = hi0 * ri0 + hi1 * ri1 + hi2 * ri2
+    sib = ((ri0 - hi0 * alpha) * ki, (ri1 - hi1 * alpha) * ki, (ri2 - hi2 * alpha) * ki)
+    ajb = u0 * sjb[0] + u1 * sjb[1] + u2 * sjb[2]
+    aib = xj0 * sib[0] + xj1 * sib[1] + xj2 * sib[2]
+    dsb = (sjb[0] - sib[0], sjb[1] - sib[1], sjb[2] - sib[2])
+    bsb = t0 * dsb[0] + t1 * dsb[1] + t2 * dsb[2]
+    xtb = ajb * (-xt * ((aj > 0) / np.maximum(aj, 1e-300)))  # a_j² = ‖x_j‖² - (x_j·t)²
+    utb = aib * (-ut * ((ai > 0) / np.maximum(ai, 1e-300)))  # a_i² = ‖u‖² - (u·t)²
+    k_theta = bsb * sg * ((b > 0) / np.maximum(b, 1e-300))
+    c_u = k_theta * nj2
+    c_x = k_theta * ux
+    c_r = rw * v["inv_ni"]
+    ub = [c_r * r + aj * sb + c_u * uk - c_x * xk + utb * tk
+          for r, sb, uk, xk, tk in ((ri0, sjb[0], u0, xj0, t0), (ri1, sjb[1], u1, xj1, t1), (ri2, sjb[2], u2, xj2, t2))]
+    # per-edge sums: u × ū (direct part) and t̄ = b_s (s̄_j - s̄_i) + (x_j·t)‾ x_j + (u·t)‾ u
+    np.multiply(u1, ub[2], out=acc[0]); acc[0] -= u2 * ub[1]  # noqa: E702
+    np.multiply(u2, ub[0], out=acc[1]); acc[1] -= u0 * ub[2]  # noqa: E702
+    np.multiply(u0, ub[1], out=acc[2]); acc[2] -= u1 * ub[0]  # noqa: E702
+    for k, (dk, xk, uk) in enumerate(((dsb[0], xj0, u0), (dsb[1], xj1, u1), (dsb[2], xj2, u2))):
+        np.multiply(bs, dk, out=acc[3 + k])
+        acc[3 + k] += xtb * xk
+        acc[3 + k] += utb * uk
+    np.multiply(rw, v["sq"], out=acc[6])
+    sums = np.add.reduceat(acc[:7], v["starts"], axis=1)
+    out["cost"][rows] = sums[6]
+    out["Jtr"][rows] = sums[0:3].T + np.einsum("eac,ea->ec", v["T"], sums[3:6].T)
+
+
 def trrm_evaluate(R: np.ndarray, table: MatchTable, jacobian: np.ndarray | bool = False,
                   evaluate: np.ndarray | None = None, unit_theta: bool = False,
-                  sq_out: np.ndarray | None = None, plain_ps: bool = False) -> dict:
+                  sq_out: np.ndarray | None = None, plain_ps: bool = False,
+                  gradient: np.ndarray | bool = False) -> dict:
     """Per-edge TRRM cost Σ w ‖r‖² (eq:ROMerr), signed t and, for the edges where
-    ``jacobian`` is true, JᵀJ and Jᵀr of the exact Jacobian (left perturbation).
+    ``jacobian`` is true, JᵀJ and Jᵀr of the exact Jacobian (left perturbation); where
+    only ``gradient`` is true, Jᵀr alone (reverse mode, JᵀJ left zero).
 
     ``evaluate`` (E,) bool: the edges to evaluate (default all; ``jacobian`` implies it).
     ``sq_out`` (M,): per-match ‖r‖² (validity-masked, without weights) of evaluated edges.
@@ -615,9 +669,11 @@ def trrm_evaluate(R: np.ndarray, table: MatchTable, jacobian: np.ndarray | bool 
     """
     E = table.num_edges
     jac = np.broadcast_to(np.asarray(jacobian, dtype=bool), (E,))
-    ev = np.ones(E, dtype=bool) if evaluate is None else np.asarray(evaluate, dtype=bool) | jac
+    grad = np.broadcast_to(np.asarray(gradient, dtype=bool), (E,)) & ~jac
+    ev = np.ones(E, dtype=bool) if evaluate is None else np.asarray(evaluate, dtype=bool) | jac | grad
+    mode = np.where(jac, NORMAL, np.where(grad, GRADIENT, COST))
     out = {"cost": np.zeros(E), "t": np.zeros((E, 3))}
-    if jac.any():
+    if jac.any() or grad.any():
         out["JtJ"] = np.zeros((E, 3, 3))
         out["Jtr"] = np.zeros((E, 3))
     if plain_ps:
@@ -626,8 +682,8 @@ def trrm_evaluate(R: np.ndarray, table: MatchTable, jacobian: np.ndarray | bool 
     data, w_all = table.data, table.weights
     for e0, e1 in table.groups:
         m0, m1 = table.offsets[e0], table.offsets[e1]
-        for with_j in (True, False):
-            sel = np.flatnonzero((jac[e0:e1] if with_j else ev[e0:e1] & ~jac[e0:e1]))
+        for group_mode in (NORMAL, GRADIENT, COST):
+            sel = np.flatnonzero(ev[e0:e1] & (mode[e0:e1] == group_mode))
             if sel.size == 0:
                 continue
             cnt = table.counts[e0:e1][sel]
@@ -641,7 +697,7 @@ def trrm_evaluate(R: np.ndarray, table: MatchTable, jacobian: np.ndarray | bool 
                 d = data[:, idx]
             w = None if w_all is None else w_all[idx]
             sq = None if sq_out is None else np.empty(cnt.sum())
-            _lean_group(R[e0:e1][sel], cnt, starts, d, w, with_j, unit_theta, out, e0 + sel, sq, plain_ps)
+            _lean_group(R[e0:e1][sel], cnt, starts, d, w, group_mode, unit_theta, out, e0 + sel, sq, plain_ps)
             if sq is not None:
                 sq_out[idx] = sq
     if plain_ps:

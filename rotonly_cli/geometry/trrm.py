@@ -34,6 +34,12 @@ class TRRMOptions:
     #: regime: far from the optimum shrinking steps need not mean convergence (a noise-free
     #: start 10° off stopped 0.08 rad short when the λ_min(Pˢ) phase used it); 0 disables it.
     contraction_stop_below: float = 1e-5
+    #: keep JᵀJ of the first LM iteration and compute only the exact gradient Jᵀr afterwards
+    #: (reverse mode, kernels._adjoint_gradient: 0.21 s instead of 0.30 s per million matches).
+    #: The fixed point (Jᵀr = 0) is the same; the steps after the first move ~1e-4 rad,
+    #: over which JᵀJ changes by ~1e-4 relative, so the contraction per step stays ~300x
+    #: (measured, scripts/bench_throughput.py).
+    frozen_hessian: bool = True
     gradient_tolerance: float = 1e-14  #: stop when ‖J^T r‖ / (cost + tiny) is below this
     initial_damping: float = 1e-4  #: μ relative to the diagonal of J^T J (Marquardt scaling)
     min_damping: float = 1e-12
@@ -103,7 +109,9 @@ class _TRRMProblem:
         self.sq = np.zeros(table.data.shape[1])
         self._sq_candidate = np.zeros(table.data.shape[1])
 
-    def evaluate(self, R: np.ndarray, rows: np.ndarray, jacobian: np.ndarray):
+    def evaluate(self, R: np.ndarray, rows: np.ndarray, mode: np.ndarray):
+        """Cost, JᵀJ and Jᵀr of ``rows`` at R; ``mode`` per edge: kernels.COST, GRADIENT (JᵀJ
+        returned as zeros) or NORMAL."""
         if rows.size * 2 <= self.cur.num_edges:
             self.cur = self.full.subset(rows)
             self.pos = np.full(self.full.num_edges, -1)
@@ -114,10 +122,13 @@ class _TRRMProblem:
         R_cur = np.zeros((n, 3, 3))
         R_cur[at] = R
         jac = np.zeros(n, dtype=bool)
-        jac[at] = jacobian
+        jac[at] = mode == kernels.NORMAL
+        grad = np.zeros(n, dtype=bool)
+        grad[at] = mode == kernels.GRADIENT
         ev = np.zeros(n, dtype=bool)
         ev[at] = True
-        out = kernels.trrm_evaluate(R_cur, self.cur, jacobian=jac, evaluate=ev, sq_out=self._sq_candidate)
+        out = kernels.trrm_evaluate(R_cur, self.cur, jacobian=jac, gradient=grad, evaluate=ev,
+                                    sq_out=self._sq_candidate)
         JtJ = out["JtJ"][at] if "JtJ" in out else np.zeros((rows.size, 3, 3))
         Jtr = out["Jtr"][at] if "Jtr" in out else np.zeros((rows.size, 3))
         return out["cost"][at], JtJ, Jtr
@@ -139,8 +150,8 @@ class _MomentProblem:
     def __init__(self, moments: np.ndarray):
         self.moments = moments
 
-    def evaluate(self, R: np.ndarray, rows: np.ndarray, jacobian: np.ndarray):
-        out = kernels.epipolar_from_moments(R, self.moments[rows])
+    def evaluate(self, R: np.ndarray, rows: np.ndarray, mode: np.ndarray):
+        out = kernels.epipolar_from_moments(R, self.moments[rows])  # always NORMAL: O(1) per edge
         return out["cost"], out["JtJ"], out["Jtr"]
 
     def commit(self, rows: np.ndarray) -> None:
@@ -149,7 +160,9 @@ class _MomentProblem:
 
 def _lock_step_lm(problem, R_init: np.ndarray, options: TRRMOptions):
     """Levenberg-Marquardt on R <- exp([δ]x) R for every edge of ``problem`` in lock-step:
-    per-edge damping and stopping rules, finished edges leave the batch.
+    per-edge damping and stopping rules, finished edges leave the batch. With
+    ``options.frozen_hessian`` the JᵀJ of the first evaluation is kept and later candidates
+    only compute the exact gradient Jᵀr.
 
     A candidate whose acceptance would end its edge (its step, or the step the observed
     contraction predicts after it, is below ``step_tolerance``) is evaluated without the
@@ -161,7 +174,7 @@ def _lock_step_lm(problem, R_init: np.ndarray, options: TRRMOptions):
     active = np.arange(n)
     if n == 0:
         return R, np.zeros(0), np.zeros(0), iterations, converged
-    cost, JtJ, Jtr = problem.evaluate(R, active, np.ones(n, dtype=bool))
+    cost, JtJ, Jtr = problem.evaluate(R, active, np.full(n, kernels.NORMAL))
     problem.commit(active)
     initial_cost = cost.copy()
     final_cost = cost.copy()
@@ -182,7 +195,9 @@ def _lock_step_lm(problem, R_init: np.ndarray, options: TRRMOptions):
         small = step < options.step_tolerance
         ends_if_accepted = small | ((step < options.contraction_stop_below) & (predicted < options.step_tolerance))
         R_cand = so3.exp(delta) @ R[active]
-        cost_c, JtJ_c, Jtr_c = problem.evaluate(R_cand, active, ~ends_if_accepted)
+        later = kernels.GRADIENT if options.frozen_hessian else kernels.NORMAL
+        mode = np.where(ends_if_accepted, kernels.COST, later)
+        cost_c, JtJ_c, Jtr_c = problem.evaluate(R_cand, active, mode)
         iterations[active] += 1
         accept = cost_c <= cost
         decrease = cost - cost_c
@@ -193,7 +208,7 @@ def _lock_step_lm(problem, R_init: np.ndarray, options: TRRMOptions):
         R[active[accept]] = R_cand[accept]
         problem.commit(active[accept])
         cost = np.where(accept, cost_c, cost)
-        JtJ = np.where(accept[:, None, None], JtJ_c, JtJ)
+        JtJ = np.where((accept & (mode == kernels.NORMAL))[:, None, None], JtJ_c, JtJ)
         Jtr = np.where(accept[:, None], Jtr_c, Jtr)
         mu = np.where(accept, np.maximum(mu / 10.0, options.min_damping), mu * 10.0)
         last_step = np.where(accept, step, np.inf)
@@ -210,7 +225,7 @@ def _phase1_options(options: TRRMOptions) -> TRRMOptions:
     return TRRMOptions(**{**options.__dict__, "max_iterations": options.epipolar_max_iterations,
                           "step_tolerance": options.epipolar_step_tolerance,
                           "function_tolerance": options.epipolar_function_tolerance,
-                          "contraction_stop_below": 0.0})
+                          "contraction_stop_below": 0.0, "frozen_hessian": False})  # O(1) per edge anyway
 
 
 def optimize_rotations(R_init: np.ndarray, batch: tv.EdgeBatch, options: TRRMOptions = TRRMOptions(),
