@@ -27,12 +27,7 @@ def _awkward_floats(rng: np.random.Generator) -> np.ndarray:
                            10.0 ** rng.uniform(-6, 18, 20000), pixels])
 
 
-@pytest.mark.parametrize("accelerated", [True, False])
-def test_float_and_integer_texts_equal_python_repr(monkeypatch, accelerated):
-    if not accelerated:
-        monkeypatch.setattr(openmvg, "_orjson", None)
-    elif openmvg._orjson is None:
-        pytest.skip("orjson not installed: only the repr path exists")
+def test_float_and_integer_texts_equal_python_repr():
     values = _awkward_floats(np.random.default_rng(3))
     assert openmvg._float_reprs(values) == [repr(v) for v in values.tolist()]
     assert openmvg._float_reprs(values.reshape(-1, 1)[:6]) == [repr(v) for v in values[:6].tolist()]
@@ -91,10 +86,7 @@ def _scene(rng: np.random.Generator, num_points: int, stored_pixels: bool) -> Sf
 
 
 @pytest.mark.parametrize("stored_pixels", [True, False])
-@pytest.mark.parametrize("accelerated", [True, False])
-def test_structure_text_equals_json_dumps_of_reference(monkeypatch, stored_pixels, accelerated):
-    if not accelerated:
-        monkeypatch.setattr(openmvg, "_orjson", None)
+def test_structure_text_equals_json_dumps_of_reference(stored_pixels):
     scene = _scene(np.random.default_rng(11), 400, stored_pixels)
     expected = json.dumps(_reference_structure(scene), indent=4)
     # the structure array sits at indent level 1 inside the document

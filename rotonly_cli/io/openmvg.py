@@ -24,11 +24,6 @@ from typing import Any
 
 import numpy as np
 
-try:  # optional accelerator of the sfm_data.json writer (same bytes without it)
-    import orjson as _orjson
-except ImportError:  # pragma: no cover - depends on the environment
-    _orjson = None
-
 from rotonly_cli.errors import InputError
 from rotonly_cli.io.types import Intrinsics, PairMatches, Pose, SfMScene, Structure, View
 
@@ -676,30 +671,13 @@ _CLOSE_NO_OBSERVATIONS = _HEAD_TEXTS[4] + _indent(4) + '"observations": []' + _L
 
 
 def _integer_texts(values: np.ndarray) -> list[str]:
-    """``str`` of every int64 (orjson, when installed, formats them in C: same text)."""
-    values = np.ascontiguousarray(values, dtype=np.int64).reshape(-1)
-    if _orjson is None or not values.size:
-        return list(map(str, values.tolist()))
-    return _orjson.dumps(values, option=_orjson.OPT_SERIALIZE_NUMPY)[1:-1].decode("ascii").split(",")
+    """``str`` of every int64."""
+    return list(map(str, np.ascontiguousarray(values, dtype=np.int64).reshape(-1).tolist()))
 
 
 def _float_reprs(values: np.ndarray) -> list[str]:
-    """``repr`` of every float64 (Python's shortest round-trip form, what json writes).
-
-    orjson, when installed, formats a whole array in C (~30x faster than repr per float);
-    its digits are the same shortest round-trip digits and, where Python writes positional
-    notation (1e-4 <= |x| < 1e16, or 0), the same text, so only the values outside that
-    range (exponent notation: orjson writes ``1e16``, Python ``1e+16``) go through repr.
-    test_io_fastwrite compares both paths with repr."""
-    values = np.ascontiguousarray(values, dtype=np.float64).reshape(-1)
-    if _orjson is None or not values.size:
-        return list(map(repr, values.tolist()))
-    texts = _orjson.dumps(values, option=_orjson.OPT_SERIALIZE_NUMPY)[1:-1].decode("ascii").split(",")
-    magnitude = np.abs(values)
-    exponent_form = np.flatnonzero(((magnitude < 1e-4) | (magnitude >= 1e16)) & (magnitude != 0))
-    for index in exponent_form.tolist():
-        texts[index] = repr(float(values[index]))
-    return texts
+    """``repr`` of every float64 (Python's shortest round-trip form, what json writes)."""
+    return list(map(repr, np.ascontiguousarray(values, dtype=np.float64).reshape(-1).tolist()))
 
 
 def _structure_text(scene: SfMScene) -> str:
