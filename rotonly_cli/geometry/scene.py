@@ -89,12 +89,13 @@ def pure_rotation_ratios(R_j_from_i: np.ndarray, batch: tv.EdgeBatch) -> np.ndar
     return _ratios_and_ps(R_j_from_i, batch)[0]
 
 
-def _ratios_and_ps(R_j_from_i: np.ndarray, batch: tv.EdgeBatch) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _ratios_and_ps(R_j_from_i: np.ndarray, batch: tv.EdgeBatch, table=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """ρ per edge and, as by-products of the same pass, the unweighted Pˢ (E, 3, 3) and its
     null vector with the chirality sign (E, 3) (twoview.translation_directions)."""
     from rotonly_cli.geometry import kernels  # kernels imports twoview only
 
-    table = kernels.MatchTable.from_batch(batch.with_weights(None))
+    if table is None:
+        table = kernels.MatchTable.from_batch(batch.with_weights(None))
     R_star = kernels.best_pure_rotation(table, robust_iterations=2)
     pure_sq = 2.0 * kernels.rotated_bearing_sq(R_star, table)  # both views (eq:PureRotationReprojBearingError)
     # t from unit-length θ (Σ θθᵀ/‖θ‖²): each match one vote, so wrong matches with large θ

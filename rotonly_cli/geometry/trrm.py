@@ -229,13 +229,14 @@ def _phase1_options(options: TRRMOptions) -> TRRMOptions:
 
 
 def optimize_rotations(R_init: np.ndarray, batch: tv.EdgeBatch, options: TRRMOptions = TRRMOptions(),
-                       edges: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                       edges: np.ndarray | None = None, table: kernels.MatchTable | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Alg. 2's LM on eq:ROMerr for the selected ``edges`` (default all), in lock-step, after
     an optional first phase on λ_min(Pˢ) (``options.epipolar_max_iterations``).
 
     Returns (R (E,3,3), initial_cost (E,), cost (E,), iterations (E,), converged (E,)) where
     the costs are TRRM costs (with the final IRLS weights for the robust loss) and
-    iterations count both phases.
+    iterations count both phases. ``table``: kernels.MatchTable of the whole batch without
+    weights, when the caller has one already.
     """
     options.validate()
     E = batch.num_edges
@@ -248,13 +249,15 @@ def optimize_rotations(R_init: np.ndarray, batch: tv.EdgeBatch, options: TRRMOpt
     if sel.size == 0:
         return R, initial_cost, cost, iterations, converged
     sub = batch.subset(sel) if sel.size != E else batch
+    if table is not None and sel.size != E:
+        table = table.subset(sel)
     R0 = R[sel]
     if options.loss == "none":
         table = kernels.MatchTable.from_batch(sub)  # the batch's own weights, if any
     else:
         # weights at the start: t from unit-length θ first (each match one vote, so a few
         # wrong matches with large θ cannot dictate t), then one refinement with Cauchy weights
-        table = kernels.MatchTable.from_batch(sub.with_weights(None))
+        table = kernels.MatchTable.from_batch(sub.with_weights(None)) if table is None else table.with_weights(None)
         sq = np.empty(sub.x_i.shape[0])
         kernels.trrm_evaluate(R0, table, unit_theta=True, sq_out=sq)
         table = table.with_weights(_cauchy_weights(sq, table, options))
@@ -385,10 +388,11 @@ def refine(R_init: np.ndarray, batch: tv.EdgeBatch, options: TRRMOptions = TRRMO
     v_rs = detection_values(batch)
     singular = v_rs < identification_options.rotation_singular_threshold
     candidates = np.flatnonzero(~singular)
-    R, c0, c1, iters, conv = optimize_rotations(R_init, batch, options, edges=candidates)
+    table = kernels.MatchTable.from_batch(batch.with_weights(None))
+    R, c0, c1, iters, conv = optimize_rotations(R_init, batch, options, edges=candidates, table=table)
     # ρ of every edge at its rotation (singular edges keep R_init) and, from the same pass,
     # the plain Pˢ at the returned rotations for the identification eigenvalues
-    rho, P_plain, t_plain = _ratios_and_ps(R, batch)
+    rho, P_plain, t_plain = _ratios_and_ps(R, batch, table)
     kinds = classify(v_rs, rho, identification_options)
     regular = np.flatnonzero(kind_mask(kinds, SceneKind.REGULAR))
     pure = np.flatnonzero(kind_mask(kinds, SceneKind.PURE_ROTATION))
