@@ -103,6 +103,8 @@ class _TRRMProblem:
     every match's ‖r‖² at the accepted rotation (``sq``: the input of the next IRLS round)."""
 
     def __init__(self, table: kernels.MatchTable):
+        # positions of the per-match ‖r‖² are this table's own (match_pos renumbered)
+        table = kernels.MatchTable(table.data, table.offsets, table.weights, None, table.chunk)
         self.full = table
         self.cur = table
         self.pos = np.arange(table.num_edges)  # edge of the problem -> edge of self.cur
