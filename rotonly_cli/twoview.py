@@ -86,14 +86,16 @@ def _pack(xs_i: Sequence, xs_j: Sequence) -> _tv.EdgeBatch:
     shapes = {plain(a, b) for a, b in zip(xs_i, xs_j)}
     if len(shapes) != 1 or next(iter(shapes)) not in ((2, 2), (3, 3)):
         return _tv.pack_edges(xs_i, xs_j)
-    x_i = np.concatenate(xs_i)
-    x_j = np.concatenate(xs_j)
+    counts = np.fromiter((a.shape[0] for a in xs_i), dtype=np.int64, count=len(xs_i))
+    cols = next(iter(shapes))[0]
+    x_i = np.empty((counts.sum(), 3))
+    x_j = np.empty((counts.sum(), 3))
+    for x, xs in ((x_i, xs_i), (x_j, xs_j)):  # straight into the (M, 3) arrays, z = 1 for 2 columns
+        np.concatenate(xs, axis=0, out=x[:, :cols])
+        if cols == 2:
+            x[:, 2] = 1.0
     if not (np.isfinite(x_i).all() and np.isfinite(x_j).all()):
         return _tv.pack_edges(xs_i, xs_j)
-    if x_i.shape[1] == 2:
-        ones = np.ones((x_i.shape[0], 1))
-        x_i, x_j = np.hstack([x_i, ones]), np.hstack([x_j, ones])
-    counts = np.fromiter((a.shape[0] for a in xs_i), dtype=np.int64, count=len(xs_i))
     return _tv.EdgeBatch(x_i, x_j, np.concatenate([[0], np.cumsum(counts)]))
 
 
