@@ -34,12 +34,14 @@ class TRRMOptions:
     #: regime: far from the optimum shrinking steps need not mean convergence (a noise-free
     #: start 10° off stopped 0.08 rad short when the λ_min(Pˢ) phase used it); 0 disables it.
     contraction_stop_below: float = 1e-5
-    #: keep JᵀJ of the first LM iteration and compute only the exact gradient Jᵀr afterwards
-    #: (reverse mode, kernels._adjoint_gradient: 0.21 s instead of 0.30 s per million matches).
-    #: The fixed point (Jᵀr = 0) is the same; the steps after the first move ~1e-4 rad,
-    #: over which JᵀJ changes by ~1e-4 relative, so the contraction per step stays ~300x
-    #: (measured, scripts/bench_throughput.py).
-    frozen_hessian: bool = True
+    #: after a step shorter than this (rad) from a point whose JᵀJ is fresh, keep that JᵀJ
+    #: for one more iteration and compute only the exact gradient Jᵀr at the candidate
+    #: (reverse mode, kernels._adjoint_gradient: 0.21 s instead of 0.30 s per million
+    #: matches). The fixed point (Jᵀr = 0) is the same, and over ~1e-4 rad JᵀJ changes by
+    #: ~1e-4 relative, so the contraction per step stays ~300x (scripts/bench_throughput.py).
+    #: Kept for every later step, a stale JᵀJ left PlanarScene 5 px trials unconverged after
+    #: 50 iterations (rotonly bench twoview --quick), hence one step at most; 0 disables it.
+    frozen_hessian_below: float = 1e-3
     gradient_tolerance: float = 1e-14  #: stop when ‖J^T r‖ / (cost + tiny) is below this
     initial_damping: float = 1e-4  #: μ relative to the diagonal of J^T J (Marquardt scaling)
     min_damping: float = 1e-12
@@ -77,7 +79,7 @@ class TRRMOptions:
         if self.max_iterations < 0:
             raise ValueError("max_iterations: must be >= 0")
         for name in ("function_tolerance", "step_tolerance", "gradient_tolerance", "initial_damping",
-                     "contraction_stop_below"):
+                     "contraction_stop_below", "frozen_hessian_below"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name}: must be >= 0")
         if self.irls_step_tolerance is not None and not self.irls_step_tolerance >= 0:
@@ -162,9 +164,9 @@ class _MomentProblem:
 
 def _lock_step_lm(problem, R_init: np.ndarray, options: TRRMOptions):
     """Levenberg-Marquardt on R <- exp([δ]x) R for every edge of ``problem`` in lock-step:
-    per-edge damping and stopping rules, finished edges leave the batch. With
-    ``options.frozen_hessian`` the JᵀJ of the first evaluation is kept and later candidates
-    only compute the exact gradient Jᵀr.
+    per-edge damping and stopping rules, finished edges leave the batch. A candidate after a
+    step below ``options.frozen_hessian_below`` from a fresh JᵀJ computes only the exact
+    gradient Jᵀr and keeps that JᵀJ for one iteration.
 
     A candidate whose acceptance would end its edge (its step, or the step the observed
     contraction predicts after it, is below ``step_tolerance``) is evaluated without the
@@ -182,6 +184,7 @@ def _lock_step_lm(problem, R_init: np.ndarray, options: TRRMOptions):
     final_cost = cost.copy()
     mu = np.full(n, options.initial_damping)
     last_step = np.full(n, np.inf)  # previous step when it was accepted, else inf
+    fresh = np.ones(n, dtype=bool)  # JᵀJ was computed at the current rotation
     eye = np.eye(3)
     for _ in range(options.max_iterations):
         if active.size == 0:
@@ -197,8 +200,8 @@ def _lock_step_lm(problem, R_init: np.ndarray, options: TRRMOptions):
         small = step < options.step_tolerance
         ends_if_accepted = small | ((step < options.contraction_stop_below) & (predicted < options.step_tolerance))
         R_cand = so3.exp(delta) @ R[active]
-        later = kernels.GRADIENT if options.frozen_hessian else kernels.NORMAL
-        mode = np.where(ends_if_accepted, kernels.COST, later)
+        reuse = (step < options.frozen_hessian_below) & fresh
+        mode = np.where(ends_if_accepted, kernels.COST, np.where(reuse, kernels.GRADIENT, kernels.NORMAL))
         cost_c, JtJ_c, Jtr_c = problem.evaluate(R_cand, active, mode)
         iterations[active] += 1
         accept = cost_c <= cost
@@ -214,12 +217,14 @@ def _lock_step_lm(problem, R_init: np.ndarray, options: TRRMOptions):
         Jtr = np.where(accept[:, None], Jtr_c, Jtr)
         mu = np.where(accept, np.maximum(mu / 10.0, options.min_damping), mu * 10.0)
         last_step = np.where(accept, step, np.inf)
+        fresh = np.where(accept, mode == kernels.NORMAL, fresh)
         final_cost[active] = cost
         converged[active[done]] = True
         keep = np.flatnonzero(~done)
         if keep.size < active.size:
             active = active[keep]
-            cost, JtJ, Jtr, mu, last_step = cost[keep], JtJ[keep], Jtr[keep], mu[keep], last_step[keep]
+            cost, JtJ, Jtr, mu, last_step, fresh = cost[keep], JtJ[keep], Jtr[keep], mu[keep], last_step[keep], \
+                fresh[keep]
     return R, initial_cost, final_cost, iterations, converged
 
 
@@ -227,7 +232,7 @@ def _phase1_options(options: TRRMOptions) -> TRRMOptions:
     return TRRMOptions(**{**options.__dict__, "max_iterations": options.epipolar_max_iterations,
                           "step_tolerance": options.epipolar_step_tolerance,
                           "function_tolerance": options.epipolar_function_tolerance,
-                          "contraction_stop_below": 0.0, "frozen_hessian": False})  # O(1) per edge anyway
+                          "contraction_stop_below": 0.0, "frozen_hessian_below": 0.0})  # O(1) per edge anyway
 
 
 def optimize_rotations(R_init: np.ndarray, batch: tv.EdgeBatch, options: TRRMOptions = TRRMOptions(),
