@@ -86,10 +86,11 @@ def pure_rotation_ratios(R_j_from_i: np.ndarray, batch: tv.EdgeBatch) -> np.ndar
     """ρ = f_pure(R*) / f_TRRM(R_ij) per edge (module docstring), with per-match medians in
     place of sums and a robust R*, so that a few wrong matches (large in both models) cannot
     make a regular edge look like a pure rotation."""
-    return _ratios_and_ps(R_j_from_i, batch)[0]
+    return ratios_and_ps(R_j_from_i, batch)[0]
 
 
-def _ratios_and_ps(R_j_from_i: np.ndarray, batch: tv.EdgeBatch, table=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def ratios_and_ps(R_j_from_i: np.ndarray, batch: tv.EdgeBatch,
+                   table=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """ρ per edge and, as by-products of the same pass, the unweighted Pˢ (E, 3, 3) and its
     null vector with the chirality sign (E, 3) (twoview.translation_directions)."""
     from rotonly_cli.geometry import kernels  # kernels imports twoview only
@@ -133,7 +134,7 @@ def identify(R_j_from_i: np.ndarray, batch: tv.EdgeBatch,
     """Identify every edge at the given rotations (see :func:`classify` for the order)."""
     options.validate()
     v_rs = detection_values(batch)
-    rho, P, _ = _ratios_and_ps(R_j_from_i, batch)
+    rho, P, _ = ratios_and_ps(R_j_from_i, batch)
     eig = tv.symmetric_eigenvalues3(P)
     kinds = classify(v_rs, rho, options)
     return Identification(kinds=kinds, detection_value=v_rs, pure_rotation_ratio=rho, ps_eigenvalues=eig)

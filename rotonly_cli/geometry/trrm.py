@@ -1,9 +1,12 @@
 """TRRM two-view rotation optimisation (paper Alg. 1-2), batched in lock-step over edges.
 
 Levenberg-Marquardt on the rotation manifold: R_ij <- exp([δ]x) R_ij, with the exact
-Jacobian of :func:`rotonly_cli.geometry.twoview.trrm_residuals`. Every edge keeps its own
-damping and its own convergence test; converged edges leave the batch, so the remaining
-iterations only touch the matches of edges still moving.
+Jacobian of :func:`rotonly_cli.geometry.twoview.trrm_residuals` (computed by the lean
+evaluator kernels.trrm_evaluate). Every edge keeps its own damping and its own convergence
+test; converged edges leave the batch, so the remaining iterations only touch the matches
+of edges still moving. The λ_min(Pˢ) first phase runs on per-edge moments (O(1) per edge
+and iteration); the robust loss re-runs LM with IRLS weights from the residuals of the
+previous round's last accepted evaluation.
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ import numpy as np
 
 from rotonly_cli.geometry import kernels, so3
 from rotonly_cli.geometry import twoview as tv
-from rotonly_cli.geometry.scene import (Identification, IdentificationOptions, SceneKind, _ratios_and_ps, classify,
+from rotonly_cli.geometry.scene import (Identification, IdentificationOptions, SceneKind, ratios_and_ps, classify,
                                         detection_values, kind_mask)
 
 
@@ -236,7 +239,8 @@ def _phase1_options(options: TRRMOptions) -> TRRMOptions:
 
 
 def optimize_rotations(R_init: np.ndarray, batch: tv.EdgeBatch, options: TRRMOptions = TRRMOptions(),
-                       edges: np.ndarray | None = None, table: kernels.MatchTable | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                       edges: np.ndarray | None = None, table: kernels.MatchTable | None = None
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Alg. 2's LM on eq:ROMerr for the selected ``edges`` (default all), in lock-step, after
     an optional first phase on λ_min(Pˢ) (``options.epipolar_max_iterations``).
 
@@ -294,7 +298,8 @@ def optimize_rotations(R_init: np.ndarray, batch: tv.EdgeBatch, options: TRRMOpt
     return R, initial_cost, cost, iterations, converged
 
 
-def _cauchy_weights(sq: np.ndarray, table: kernels.MatchTable, options: TRRMOptions, kind: str = "cauchy") -> np.ndarray:
+def _cauchy_weights(sq: np.ndarray, table: kernels.MatchTable, options: TRRMOptions,
+                    kind: str = "cauchy") -> np.ndarray:
     """IRLS weights from per-match squared residuals s: Cauchy 1/(1 + s/c²) (or Huber) with
     c = loss_scale_factor x 1.4826 x the edge's median residual norm (robust_match_weights)."""
     c = np.maximum(options.loss_scale_factor * 1.4826 * np.sqrt(kernels.segment_median(sq, table.offsets)),
@@ -315,66 +320,6 @@ def robust_match_weights(R: np.ndarray, batch: tv.EdgeBatch, ps_weights: np.ndar
     kernels.trrm_evaluate(np.asarray(R, dtype=float).reshape(-1, 3, 3), table, unit_theta=ps_weights is None,
                           sq_out=sq)
     return _cauchy_weights(sq, table, options, kind)
-
-
-def lm_on_rotations(R_init: np.ndarray, batch: tv.EdgeBatch, residual_fn, options: TRRMOptions = TRRMOptions(),
-                    edges: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Lock-step LM on the rotation manifold for any per-edge least-squares ``residual_fn``
-    (returning a ResidualEvaluation with cost, JtJ, Jtr) on the selected ``edges``.
-    Per-match weights travel with ``batch.weights`` (kept through the subsets).
-
-    Per-edge damping and convergence; converged edges leave the batch. Returns
-    (R, initial_cost, cost, iterations, converged); unselected edges are untouched.
-    """
-    options.validate()
-    E = batch.num_edges
-    R = np.array(R_init, dtype=float, copy=True).reshape(E, 3, 3)
-    iterations = np.zeros(E, dtype=np.int64)
-    converged = np.zeros(E, dtype=bool)
-    initial_cost = np.zeros(E)
-    final_cost = np.zeros(E)
-    active = np.arange(E) if edges is None else np.asarray(edges, dtype=np.int64)
-    if active.size == 0:
-        return R, initial_cost, final_cost, iterations, converged
-    sub = batch.subset(active) if active.size != E else batch
-    ev = residual_fn(R[active], sub, with_jacobian=True)
-    cost, JtJ, Jtr = ev.cost, ev.JtJ, ev.Jtr
-    initial_cost[active] = cost
-    final_cost[active] = cost
-    mu = np.full(active.size, options.initial_damping)
-    for _ in range(options.max_iterations):
-        if active.size == 0:
-            break
-        diag = np.einsum("eii->ei", JtJ)
-        damp = mu[:, None] * np.maximum(diag, 1e-12 * (diag.max(axis=1, keepdims=True) + 1e-300))
-        A = JtJ + damp[:, :, None] * np.eye(3)
-        delta = -np.linalg.solve(A, Jtr[:, :, None])[:, :, 0]
-        R_cand = so3.exp(delta) @ R[active]
-        ev_c = residual_fn(R_cand, sub, with_jacobian=True)
-        iterations[active] += 1
-        accept = ev_c.cost <= cost
-        step = np.linalg.norm(delta, axis=1)
-        decrease = cost - ev_c.cost
-        # convergence: small relative decrease on an accepted step, tiny step, or tiny gradient
-        done = (accept & (decrease <= options.function_tolerance * np.maximum(cost, 1e-300))) \
-            | (step < options.step_tolerance) \
-            | (np.linalg.norm(Jtr, axis=1) <= options.gradient_tolerance * (cost + 1e-300)) \
-            | (mu >= options.max_damping)
-        # accept the candidate where it is no worse
-        R[active[accept]] = R_cand[accept]
-        cost = np.where(accept, ev_c.cost, cost)
-        JtJ = np.where(accept[:, None, None], ev_c.JtJ, JtJ)
-        Jtr = np.where(accept[:, None], ev_c.Jtr, Jtr)
-        mu = np.where(accept, np.maximum(mu / 10.0, options.min_damping), mu * 10.0)
-        final_cost[active] = cost
-        converged[active[done]] = True
-        keep = ~done
-        if not np.all(keep):
-            keep_idx = np.flatnonzero(keep)
-            active = active[keep_idx]
-            sub = sub.subset(keep_idx)
-            cost, JtJ, Jtr, mu = cost[keep_idx], JtJ[keep_idx], Jtr[keep_idx], mu[keep_idx]
-    return R, initial_cost, final_cost, iterations, converged
 
 
 def refine(R_init: np.ndarray, batch: tv.EdgeBatch, options: TRRMOptions = TRRMOptions(),
@@ -399,7 +344,7 @@ def refine(R_init: np.ndarray, batch: tv.EdgeBatch, options: TRRMOptions = TRRMO
     R, c0, c1, iters, conv = optimize_rotations(R_init, batch, options, edges=candidates, table=table)
     # ρ of every edge at its rotation (singular edges keep R_init) and, from the same pass,
     # the plain Pˢ at the returned rotations for the identification eigenvalues
-    rho, P_plain, t_plain = _ratios_and_ps(R, batch, table)
+    rho, P_plain, t_plain = ratios_and_ps(R, batch, table)
     kinds = classify(v_rs, rho, identification_options)
     regular = np.flatnonzero(kind_mask(kinds, SceneKind.REGULAR))
     pure = np.flatnonzero(kind_mask(kinds, SceneKind.PURE_ROTATION))
