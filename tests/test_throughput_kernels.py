@@ -212,8 +212,8 @@ def test_frozen_hessian_reaches_the_same_rotations():
     batch = tv.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
     rng = np.random.default_rng(9)
     R0 = np.stack([so3.exp(rng.normal(scale=0.015, size=3)) @ p.R_j_from_i for p in problems])
-    R_a, _, _, it_a, conv_a = optimize_rotations(R0, batch, TRRMOptions())
-    R_b, _, _, it_b, conv_b = optimize_rotations(R0, batch, TRRMOptions(frozen_hessian_below=0.0))
+    R_a, _, _, it_a, conv_a = optimize_rotations(R0, batch, TRRMOptions(frozen_hessian_below=1e-3))
+    R_b, _, _, it_b, conv_b = optimize_rotations(R0, batch, TRRMOptions())
     assert np.all(conv_a) and np.all(conv_b)
     assert np.max(so3.geodesic_angle(R_a, R_b)) < 1e-7
     assert it_a.sum() <= it_b.sum() + 2  # the contraction per step is unchanged
