@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from rotonly_cli.baselines.references import pycolmap_rotation_averaging
 from rotonly_cli.errors import AlgorithmError
 from rotonly_cli.geometry import so3
 from rotonly_cli.geometry.averaging import (AveragingOptions, RobustWeight, average_rotations,
@@ -30,26 +31,6 @@ def aligned_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
     """Per-view angle after the chordal-L2 world gauge R_est S ≈ R_gt."""
     S = so3.project_to_so3(np.einsum("nji,njk->ik", R_est, R_gt))
     return np.degrees(so3.geodesic_angle(R_est @ S, R_gt))
-
-
-def pycolmap_rotation_averaging(num_views, I, J, R_j_from_i, half_norm: bool) -> np.ndarray:
-    pycolmap = pytest.importorskip("pycolmap")
-    rec = pycolmap.Reconstruction()
-    rec.add_camera_with_trivial_rig(pycolmap.Camera.create_from_model_id(
-        1, pycolmap.CameraModelId.PINHOLE, 800.0, 1000, 1000))
-    for i in range(num_views):
-        rec.add_image_with_trivial_frame(pycolmap.Image(name=f"{i}", camera_id=1, image_id=i + 1))
-    pose_graph = pycolmap.PoseGraph()
-    for i, j, R_ij in zip(I, J, R_j_from_i):
-        edge = pycolmap.PoseGraphEdge(pycolmap.Rigid3d(pycolmap.Rotation3d(R_ij), np.zeros(3)))
-        edge.num_matches = 100
-        pose_graph.add_edge(int(i) + 1, int(j) + 1, edge)
-    options = pycolmap.RotationEstimatorOptions()
-    options.random_seed = 0
-    if half_norm:
-        options.weight_type = pycolmap.RotationWeightType.HALF_NORM
-    assert pycolmap.run_rotation_averaging(options, pose_graph, rec, [])
-    return np.stack([rec.images[i + 1].cam_from_world().rotation.matrix() for i in range(num_views)])
 
 
 def test_noise_free_exact():
@@ -79,7 +60,8 @@ def test_noise_and_outliers_match_pycolmap(weight_type, half_norm):
         R, I, J, R_ij, outlier = make_graph(30, seed=seed, noise_deg=1.0, outlier_fraction=0.2)
         result = average_rotations(30, I, J, R_ij, options=AveragingOptions(weight_type=weight_type))
         ours_means.append(aligned_error_deg(result.R_cam_from_world, R).mean())
-        colmap_means.append(aligned_error_deg(pycolmap_rotation_averaging(30, I, J, R_ij, half_norm), R).mean())
+        colmap_means.append(aligned_error_deg(pycolmap_rotation_averaging(
+            30, np.stack([I, J], axis=1), R_ij, weight_type="HALF_NORM" if half_norm else "GEMAN_MCCLURE"), R).mean())
         # every random-rotation edge is flagged; no clean edge at 1° noise exceeds 5°
         assert np.array_equal(~result.inlier_mask, outlier)
     ours, colmap = np.mean(ours_means), np.mean(colmap_means)
