@@ -183,15 +183,10 @@ def run_rotonly_stages(label: str, input_path: Path, gt: SfMScene) -> tuple[list
     edge_views = np.array([[index[run.graph.edges[k].i], index[run.graph.edges[k].j]] for k in edges])
     R_j_from_i = np.stack([run.graph.edges[k].R_j_from_i for k in edges])
     inliers = np.array([run.graph.edges[k].num_inliers for k in edges])
-    results = []
-    for weighted in (False, True):
-        method = f"pycolmap RA on rotonly's TRRM edges ({label}{', inlier-weighted' if weighted else ''})"
-        start = time.perf_counter()
-        R = pycolmap_rotation_averaging(len(index), edge_views, R_j_from_i, inliers, weighted)
-        elapsed = time.perf_counter() - start
-        results.append(evaluate_scene(method, gt, rotations_scene(names, {row_to_view[r]: R[r] for r in
-                                                                           range(len(R))}), elapsed,
-                                      "averaging call only"))
+    results = pycolmap_ra_results((f"pycolmap RA on rotonly's TRRM edges ({label})",
+                                   f"pycolmap RA on rotonly's TRRM edges ({label}, inlier-weighted)"),
+                                  [row_to_view[r] for r in range(len(index))], names, edge_views, R_j_from_i,
+                                  inliers, gt)
 
     start = time.perf_counter()
     average_stage(run)
@@ -214,14 +209,25 @@ def run_rotonly_stages(label: str, input_path: Path, gt: SfMScene) -> tuple[list
 
 # ============================================================================ pycolmap
 
-def pycolmap_rotation_averaging(num_views: int, edge_views: np.ndarray, R_j_from_i: np.ndarray,
-                                num_inliers: np.ndarray, weighted: bool, seed: int = 0) -> np.ndarray:
-    """``pycolmap.run_rotation_averaging`` (algorithms.md §2.3) with default options (Geman-McClure,
-    σ = 5°); ``weighted``: ``reweighting = INLIER_MATCH_COUNT``. (n, 3, 3), NaN if unregistered."""
-    from rotonly_cli.baselines.references import pycolmap_rotation_averaging as reference
+def pycolmap_ra_results(method_names: tuple[str, str], row_views: list[int], names: dict[int, str],
+                        edge_views: np.ndarray, R_j_from_i: np.ndarray, num_inliers: np.ndarray,
+                        gt: SfMScene) -> list[MethodResult]:
+    """``pycolmap.run_rotation_averaging`` (algorithms.md §2.3, default options: Geman-McClure,
+    σ = 5°) uniform and with ``reweighting = INLIER_MATCH_COUNT`` (``method_names`` in that
+    order), each evaluated; rows of the estimate are the views ``row_views``."""
+    from rotonly_cli.baselines.references import pycolmap_rotation_averaging
 
-    return reference(num_views, edge_views, R_j_from_i, num_matches=np.asarray(num_inliers), seed=seed,
-                     weighted=weighted)
+    results = []
+    for method, weighted in zip(method_names, (False, True)):
+        start = time.perf_counter()
+        R = pycolmap_rotation_averaging(len(row_views), edge_views, R_j_from_i,
+                                        num_matches=np.asarray(num_inliers), weighted=weighted)
+        elapsed = time.perf_counter() - start
+        result = evaluate_scene(method, gt, rotations_scene(names, {row_views[r]: R[r] for r in range(len(R))}),
+                                elapsed, "averaging call only")
+        result.extra["num_edges"] = len(edge_views)
+        results.append(result)
+    return results
 
 
 def run_pycolmap_stored(database: Path, gt: SfMScene) -> list[MethodResult]:
@@ -236,17 +242,9 @@ def run_pycolmap_stored(database: Path, gt: SfMScene) -> list[MethodResult]:
     R_j_from_i = np.stack([scene.pairs[key].R_j_from_i for key in keys])
     inliers = np.array([len(scene.pairs[key].matches) for key in keys])
     names = {v: scene.views[v].name for v in view_ids}
-    results = []
-    for weighted in (False, True):
-        method = f"pycolmap RA on the stored two-view geometries{' (inlier-weighted)' if weighted else ''}"
-        start = time.perf_counter()
-        R = pycolmap_rotation_averaging(len(view_ids), edge_views, R_j_from_i, inliers, weighted)
-        elapsed = time.perf_counter() - start
-        result = evaluate_scene(method, gt, rotations_scene(names, {view_ids[r]: R[r] for r in range(len(R))}),
-                                elapsed, "averaging call only")
-        result.extra["num_edges"] = len(keys)
-        results.append(result)
-    return results
+    return pycolmap_ra_results(("pycolmap RA on the stored two-view geometries",
+                                "pycolmap RA on the stored two-view geometries (inlier-weighted)"),
+                               view_ids, names, edge_views, R_j_from_i, inliers, gt)
 
 
 def run_global_mapper(database: Path, gt: SfMScene, threads: int, seed: int = 0) -> MethodResult:

@@ -45,13 +45,16 @@ def _gt_scene(rng: np.random.Generator, n: int) -> SfMScene:
 # ============================================================================ bench_strecha pieces
 
 def test_pycolmap_rotation_averaging_recovers_exact_rotations_both_weightings():
+    """The reference bench_strecha.pycolmap_ra_results calls, with the inlier counts it passes."""
+    from rotonly_cli.baselines.references import pycolmap_rotation_averaging
+
     rng = np.random.default_rng(3)
     R = so3.random_rotations(6, rng)
     i, j = np.triu_indices(6, k=1)
     R_j_from_i = R[j] @ np.swapaxes(R[i], -1, -2)
     for weighted in (False, True):
-        R_est = bench_strecha.pycolmap_rotation_averaging(6, np.column_stack([i, j]), R_j_from_i,
-                                                          np.arange(15) + 30, weighted)
+        R_est = pycolmap_rotation_averaging(6, np.column_stack([i, j]), R_j_from_i,
+                                            num_matches=np.arange(15) + 30, weighted=weighted)
         relative = R_est[j] @ np.swapaxes(R_est[i], -1, -2)
         assert np.degrees(so3.geodesic_angle(relative, R_j_from_i)).max() < 1e-4
 
