@@ -108,7 +108,7 @@ def _to_image_plane(side: np.ndarray, x, with_jacobian: bool) -> None:
     """In place: bearing residual x̂ - ŝ (rows 0-2, derivatives rows 7-15) -> image-plane
     residual x/x_z - ŝ/ŝ_z of eq:PA3 / eq:GRRMRes1 (third component 0); contributions whose
     reprojection is not in front of the camera get ω numerator 0."""
-    inv_norm = 1.0 / np.sqrt(_dot3(x, x))
+    inv_norm = 1.0 / np.sqrt(kernels._dot(x, x))
     s_hat = [x[a] * inv_norm - side[a] for a in range(3)]
     valid = (s_hat[2] > 1e-12) & (x[2] > 0)
     inv_sz = np.where(valid, 1.0 / np.where(valid, s_hat[2], 1.0), 0.0)
@@ -126,10 +126,6 @@ def _to_image_plane(side: np.ndarray, x, with_jacobian: bool) -> None:
             for a in range(2):
                 side[7 + 3 * a + c] = (side[7 + 3 * a + c] - p[a] * dz) * inv_sz
             side[13 + c] = 0.0
-
-
-def _dot3(a, b):
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
 class _Problem:
@@ -468,13 +464,17 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
         med = np.median(np.sqrt(sq[active])) if np.any(active) else 0.0
         scale = max(options.loss_scale_factor * 1.4826 * med, 1e-12)
     cost = float(_robust(sq, options.loss, scale)[0].sum())
+
+    def cost_at(R_at: np.ndarray) -> float:  # robust cost, no Jacobian
+        V_at, _, _ = problem.evaluate(R_at, with_jacobian=False)
+        return float(_robust(np.einsum("gk,gk->g", V_at, V_at), options.loss, scale)[0].sum())
+
     if options.epipolar_max_iterations > 0 and batch.num_edges:
         # the λ_min phase only proposes a start: keep it if GRRM's own cost agrees it is
         # better (on weak geometry, e.g. far points, λ_min's optimum can be worse)
         R1, it1 = epipolar_phase(R, edge_views, batch, free, options.epipolar_max_iterations,
                                  options.epipolar_step_tolerance)
-        V1, _, _ = problem.evaluate(R1, with_jacobian=False)
-        cost1 = float(_robust(np.einsum("gk,gk->g", V1, V1), options.loss, scale)[0].sum())
+        cost1 = cost_at(R1)
         if cost1 < cost:
             R, cost = R1, cost1
         log.info("GRRM λ_min phase: %d iterations, start %s", it1, "taken" if R is R1 else "kept")
@@ -489,14 +489,8 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
         w = robust_match_weights(R_ij, batch, None, TRRMOptions(), kind="huber")
         w = robust_match_weights(R_ij, batch, w, TRRMOptions(), kind="huber")
         problem.batch = batch.with_weights(w)
-        # the initial cost of the problem that is optimised (same weights and scale as the end)
-        V0, _, _ = problem.evaluate(R_input, with_jacobian=False)
-        initial_cost = float(_robust(np.einsum("gk,gk->g", V0, V0), options.loss, scale)[0].sum())
-    elif R is R_input:
-        initial_cost = cost
-    else:
-        V0, _, _ = problem.evaluate(R_input, with_jacobian=False)
-        initial_cost = float(_robust(np.einsum("gk,gk->g", V0, V0), options.loss, scale)[0].sum())
+    # the initial cost of the problem that is optimised (same weights and scale as the end)
+    initial_cost = cost if R is R_input and problem.batch is batch else cost_at(R_input)
     V, S, B = problem.evaluate(R, with_jacobian=True)
     sq = np.einsum("gk,gk->g", V, V)
     rho, drho = _robust(sq, options.loss, scale)
