@@ -169,46 +169,17 @@ def output_scene(run: Run) -> SfMScene:
                    root_path=str(root) if root is not None else run.scene.root_path)
 
 
-def _openmvg_ids_scene(scene: SfMScene) -> SfMScene:
-    """``renumber_views_by_name(colmap_to_openmvg(scene))`` with the landmarks' view and
-    point ids remapped as arrays: convert's per-landmark lists cost ~0.1 s on a Strecha
-    scene (test_pipeline_write checks both give the same scene)."""
-    from rotonly_cli.stages.convert import colmap_to_openmvg, renumber_views_by_name
-
-    structure = scene.structure
-    if structure is None or structure.observation_pixels is not None:  # (stored pixels: not from run)
-        return renumber_views_by_name(colmap_to_openmvg(scene))
-    converted = renumber_views_by_name(colmap_to_openmvg(replace(scene, structure=None)))
-    # colmap_to_openmvg shifts ids down by one when they start at 1 (a monotone shift), then
-    # views are numbered in (file name, id) order
-    order = sorted(scene.views, key=lambda v: (scene.views[v].name, v))
-    old_ids = np.asarray(order, dtype=np.int64)
-    track_lengths, view_feature = structure.flat_observations()
-    sorter = np.argsort(old_ids)
-    position = np.searchsorted(old_ids, view_feature[:, 0], sorter=sorter)
-    if view_feature.size and not np.array_equal(old_ids[sorter[np.minimum(position, len(order) - 1)]],
-                                                view_feature[:, 0]):
-        raise InputError("observation of an unknown view", field="structure.observations")
-    new_view_ids = sorter[position] if view_feature.size else np.zeros(0, dtype=np.int64)
-    pairs = list(zip(new_view_ids.tolist(), view_feature[:, 1].tolist()))
-    ends = np.cumsum(track_lengths).tolist()
-    observations = [pairs[start:end] for start, end in zip([0] + ends[:-1], ends)]
-    point_ids = np.asarray(structure.point_ids, dtype=np.int64)
-    point_shift = -1 if point_ids.size and point_ids.min() >= 1 else 0
-    converted.structure = replace(structure, point_ids=point_ids + point_shift, observations=observations)
-    return converted
-
-
 def write_outputs(out_dir: Path, run: Run) -> SfMScene:
     """OUT/sfm_data.json (OpenMVG) and OUT/sparse/ (COLMAP binary model)."""
     from rotonly_cli.io import colmap, openmvg
+    from rotonly_cli.stages.convert import colmap_to_openmvg, renumber_views_by_name
 
     scene = output_scene(run)
     if not scene.poses:
         raise AlgorithmError("no view received a pose (rotation and centre)")
     # COLMAP input: OpenMVG ids in file-name order (what OpenMVG's own tools, evalQuality
     # included, expect); the COLMAP model keeps the database's ids
-    openmvg_scene = _openmvg_ids_scene(scene) if run.input_kind == "colmap-db" else scene
+    openmvg_scene = renumber_views_by_name(colmap_to_openmvg(scene)) if run.input_kind == "colmap-db" else scene
     openmvg.write_sfm_data(out_dir / "sfm_data.json", openmvg_scene)
     colmap.write_model(out_dir / "sparse", scene, binary=True)
     ordinary_permissions(out_dir / "sparse")  # write_model stages in a 0700 mkdtemp folder

@@ -1,6 +1,9 @@
-"""run's OpenMVG output scene: the array remap of the landmarks equals convert's path."""
+"""run's OpenMVG output scene (convert's colmap_to_openmvg + renumber_views_by_name): the
+array remap of the landmarks equals the obvious per-landmark remap."""
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -8,8 +11,25 @@ import pytest
 from rotonly_cli.errors import InputError
 from rotonly_cli.io import openmvg
 from rotonly_cli.io.types import Intrinsics, Pose, SfMScene, Structure, View
-from rotonly_cli.pipeline import _openmvg_ids_scene
 from rotonly_cli.stages.convert import colmap_to_openmvg, renumber_views_by_name
+
+
+def _openmvg_ids_scene(scene: SfMScene) -> SfMScene:
+    """What `rotonly run` writes for a COLMAP database (pipeline.write_outputs)."""
+    return renumber_views_by_name(colmap_to_openmvg(scene))
+
+
+def _per_landmark_reference(scene: SfMScene) -> SfMScene:
+    """The same ids remapped one landmark at a time: views 0.. in (file name, id) order,
+    point ids shifted down by one when they start at 1."""
+    order = sorted(scene.views, key=lambda v: (scene.views[v].name, v))
+    new_id = {old: new for new, old in enumerate(order)}
+    expected = renumber_views_by_name(colmap_to_openmvg(replace(scene, structure=None)))
+    point_ids = np.asarray(scene.structure.point_ids, dtype=np.int64)
+    expected.structure = replace(scene.structure, point_ids=point_ids - (1 if point_ids.min() >= 1 else 0),
+                                 observations=[[(new_id[v], k) for v, k in track]
+                                               for track in scene.structure.observations])
+    return expected
 
 
 def _colmap_like_scene(rng: np.random.Generator, first_point_id: int) -> SfMScene:
@@ -36,7 +56,7 @@ def _colmap_like_scene(rng: np.random.Generator, first_point_id: int) -> SfMScen
 @pytest.mark.parametrize("first_point_id", [0, 1])
 def test_openmvg_ids_scene_equals_convert_path(first_point_id):
     scene = _colmap_like_scene(np.random.default_rng(first_point_id), first_point_id)
-    expected = renumber_views_by_name(colmap_to_openmvg(scene))
+    expected = _per_landmark_reference(scene)
     fast = _openmvg_ids_scene(scene)
     assert fast.views == expected.views and sorted(fast.poses) == sorted(expected.poses)
     assert [view.name for _, view in sorted(fast.views.items())] == ["a.jpg", "a.jpg", "b.jpg", "c.jpg", "d.jpg",

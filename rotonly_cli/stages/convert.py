@@ -39,17 +39,24 @@ def shift_ids(scene: SfMScene, view_shift: int, intrinsic_shift: int, point_shif
              for (i, j), pair in scene.pairs.items()}
     structure = scene.structure
     if structure is not None:
-        structure = Structure(
-            point_ids=np.asarray(structure.point_ids, dtype=np.int64) + point_shift,
-            points=structure.points, colors=structure.colors,
-            observations=[[(view_id + view_shift, feature) for view_id, feature in track]
-                          for track in structure.observations],
-            observation_pixels=structure.observation_pixels)
+        structure = _remap_observation_views(
+            replace(structure, point_ids=np.asarray(structure.point_ids, dtype=np.int64) + point_shift),
+            lambda view_ids: view_ids + view_shift)
     return replace(
         scene, views=views, intrinsics=intrinsics, pairs=pairs, structure=structure,
         poses={view_id + view_shift: pose for view_id, pose in scene.poses.items()},
         keypoints={view_id + view_shift: k for view_id, k in scene.keypoints.items()},
         normalized={view_id + view_shift: x for view_id, x in scene.normalized.items()})
+
+
+def _remap_observation_views(structure: Structure, new_view_ids) -> Structure:
+    """A copy of ``structure`` whose observations' view ids are ``new_view_ids(old)`` (an
+    array function), remapped on the flat observation arrays rather than per landmark."""
+    track_lengths, view_feature = structure.flat_observations()
+    views = new_view_ids(view_feature[:, 0]) if len(view_feature) else view_feature[:, 0]
+    pairs = list(zip(views.tolist(), view_feature[:, 1].tolist()))
+    ends = np.cumsum(track_lengths).tolist()
+    return replace(structure, observations=[pairs[start:end] for start, end in zip([0] + ends[:-1], ends)])
 
 
 def colmap_to_openmvg(scene: SfMScene) -> SfMScene:
@@ -78,8 +85,16 @@ def renumber_views_by_name(scene: SfMScene) -> SfMScene:
     views = {new_id[old]: replace(scene.views[old], id=new_id[old], pose_id=new_id[old]) for old in order}
     structure = scene.structure
     if structure is not None:
-        structure = replace(structure, observations=[[(new_id[v], k) for v, k in obs]
-                                                     for obs in structure.observations])
+        old_ids = np.asarray(order, dtype=np.int64)
+        sorter = np.argsort(old_ids)
+
+        def renumber(view_ids: np.ndarray) -> np.ndarray:  # new id = position in ``order``
+            position = np.minimum(np.searchsorted(old_ids, view_ids, sorter=sorter), len(order) - 1)
+            if not np.array_equal(old_ids[sorter[position]], view_ids):
+                raise InputError("observation of an unknown view", field="structure.observations")
+            return sorter[position]
+
+        structure = _remap_observation_views(structure, renumber)
     return replace(scene, views=views, structure=structure,
                    poses={new_id[v]: p for v, p in scene.poses.items()},
                    keypoints={new_id[v]: k for v, k in scene.keypoints.items()},
