@@ -44,6 +44,25 @@ def test_bench_twoview_quick(tmp_path: Path) -> None:
             assert row["methods"]["TRRM"]["mean"] < row["methods"]["initial"]["mean"]
 
 
+def test_bench_twoview_method_subset(tmp_path: Path) -> None:
+    """--methods runs only the chosen refinements, on the same problems and starts as a full run."""
+    args = ["bench", "twoview", "--no-progress", "--scenes", "planar", "--noise", "2", "--trials", "4",
+            "--points", "200"]
+    _run(args + ["--methods", "TRRM", "-o", str(tmp_path / "sub")])
+    _run(args + ["--methods", "TRRM,Kneip eigen,PA", "-o", str(tmp_path / "more")])
+    sub = json.loads((tmp_path / "sub" / "results.json").read_text())["rows"][0]
+    more = json.loads((tmp_path / "more" / "results.json").read_text())["rows"][0]
+    assert set(sub["methods"]) == {"initial", "TRRM"}
+    assert set(more["methods"]) == {"initial", "TRRM", "Kneip eigen", "PA"}
+    for m in ("initial", "TRRM"):
+        np.testing.assert_allclose(sub["errors_deg"][m], more["errors_deg"][m], rtol=0, atol=1e-12)
+    table = (tmp_path / "sub" / "table.md").read_text()
+    assert "TRRM mean/median" in table and "BA mean/median" not in table
+    bad = CliRunner().invoke(cli, args + ["--methods", "TRRM,bundle", "-o", str(tmp_path / "bad")])
+    assert bad.exit_code == 2 and "unknown method" in bad.output
+    assert not (tmp_path / "bad").exists()
+
+
 def test_bench_multiview_quick(tmp_path: Path) -> None:
     out = tmp_path / "mv"
     text = _run(["bench", "multiview", "--quick", "--no-progress", "--jobs", "2", "-o", str(out)])
