@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import shutil
 import time
+from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -65,6 +66,8 @@ class Run:
     centers: np.ndarray | None = None
     structure: Structure | None = None
     reports: dict = field(default_factory=dict)
+    #: keypoint colours being decoded on a thread since loading (stages.triangulate)
+    keypoint_rgb: Future | None = None
 
 
 # ============================================================================ stages in memory
@@ -148,7 +151,7 @@ def triangulate_stage(run: Run) -> None:
     from rotonly_cli.stages.triangulate import triangulate_graph
 
     run.structure, run.reports["triangulate"] = triangulate_graph(run.graph, run.scene, run.rotations, run.centers,
-                                                                  image_root(run))
+                                                                  image_root(run), keypoint_rgb=run.keypoint_rgb)
 
 
 STAGE_FUNCTIONS = {"identify": identify_stage, "refine": refine_stage, "average": average_stage,
@@ -283,6 +286,10 @@ def run_pipeline(input_path: str | Path, out_dir: str | Path, options: RunOption
             logger.info("rotonly run %s -> %s", input_path, out_dir)
             try:
                 run = load_stage(input_path, options)
+                if "triangulate" in stages:
+                    from rotonly_cli.stages.triangulate import start_keypoint_colors
+
+                    run.keypoint_rgb = start_keypoint_colors(run.scene, image_root(run))
                 done = ["load"]
                 for stage in stages[1:]:
                     STAGE_FUNCTIONS[stage](run)

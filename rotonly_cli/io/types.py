@@ -84,11 +84,21 @@ class Structure:
     # Optional per point (k, 2) pixel positions of its observations (COLMAP convention),
     # aligned with ``observations``: OpenMVG stores them in each landmark (``x``).
     observation_pixels: list[np.ndarray] | None = None
+    # Optional ``observations`` again as flat arrays (track_lengths (N,), view_feature (M, 2)
+    # int64, as flat_observations returns them), set by producers that hold the tracks as
+    # arrays (triangulation, stages.convert): the writers then skip the M Python tuples.
+    # Whoever replaces ``observations`` must replace (or clear) it too.
+    observation_arrays: tuple[np.ndarray, np.ndarray] | None = None
 
     def flat_observations(self) -> tuple[np.ndarray, np.ndarray]:
         """All observations as arrays, for the vectorised writers: ``track_lengths`` (N,)
         int64 and ``view_feature`` (M, 2) int64 rows (view_id, keypoint_index), tracks
-        concatenated in point order."""
+        concatenated in point order. Read-only: they may be ``observation_arrays``."""
+        if self.observation_arrays is not None:
+            track_lengths, view_feature = self.observation_arrays
+            if len(track_lengths) != len(self.observations):
+                raise InputError("observation_arrays do not match observations", field="structure.observations")
+            return track_lengths, view_feature
         track_lengths = np.fromiter(map(len, self.observations), dtype=np.int64,
                                     count=len(self.observations))
         total = int(track_lengths.sum())

@@ -51,12 +51,21 @@ def shift_ids(scene: SfMScene, view_shift: int, intrinsic_shift: int, point_shif
 
 def _remap_observation_views(structure: Structure, new_view_ids) -> Structure:
     """A copy of ``structure`` whose observations' view ids are ``new_view_ids(old)`` (an
-    array function), remapped on the flat observation arrays rather than per landmark."""
+    array function), remapped on the flat observation arrays rather than per landmark
+    (which the copy keeps as ``observation_arrays`` for the writers)."""
     track_lengths, view_feature = structure.flat_observations()
     views = new_view_ids(view_feature[:, 0]) if len(view_feature) else view_feature[:, 0]
-    pairs = list(zip(views.tolist(), view_feature[:, 1].tolist()))
+    remapped = np.stack([views, view_feature[:, 1]], axis=1).astype(np.int64).reshape(-1, 2)
+    return replace(structure, observations=observation_lists(track_lengths, remapped),
+                   observation_arrays=(track_lengths, remapped))
+
+
+def observation_lists(track_lengths: np.ndarray, view_feature: np.ndarray) -> list[list[tuple[int, int]]]:
+    """``Structure.observations`` (per point a list of (view id, feature) tuples) of flat
+    arrays: one zip over all observations, then one slice per point."""
+    pairs = list(zip(view_feature[:, 0].tolist(), view_feature[:, 1].tolist()))
     ends = np.cumsum(track_lengths).tolist()
-    return replace(structure, observations=[pairs[start:end] for start, end in zip([0] + ends[:-1], ends)])
+    return [pairs[start:end] for start, end in zip([0] + ends[:-1], ends)]
 
 
 def colmap_to_openmvg(scene: SfMScene) -> SfMScene:

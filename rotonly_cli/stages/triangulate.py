@@ -7,7 +7,7 @@ import logging
 import os
 import time
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +15,7 @@ import numpy as np
 from rotonly_cli.geometry.triangulation import TriangulationOptions, triangulate_tracks
 from rotonly_cli.io.types import SfMScene, Structure
 from rotonly_cli.io.viewgraph import ViewGraph
+from rotonly_cli.stages.convert import observation_lists
 from rotonly_cli.stages.translate import graph_tracks
 
 logger = logging.getLogger(__name__)
@@ -98,10 +99,27 @@ def point_colors(scene: SfMScene, image_root: str | Path | None, view_ids: list[
                     "points_coloured": int(seen.sum())}
 
 
+def start_keypoint_colors(scene: SfMScene, image_root: str | Path | None) -> Future | None:
+    """:func:`keypoint_colors` of every view with keypoints, started now on one background
+    thread (None without an image folder). ``rotonly run`` starts it right after loading:
+    the keypoints are known then, and the JPEG decoding (OpenCV releases the GIL) overlaps
+    the rotation stages instead of the triangulation. The colours are the same pixels'."""
+    if image_root is None:
+        return None
+    executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="keypoint-colors")
+    future = executor.submit(keypoint_colors, scene, image_root, sorted(scene.keypoints), 1)
+    executor.shutdown(wait=False)  # the thread ends with its one task
+    return future
+
+
 def triangulate_graph(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.ndarray, centers: np.ndarray,
                       image_root: str | Path | None = None,
-                      options: TriangulationOptions | None = None) -> tuple[Structure, dict]:
-    """Structure (valid points only, observations as (view id, keypoint)) and report."""
+                      options: TriangulationOptions | None = None,
+                      keypoint_rgb: Future | dict[int, np.ndarray | None] | None = None) -> tuple[Structure, dict]:
+    """Structure (valid points only, observations as (view id, keypoint)) and report.
+
+    ``keypoint_rgb``: keypoint colours already being computed (:func:`start_keypoint_colors`)
+    or computed; without them the images are decoded here, beside the triangulation."""
     start = time.perf_counter()
     view_ids = graph.view_ids()
     row_of = {v: r for r, v in enumerate(view_ids)}
@@ -115,23 +133,24 @@ def triangulate_graph(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.nd
         # one decoder thread, the images of every view an edge touches, keypoint colours
         # only kept (no decoded image stays alive)
         edge_views = sorted({graph.edges[k].i for k in edges} | {graph.edges[k].j for k in edges})
-        colors_future = (pool.submit(keypoint_colors, scene, image_root, edge_views, 1)
-                         if image_root is not None else None)
+        colors_future = keypoint_rgb
+        if colors_future is None and image_root is not None:
+            colors_future = pool.submit(keypoint_colors, scene, image_root, edge_views, 1)
         tracks, obs_xy = graph_tracks(graph, scene.normalized, edges, R)
         C = np.where(posed[:, None], centers, 0.0)
         result = triangulate_tracks(R, C, tracks.track_id, tracks.view, obs_xy, tracks.num_tracks, options)
         valid = result.valid
         kept = tracks.subset(valid)
         points = result.points_in_world[valid]
-        keypoint_rgb = None if colors_future is None else colors_future.result()
+        keypoint_rgb = colors_future.result() if isinstance(colors_future, Future) else colors_future
     colors, color_report = point_colors(scene, image_root, view_ids, kept.track_id, kept.view, kept.feature,
                                         kept.num_tracks, keypoint_rgb)
-    obs_view_id = np.asarray(view_ids, dtype=np.int64)[kept.view]
-    pairs = list(zip(obs_view_id.tolist(), kept.feature.tolist()))  # one tuple per observation
-    offsets = np.asarray(kept.offsets).tolist()
-    observations = [pairs[a:b] for a, b in zip(offsets[:-1], offsets[1:])]
+    view_feature = np.stack([np.asarray(view_ids, dtype=np.int64)[kept.view],
+                             np.asarray(kept.feature, dtype=np.int64)], axis=1).reshape(-1, 2)
+    track_lengths = np.diff(np.asarray(kept.offsets, dtype=np.int64))
     structure = Structure(point_ids=np.arange(kept.num_tracks, dtype=np.int64), points=points, colors=colors,
-                          observations=observations)
+                          observations=observation_lists(track_lengths, view_feature),
+                          observation_arrays=(track_lengths, view_feature))
     error = result.mean_reprojection_error[valid]
     report = {"num_edges": len(edges), "num_tracks": tracks.num_tracks, "num_points": int(valid.sum()),
               "num_rejected": int(tracks.num_tracks - valid.sum()),
