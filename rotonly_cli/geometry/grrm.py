@@ -62,6 +62,12 @@ class GRRMOptions:
     #: brings starts a degree or more off into GRRM's basin; 0 disables it
     epipolar_max_iterations: int = 10
     epipolar_step_tolerance: float = 1e-4  #: rad; this phase only has to reach the basin
+    #: run the λ_min phase only when GRRM's first LM step from the start is rejected, needs
+    #: more damping, or moves a view more than this (rad): a start that close is already in
+    #: GRRM's basin (on Strecha the first steps are 3e-4 - 3e-3 rad and the λ_min phase's
+    #: start, 0.1-1 deg away, was never taken). None: always run it first (GRRM's first
+    #: iteration is then computed after it)
+    epipolar_trigger: float | None = 1e-2
     #: "bearing": unit-sphere differences (eq:PA3bearing, the form TRRM uses for one edge);
     #: "image": normalized image coordinates X^i_ijk - X̃_ik (eq:GRRMRes1 with eq:PA2/PA3,
     #: the BA residual's units). Bearing is the default: on Strecha the two agree to 3e-4
@@ -83,6 +89,8 @@ class GRRMOptions:
             raise ValueError("max_iterations: must be >= 0")
         if self.loss_scale is not None and not self.loss_scale > 0:
             raise ValueError("loss_scale: must be > 0")
+        if self.epipolar_trigger is not None and not self.epipolar_trigger >= 0:
+            raise ValueError("epipolar_trigger: must be >= 0 or None")
         return self
 
 
@@ -102,6 +110,9 @@ class GRRMResult:
 #: per-iteration temporary grows with the problem: arrays above glibc's 32 MB mmap
 #: threshold would be page-faulted afresh on every allocation)
 _CHUNK = 1 << 15
+#: up to this many views the 3n x 3n normal equations are assembled and solved dense (same
+#: mathematics; at n ~ 10 scipy's sparse assembly and SuperLU cost more than the numbers)
+_DENSE_MAX_VIEWS = 200
 
 
 def _to_image_plane(side: np.ndarray, x, with_jacobian: bool) -> None:
@@ -225,30 +236,25 @@ class _Problem:
             table[M + m0:M + m1, :width] = side_j.T
         return table
 
-    def evaluate(self, R: np.ndarray, with_jacobian: bool):
-        """Per-observation residuals V (G, 3), the weight sums S (G,), and optionally the
-        per-contribution Jacobian blocks B (9, 2M) w.r.t. their edge's δ_e, in sorted order
-        (row a*3+c of B = dV_a / dδ_c). B is a buffer of this problem, valid until the next
-        evaluation with the Jacobian."""
+    def _block_terms(self, R: np.ndarray, with_jacobian: bool, B_out: np.ndarray | None = None):
+        """Yields, per block of ``self.blocks``: the block, its observations' residuals V (3, g)
+        and weight sums S (g,), and with the Jacobian its contributions' blocks B (9, s) w.r.t.
+        their edge's δ_e (row a*3+c = dV_a / dδ_c), written into ``B_out[:, s0:s1]`` if given."""
         width = 16 if with_jacobian else 4
         table = self._match_table(self.relative(R), with_jacobian)
-        V = np.empty((self.num_groups, 3))
-        S = np.empty(self.num_groups)
-        if with_jacobian and self._B is None:
-            self._B = np.empty((9, 2 * self.M))
-        B = self._B if with_jacobian else None
-        for s0, s1, g0, g1, _, _ in self.blocks:
+        for blk in self.blocks:
+            s0, s1, g0, g1, _, _ = blk
             cols = np.ascontiguousarray(table[self.order[s0:s1], :width].T)
             res, b = cols[0:3], cols[3]
             seg = self.starts[g0:g1] - s0
-            sizes = self.sizes[g0:g1]
             S_blk = np.add.reduceat(b, seg)
             inv_S = 1.0 / np.where(S_blk > 0, S_blk, 1.0)
             V_blk = np.add.reduceat(b * res, seg, axis=1) * inv_S
-            S[g0:g1] = S_blk
-            V[g0:g1] = V_blk.T
             if not with_jacobian:
+                yield blk, V_blk, S_blk, None
                 continue
+            sizes = self.sizes[g0:g1]
+            B = np.empty((9, s1 - s0)) if B_out is None else B_out[:, s0:s1]
             inv_S_c = np.repeat(inv_S, sizes)
             b_over_S = b * inv_S_c
             db, dres = cols[4:7], cols[7:16]
@@ -256,78 +262,156 @@ class _Problem:
             for a in range(3):
                 dev = (res[a] - np.repeat(V_blk[a], sizes)) * inv_S_c
                 for c in range(3):
-                    B[3 * a + c, s0:s1] = dev * db[c] + b_over_S * dres[3 * a + c]
+                    B[3 * a + c] = dev * db[c] + b_over_S * dres[3 * a + c]
+            yield blk, V_blk, S_blk, B
+
+    def evaluate(self, R: np.ndarray, with_jacobian: bool):
+        """Per-observation residuals V (G, 3), the weight sums S (G,), and optionally the
+        per-contribution Jacobian blocks B (9, 2M) w.r.t. their edge's δ_e, in sorted order
+        (row a*3+c of B = dV_a / dδ_c). B is a buffer of this problem, valid until the next
+        evaluation with the Jacobian."""
+        V = np.empty((self.num_groups, 3))
+        S = np.empty(self.num_groups)
+        if with_jacobian and self._B is None:
+            self._B = np.empty((9, 2 * self.M))
+        B = self._B if with_jacobian else None
+        for (_, _, g0, g1, _, _), V_blk, S_blk, _ in self._block_terms(R, with_jacobian, B):
+            S[g0:g1] = S_blk
+            V[g0:g1] = V_blk.T
         return V, S, B
+
+    def linearize(self, R: np.ndarray, loss: str, scale: float, robust_hessian: bool, with_jacobian: bool):
+        """Robust cost Σ ρ(‖V_g‖²) at R and, with the Jacobian, the normal equations
+        (JᵀWJ, JᵀWV) of all 3n parameters (W = ρ', with the loss's second-order term if
+        ``robust_hessian``), accumulated block by block while each block's terms are in cache
+        (no (9, 2M) Jacobian buffer). JᵀWJ is dense for up to _DENSE_MAX_VIEWS views."""
+        sums = self._new_sums() if with_jacobian else None
+        cost = 0.0
+        for blk, V_blk, _, B in self._block_terms(R, with_jacobian):
+            sq = V_blk[0] * V_blk[0] + V_blk[1] * V_blk[1] + V_blk[2] * V_blk[2]
+            rho, drho = _robust(sq, loss, scale)
+            cost += float(rho.sum())
+            if with_jacobian:
+                alpha = None
+                if robust_hessian:
+                    beta = _robust_curvature(sq, loss, scale)
+                    if np.any(beta > 0):
+                        alpha = 1.0 - np.sqrt(1.0 - np.clip(beta, 0.0, 1.0))
+                self._accumulate(sums, blk, B, V_blk, drho, alpha)
+        if not with_jacobian:
+            return cost, None, None
+        JtJ, grad = self._assemble(R, sums, dense=self.n <= _DENSE_MAX_VIEWS)
+        return cost, JtJ, grad
 
     def chain_matrix(self, R: np.ndarray) -> sp.csr_matrix:
         """C (3E x 3n): δ_e = δ_j - R_ij δ_i."""
         return _chain(R, self.edge_views, self.n)
 
+    def _new_sums(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Zeroed J_eᵀWV per edge (E, 3), diagonal blocks (E, 9) and pair blocks (K, 9) of J_eᵀWJ_e."""
+        return np.zeros((self.E, 3)), np.zeros((self.E, 9)), np.zeros((len(self.block_keys), 9))
+
+    def _accumulate(self, sums, blk, B: np.ndarray, V_blk: np.ndarray, weight: np.ndarray,
+                    alpha: np.ndarray | None) -> None:
+        """Adds one block's J_eᵀWV and J_eᵀWJ_e (blocks (e_c, e_c) and (e_c, e_c') of the
+        pairs c < c' of each observation) to ``sums``. ``weight`` (g,) = ρ' ≥ 0 per
+        observation; ``alpha`` (g,): the curvature correction B_c <- (I - α v̂v̂ᵀ) B_c
+        (see :meth:`normal_equations`)."""
+        g_edge, diag, off = sums
+        s0, s1, g0, g1, p0, p1 = blk
+        sizes = self.sizes[g0:g1]
+        edges = self.edge_sorted[s0:s1]
+        E = self.E
+        wV = [np.repeat(V_blk[a] * weight, sizes) for a in range(3)]
+        # J_eᵀ W V per edge: Σ_c B_cᵀ w_g V_g
+        for c in range(3):
+            g_edge[:, c] += np.bincount(edges, weights=B[c] * wV[0] + B[3 + c] * wV[1] + B[6 + c] * wV[2],
+                                        minlength=E)
+        # √w (I - α v̂v̂ᵀ) B_c once per contribution: the products below then need no weights
+        root_w = np.repeat(np.sqrt(weight), sizes)
+        Bw = np.empty_like(B)
+        if alpha is None:
+            np.multiply(B, root_w, out=Bw)
+        else:
+            norm = np.sqrt(V_blk[0] * V_blk[0] + V_blk[1] * V_blk[1] + V_blk[2] * V_blk[2])
+            v_hat = V_blk / np.where(norm > 0, norm, 1.0)
+            v_c = [np.repeat(v_hat[a], sizes) for a in range(3)]
+            wav = [root_w * np.repeat(alpha * v_hat[a], sizes) for a in range(3)]
+            for c in range(3):
+                q = v_c[0] * B[c] + v_c[1] * B[3 + c] + v_c[2] * B[6 + c]  # (v̂ᵀ B)_c
+                for a in range(3):
+                    Bw[3 * a + c] = root_w * B[3 * a + c] - wav[a] * q
+        diag += _block_products(Bw, Bw, edges, E, symmetric=True)
+        if p1 > p0:
+            pa = self.pair_a[p0:p1] - s0
+            pb = self.pair_b[p0:p1] - s0
+            off += _block_products(Bw.take(pa, axis=1), Bw.take(pb, axis=1), self.pair_block[p0:p1], len(off))
+
+    def _assemble(self, R: np.ndarray, sums, dense: bool):
+        """(JᵀWJ, JᵀWV) of the 3n camera parameters from the edge sums, J = J_e C: each edge
+        block M at (e, f) (e = (i, j), f = (k, l)) adds C_eᵀ M C_f, i.e. M at views (j, l),
+        -M R_f at (j, k), -R_eᵀ M at (i, l) and R_eᵀ M R_f at (i, k) (C_e = [-R_ij at i, I at j])."""
+        g_edge, diag, off = sums
+        n, E = self.n, self.E
+        R_ij = self.relative(R)
+        Rt = np.swapaxes(R_ij, 1, 2)
+        vi, vj = self.edge_views[:, 0], self.edge_views[:, 1]
+        grad = np.zeros((n, 3))
+        Rt_g = np.einsum("eab,eb->ea", Rt, g_edge)
+        for c in range(3):
+            grad[:, c] = np.bincount(vj, weights=g_edge[:, c], minlength=n) - np.bincount(vi, weights=Rt_g[:, c],
+                                                                                           minlength=n)
+        # blocks (e, f, M): the diagonal ones, the pairs and their transposes
+        off_blocks = off.reshape(-1, 3, 3)
+        e = np.concatenate([np.arange(E), self.block_row, self.block_col])
+        f = np.concatenate([np.arange(E), self.block_col, self.block_row])
+        M = np.concatenate([diag.reshape(E, 3, 3), off_blocks, np.swapaxes(off_blocks, 1, 2)])
+        MR = M @ R_ij[f]
+        data = np.concatenate([M, -MR, -(Rt[e] @ M), Rt[e] @ MR])
+        rows = np.concatenate([vj[e], vj[e], vi[e], vi[e]])
+        cols = np.concatenate([vj[f], vi[f], vj[f], vi[f]])
+        if dense:
+            H = np.zeros((n * n, 9))
+            for k in range(9):
+                H[:, k] = np.bincount(rows * n + cols, weights=data[:, k // 3, k % 3], minlength=n * n)
+            return H.reshape(n, n, 3, 3).transpose(0, 2, 1, 3).reshape(3 * n, 3 * n), grad.ravel()
+        r3 = np.broadcast_to((3 * rows)[:, None, None] + np.arange(3)[None, :, None], data.shape).ravel()
+        c3 = np.broadcast_to((3 * cols)[:, None, None] + np.arange(3)[None, None, :], data.shape).ravel()
+        return sp.csc_matrix((data.ravel(), (r3, c3)), shape=(3 * n, 3 * n)), grad.ravel()
+
     def normal_equations(self, R: np.ndarray, V: np.ndarray, B: np.ndarray, row_weight: np.ndarray,
                          radial_curvature: np.ndarray | None = None):
-        """(JᵀWJ (3n x 3n, sparse), JᵀW V (3n,)) with per-observation weights W = ρ'.
+        """(JᵀWJ (3n x 3n, sparse), JᵀW V (3n,)) with per-observation weights W = ρ' ≥ 0,
+        from V and B of :meth:`evaluate`.
 
         ``radial_curvature`` β_g (G,): the Hessian block of observation g becomes
         ρ' J_gᵀ (I - β_g v̂ v̂ᵀ) J_g (v̂ = V_g / ‖V_g‖), the robust loss's second-order term
-        (see :func:`_robust_curvature`); the gradient is unchanged."""
-        E = self.E
-        K = len(self.block_keys)
-        g_edge = np.zeros((E, 3))
-        diag = np.zeros((E, 9))
-        off = np.zeros((K, 9))
-        corrected = radial_curvature is not None and np.any(radial_curvature > 0)
-        if corrected:
-            # I - β v̂v̂ᵀ = (I - α v̂v̂ᵀ)² with α = 1 - sqrt(1 - β): scale every block once,
-            # B_c <- (I - α v̂ v̂ᵀ) B_c, and the pair products stay as they are
-            norm = np.sqrt(np.einsum("gk,gk->g", V, V))
-            v_hat = V / np.where(norm > 0, norm, 1.0)[:, None]
+        (see :func:`_robust_curvature`); the gradient is unchanged. I - β v̂v̂ᵀ = (I - α v̂v̂ᵀ)²
+        with α = 1 - sqrt(1 - β): every block is scaled once, B_c <- (I - α v̂ v̂ᵀ) B_c, and
+        the pair products stay as they are."""
+        sums = self._new_sums()
+        alpha = None
+        if radial_curvature is not None and np.any(radial_curvature > 0):
             alpha = 1.0 - np.sqrt(1.0 - np.clip(radial_curvature, 0.0, 1.0))
+        for blk in self.blocks:
+            s0, s1, g0, g1, _, _ = blk
+            self._accumulate(sums, blk, B[:, s0:s1], V[g0:g1].T, row_weight[g0:g1],
+                             None if alpha is None else alpha[g0:g1])
+        return self._assemble(R, sums, dense=False)
 
-        def products(Ba, Bb, weight, index, length):  # Σ over index of weight B_aᵀ B_b, (length, 9)
-            out = np.empty((length, 9))
-            for p in range(3):
-                wa = [weight * Ba[p], weight * Ba[3 + p], weight * Ba[6 + p]]
-                for q in range(3):
-                    out[:, 3 * p + q] = np.bincount(index, weights=wa[0] * Bb[q] + wa[1] * Bb[3 + q] + wa[2] * Bb[6 + q],
-                                                    minlength=length)
-            return out
 
-        for s0, s1, g0, g1, p0, p1 in self.blocks:
-            sizes = self.sizes[g0:g1]
-            w = np.repeat(row_weight[g0:g1], sizes)
-            wV = [np.repeat(V[g0:g1, a] * row_weight[g0:g1], sizes) for a in range(3)]
-            Bb = B[:, s0:s1]
-            edges = self.edge_sorted[s0:s1]
-            # J_eᵀ W V per edge: Σ_c B_cᵀ w_g V_g
-            for c in range(3):
-                g_edge[:, c] += np.bincount(edges, weights=Bb[c] * wV[0] + Bb[3 + c] * wV[1] + Bb[6 + c] * wV[2],
-                                            minlength=E)
-            if corrected:
-                av = [np.repeat(alpha[g0:g1] * v_hat[g0:g1, a], sizes) for a in range(3)]
-                v_c = [np.repeat(v_hat[g0:g1, a], sizes) for a in range(3)]
-                Bb = Bb.copy()
-                for c in range(3):
-                    q = v_c[0] * Bb[c] + v_c[1] * Bb[3 + c] + v_c[2] * Bb[6 + c]  # (v̂ᵀ B)_c
-                    for a in range(3):
-                        Bb[3 * a + c] -= av[a] * q
-            # diagonal pairs (c, c): blocks (e_c, e_c)
-            diag += products(Bb, Bb, w, edges, E)
-            # pairs c < c' inside one observation: blocks (e_c, e_c') and their transposes
-            if p1 > p0:
-                pa = self.pair_a[p0:p1] - s0
-                pb = self.pair_b[p0:p1] - s0
-                off += products(Bb.take(pa, axis=1), Bb.take(pb, axis=1), w[pa], self.pair_block[p0:p1], K)
-        diag = diag.reshape(E, 3, 3)
-        off = off.reshape(K, 3, 3)
-        rows = np.concatenate([np.arange(E), self.block_row, self.block_col])
-        cols = np.concatenate([np.arange(E), self.block_col, self.block_row])
-        data = np.concatenate([diag, off, np.swapaxes(off, 1, 2)])
-        H = sp.bsr_matrix((data, cols, np.arange(len(rows) + 1)), shape=(3 * len(rows), 3 * E))
-        # rows of that BSR are one per block: sum them into block row r via a selector
-        Sel = sp.csr_matrix((np.ones(len(rows)), (rows, np.arange(len(rows)))), shape=(E, len(rows)))
-        H = sp.kron(Sel, sp.identity(3), format="csr") @ H
-        C = self.chain_matrix(R)
-        return (C.T @ H @ C).tocsc(), C.T @ g_edge.ravel()
+def _block_products(Ba: np.ndarray, Bb: np.ndarray, index: np.ndarray, length: int,
+                    symmetric: bool = False) -> np.ndarray:
+    """Σ over ``index`` of B_aᵀ B_b (3x3 blocks as 9 component rows), (length, 9);
+    ``symmetric`` (Ba is Bb): the 6 upper products only, mirrored."""
+    out = np.empty((length, 9))
+    for p in range(3):
+        for q in range(p if symmetric else 0, 3):
+            out[:, 3 * p + q] = np.bincount(index, weights=Ba[p] * Bb[q] + Ba[3 + p] * Bb[3 + q] + Ba[6 + p] * Bb[6 + q],
+                                            minlength=length)
+            if symmetric and q > p:
+                out[:, 3 * q + p] = out[:, 3 * p + q]
+    return out
 
 
 def _robust_curvature(sq_norm: np.ndarray, loss: str, scale: float) -> np.ndarray:
@@ -399,11 +483,15 @@ def _block_diag(blocks: np.ndarray) -> sp.csr_matrix:
 
 
 def _solve_damped(JtJ, grad, mu):
+    """LM step -(JᵀJ + μ diag(JᵀJ))⁻¹ g; JᵀJ dense (ndarray) or sparse; None if singular."""
     diag = JtJ.diagonal()
     diag = np.where(diag > 0, diag, 1.0)
     try:
-        delta = -spla.spsolve((JtJ + sp.diags(mu * diag)).tocsc(), grad)
-    except RuntimeError:
+        if isinstance(JtJ, np.ndarray):
+            delta = -np.linalg.solve(JtJ + np.diag(mu * diag), grad)
+        else:
+            delta = -spla.spsolve((JtJ + sp.diags(mu * diag)).tocsc(), grad)
+    except (RuntimeError, np.linalg.LinAlgError):
         return None
     return delta if np.all(np.isfinite(delta)) else None
 
@@ -455,7 +543,7 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
     free = np.ones(3 * n, dtype=bool)
     free[3 * fixed_view:3 * fixed_view + 3] = False
     R_input = R
-    # costs only (no Jacobian) until the start and the match weights are settled
+    # costs only (no Jacobian) until the loss scale is settled
     V, S, _ = problem.evaluate(R, with_jacobian=False)
     sq = np.einsum("gk,gk->g", V, V)
     scale = options.loss_scale
@@ -463,38 +551,81 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
         active = S > 0
         med = np.median(np.sqrt(sq[active])) if np.any(active) else 0.0
         scale = max(options.loss_scale_factor * 1.4826 * med, 1e-12)
-    cost = float(_robust(sq, options.loss, scale)[0].sum())
+    cost = float(_robust(sq, options.loss, scale)[0].sum())  # without translation weights
 
-    def cost_at(R_at: np.ndarray) -> float:  # robust cost, no Jacobian
-        V_at, _, _ = problem.evaluate(R_at, with_jacobian=False)
-        return float(_robust(np.einsum("gk,gk->g", V_at, V_at), options.loss, scale)[0].sum())
+    def linearize(R_at: np.ndarray, with_jacobian: bool):  # (robust cost, JᵀWJ, JᵀWV) of all 3n
+        return problem.linearize(R_at, options.loss, scale, options.robust_hessian, with_jacobian)
 
-    if options.epipolar_max_iterations > 0 and batch.num_edges:
-        # the λ_min phase only proposes a start: keep it if GRRM's own cost agrees it is
-        # better (on weak geometry, e.g. far points, λ_min's optimum can be worse)
-        R1, it1 = epipolar_phase(R, edge_views, batch, free, options.epipolar_max_iterations,
-                                 options.epipolar_step_tolerance)
-        cost1 = cost_at(R1)
-        if cost1 < cost:
-            R, cost = R1, cost1
-        log.info("GRRM λ_min phase: %d iterations, start %s", it1, "taken" if R is R1 else "kept")
-    if options.robust_translation and batch.num_edges:
+    def weighted_batch(R_at: np.ndarray) -> tv.EdgeBatch:
         # each edge's t from Σ w θθᵀ with Huber IRLS weights of its matches (weight 1 within
         # 3 robust sigmas, so clean data is untouched): wrong matches with large θ would
         # otherwise tilt t for the whole edge. Weighed at the chosen start, after the λ_min
         # phase (weights from a start far off would down-weight good matches).
+        if not (options.robust_translation and batch.num_edges):
+            return batch
         from rotonly_cli.geometry.trrm import TRRMOptions, robust_match_weights
 
-        R_ij = R[edge_views[:, 1]] @ np.swapaxes(R[edge_views[:, 0]], 1, 2)
+        R_ij = R_at[edge_views[:, 1]] @ np.swapaxes(R_at[edge_views[:, 0]], 1, 2)
         w = robust_match_weights(R_ij, batch, None, TRRMOptions(), kind="huber")
         w = robust_match_weights(R_ij, batch, w, TRRMOptions(), kind="huber")
-        problem.batch = batch.with_weights(w)
+        return batch.with_weights(w)
+
+    def lm_iteration(R_at: np.ndarray, cost_now: float, JtJ, grad, mu: float):
+        """Alg. 4's inner loop: solve, evaluate, raise the damping until the cost decreases.
+        Returns (accepted, R, cost, JᵀWJ, JᵀWV, step, damping) of the candidate."""
+        JtJ = JtJ[np.ix_(free, free)] if isinstance(JtJ, np.ndarray) else JtJ[free][:, free]
+        grad = grad[free]
+        while True:
+            delta_free = _solve_damped(JtJ, grad, mu)
+            if delta_free is not None:
+                delta = np.zeros(3 * n)
+                delta[free] = delta_free
+                R_cand = so3.exp(delta.reshape(n, 3)) @ R_at
+                step = float(np.max(np.linalg.norm(delta.reshape(n, 3), axis=1)))
+                # the candidate's normal equations come with its cost (accepted steps, the usual
+                # case, reuse them), except after a step below step_tolerance, after which LM
+                # stops if it is accepted
+                cost_c, JtJ_c, grad_c = linearize(R_cand, step >= options.step_tolerance)
+                if cost_c <= cost_now:
+                    return True, R_cand, cost_c, JtJ_c, grad_c, step, max(mu / 10.0, 1e-15)
+            mu *= 10.0
+            if mu > options.max_damping:
+                return False, R_at, cost_now, None, None, 0.0, mu
+
+    first = None  # GRRM's first iteration from the input start, when computed before the λ_min phase
+    start = None  # (cost, JᵀWJ, JᵀWV) at the chosen start, with its translation weights
+    if options.epipolar_max_iterations > 0 and batch.num_edges:
+        if options.epipolar_trigger is not None and options.max_iterations > 0:
+            # GRRM's own first step from the input start decides whether the λ_min phase is
+            # needed: an accepted step (no extra damping) below epipolar_trigger means the
+            # start is already in GRRM's basin, where the λ_min phase cannot help
+            problem.batch = weighted_batch(R_input)
+            start = linearize(R_input, True)
+            t0 = time.perf_counter()
+            first = lm_iteration(R_input, *start, options.initial_damping) + (time.perf_counter() - t0,)
+            in_basin = first[0] and first[6] < options.initial_damping and first[5] <= options.epipolar_trigger
+            if in_basin:
+                log.info("GRRM λ_min phase: skipped (first GRRM step %.2e rad <= %.2e)", first[5],
+                         options.epipolar_trigger)
+        if first is None or not in_basin:
+            # the λ_min phase only proposes a start: keep it if GRRM's own cost (without the
+            # translation weights, which depend on the start) agrees it is better (on weak
+            # geometry, e.g. far points, λ_min's optimum can be worse)
+            weighted, problem.batch = problem.batch, batch
+            R1, it1 = epipolar_phase(R, edge_views, batch, free, options.epipolar_max_iterations,
+                                     options.epipolar_step_tolerance)
+            cost1 = problem.linearize(R1, options.loss, scale, False, False)[0]
+            if cost1 < cost:
+                R, cost, first, start = R1, cost1, None, None
+            else:
+                problem.batch = weighted  # the start is kept: so are its weights and first iteration
+            log.info("GRRM λ_min phase: %d iterations, start %s", it1, "taken" if R is R1 else "kept")
+    if start is None:
+        problem.batch = weighted_batch(R)
+        start = linearize(R, True)
+    cost, JtJ, grad = start
     # the initial cost of the problem that is optimised (same weights and scale as the end)
-    initial_cost = cost if R is R_input and problem.batch is batch else cost_at(R_input)
-    V, S, B = problem.evaluate(R, with_jacobian=True)
-    sq = np.einsum("gk,gk->g", V, V)
-    rho, drho = _robust(sq, options.loss, scale)
-    cost = float(rho.sum())
+    initial_cost = cost if R is R_input else linearize(R_input, False)[0]
     history: list[dict] = []
     mu = options.initial_damping
     converged = False
@@ -503,35 +634,11 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
              n, batch.num_edges, problem.num_groups, cost, options.loss, scale)
     for iteration in range(1, options.max_iterations + 1):
         t0 = time.perf_counter()
-        # IRLS form of the robust loss: observation weights ρ'(s)
-        curvature = _robust_curvature(sq, options.loss, scale) if options.robust_hessian else None
-        JtJ, grad = problem.normal_equations(R, V, B, drho, curvature)
-        JtJ = JtJ[free][:, free]
-        grad = grad[free]
-        accepted = False
-        while True:
-            delta_free = _solve_damped(JtJ, grad, mu)
-            if delta_free is None:
-                mu *= 10.0
-                if mu > options.max_damping:
-                    break
-                continue
-            delta = np.zeros(3 * n)
-            delta[free] = delta_free
-            R_cand = so3.exp(delta.reshape(n, 3)) @ R
-            step = float(np.max(np.linalg.norm(delta.reshape(n, 3), axis=1)))
-            # evaluate the candidate with its Jacobian: accepted steps (the usual case) reuse
-            # it, except a step below step_tolerance, after which LM stops if it is accepted
-            V_c, S_c, B_c = problem.evaluate(R_cand, with_jacobian=step >= options.step_tolerance)
-            sq_c = np.einsum("gk,gk->g", V_c, V_c)
-            rho_c, drho_c = _robust(sq_c, options.loss, scale)
-            cost_c = float(rho_c.sum())
-            if cost_c <= cost:
-                accepted = True
-                break
-            mu *= 10.0
-            if mu > options.max_damping:
-                break
+        if iteration == 1 and first is not None:
+            accepted, R_cand, cost_c, JtJ_c, grad_c, step, mu, seconds = first
+            t0 -= seconds
+        else:
+            accepted, R_cand, cost_c, JtJ_c, grad_c, step, mu = lm_iteration(R, cost, JtJ, grad, mu)
         if not accepted:
             history.append({"iteration": iteration, "cost": cost, "step": 0.0, "damping": mu, "accepted": False,
                             "seconds": time.perf_counter() - t0})
@@ -539,8 +646,7 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
             converged = True
             break
         decrease = cost - cost_c
-        R, V, S, B, sq, rho, drho, cost = R_cand, V_c, S_c, B_c, sq_c, rho_c, drho_c, cost_c
-        mu = max(mu / 10.0, 1e-15)
+        R, cost, JtJ, grad = R_cand, cost_c, JtJ_c, grad_c
         history.append({"iteration": iteration, "cost": cost, "step": step, "damping": mu, "accepted": True,
                         "seconds": time.perf_counter() - t0})
         log.info("GRRM iteration %d: cost %.6e (-%.2e), max step %.2e rad, %.2f s",
