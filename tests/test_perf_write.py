@@ -81,3 +81,23 @@ def test_early_keypoint_colors_equal_decoding_in_triangulate(tmp_path):
         np.testing.assert_array_equal(early[view_id], direct[view_id])
         assert early[view_id].shape == (25, 3)
     assert start_keypoint_colors(scene, None) is None
+
+
+def test_collector_paused_restores_the_collector_state():
+    import gc
+
+    from rotonly_cli.pipeline import collector_paused
+
+    assert gc.isenabled()
+    with pytest.raises(RuntimeError):
+        with collector_paused():
+            assert not gc.isenabled()
+            raise RuntimeError("a failing stage")
+    assert gc.isenabled()  # back on after an error
+    gc.disable()
+    try:
+        with collector_paused():
+            assert not gc.isenabled()
+        assert not gc.isenabled()  # a caller's choice (off) is kept
+    finally:
+        gc.enable()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import sys
 from pathlib import Path
 
@@ -87,7 +88,14 @@ def command(ctx: click.Context, input_path: Path, out_dir: Path, gt_path: Path |
     view_graph.json, reports/<stage>.json, run.log and state.npz (for the stage commands).
     Views outside the largest connected view graph component are reported, not registered.
     """
-    from rotonly_cli.pipeline import run_pipeline
+    collecting = gc.isenabled()
+    gc.disable()  # from the imports on: see pipeline.collector_paused
+    try:
+        from rotonly_cli.pipeline import run_pipeline
 
-    options = run_options(ctx, grrm=not no_grrm, gt=None if gt_path is None else str(gt_path), **load_options)
-    echo_summary(run_pipeline(input_path, out_dir, options), out_dir)
+        options = run_options(ctx, grrm=not no_grrm, gt=None if gt_path is None else str(gt_path), **load_options)
+        summary = run_pipeline(input_path, out_dir, options)
+    finally:
+        if collecting:
+            gc.enable()
+    echo_summary(summary, out_dir)
