@@ -78,13 +78,17 @@ class GRRMOptions:
     #: Hessian with the robust loss's second-order term (see _robust_curvature): same
     #: optimum, fewer iterations than plain IRLS weights
     robust_hessian: bool = True
-    #: with robust_hessian: the Cauchy loss's radial curvature beyond its scale (β in (1, 2),
-    #: a negative rank-1 term per observation) is kept whenever the damped system stays
-    #: positive definite, falling back to the clamped β <= 1 otherwise. The exact Hessian of
-    #: ρ(‖V‖²) turns LM's linear rate (~0.2 per iteration on Strecha) quadratic: entry-P10
-    #: steps 4.2e-3, 1.4e-3, 2.3e-4, 1.7e-6 rad instead of 3.3e-3, 4.5e-4, 8.3e-5, 1.8e-5,
-    #: 4.0e-6; same optimum (the gradient is unchanged)
-    exact_radial_curvature: bool = True
+    #: with robust_hessian, from the start and after accepted steps below this (rad; 0 =
+    #: never): the Cauchy loss's radial curvature beyond its scale (β in (1, 2), a negative
+    #: rank-1 term per observation) is kept whenever the damped system stays positive
+    #: definite, else the clamped β <= 1. The exact Hessian of ρ(‖V‖²) turns LM's linear rate
+    #: (~0.2 per iteration on Strecha) quadratic: entry-P10 steps 4.2e-3, 1.4e-3, 2.3e-4,
+    #: 1.7e-6 rad instead of 3.3e-3, 4.5e-4, 8.3e-5, 1.8e-5, 4.0e-6 (Strecha iterations
+    #: 3/5/3 -> 3/4/2); same optimum (the gradient is unchanged). Far from the optimum the PSD
+    #: clamped model can be the better one: a simulated 8-view start whose first step is
+    #: 4e-3 rad took 12 iterations with the exact term, 6 without; 1e-3 avoids that but
+    #: gives back the Strecha gain (3/5/3)
+    exact_curvature_below: float = float("inf")
     #: per-edge t from IRLS-weighted Pˢ (weights fixed at the start; see trrm.TRRMOptions.loss)
     robust_translation: bool = True
 
@@ -97,6 +101,8 @@ class GRRMOptions:
             raise ValueError("max_iterations: must be >= 0")
         if self.loss_scale is not None and not self.loss_scale > 0:
             raise ValueError("loss_scale: must be > 0")
+        if not self.exact_curvature_below >= 0:
+            raise ValueError("exact_curvature_below: must be >= 0")
         if self.epipolar_trigger is not None and not self.epipolar_trigger >= 0:
             raise ValueError("epipolar_trigger: must be >= 0 or None")
         return self
@@ -652,9 +658,9 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
         scale = max(options.loss_scale_factor * 1.4826 * med, 1e-12)
     cost = float(_robust(sq, options.loss, scale)[0].sum())  # without translation weights
 
-    def linearize(R_at: np.ndarray, with_jacobian: bool):  # (robust cost, JᵀWJ, JᵀWV, remainder), all 3n
-        return problem.linearize(R_at, options.loss, scale, options.robust_hessian, with_jacobian,
-                                 options.exact_radial_curvature)
+    def linearize(R_at: np.ndarray, with_jacobian: bool, exact: bool = False):
+        # (robust cost, JᵀWJ, JᵀWV, remainder) of all 3n parameters
+        return problem.linearize(R_at, options.loss, scale, options.robust_hessian, with_jacobian, exact)
 
     def weighted_batch(R_at: np.ndarray) -> tv.EdgeBatch:
         # each edge's t from Σ w θθᵀ with Huber IRLS weights of its matches (weight 1 within
@@ -690,7 +696,8 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
                 # the candidate's normal equations come with its cost (accepted steps, the usual
                 # case, reuse them), except after a step below step_tolerance, after which LM
                 # stops if it is accepted
-                cost_c, JtJ_c, grad_c, rem_c = linearize(R_cand, step >= options.step_tolerance)
+                cost_c, JtJ_c, grad_c, rem_c = linearize(R_cand, step >= options.step_tolerance,
+                                                         step < options.exact_curvature_below)
                 if cost_c <= cost_now:
                     return True, R_cand, cost_c, JtJ_c, grad_c, rem_c, step, max(mu / 10.0, 1e-15)
             mu *= 10.0
@@ -705,7 +712,7 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
             # needed: an accepted step (no extra damping) below epipolar_trigger means the
             # start is already in GRRM's basin, where the λ_min phase cannot help
             problem.batch = weighted_batch(R_input)
-            start = linearize(R_input, True)
+            start = linearize(R_input, True, options.exact_curvature_below > 0)
             t0 = time.perf_counter()
             first = lm_iteration(R_input, *start, options.initial_damping) + (time.perf_counter() - t0,)
             accepted, step, mu = first[0], first[6], first[7]
@@ -728,7 +735,7 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
             log.info("GRRM λ_min phase: %d iterations, start %s", it1, "taken" if R is R1 else "kept")
     if start is None:
         problem.batch = weighted_batch(R)
-        start = linearize(R, True)
+        start = linearize(R, True, options.exact_curvature_below > 0)
     cost, JtJ, grad, remainder = start
     # the initial cost of the problem that is optimised (same weights and scale as the end)
     initial_cost = cost if R is R_input else linearize(R_input, False)[0]
