@@ -336,6 +336,7 @@ class MatchTable:
         self.counts = np.diff(self.offsets)
         self.chunk = chunk
         self.groups = _edge_groups(self.counts, chunk) if len(self.counts) else []
+        self._group_slices: list | None = None
 
     @classmethod
     def from_batch(cls, batch: tv.EdgeBatch, weights: np.ndarray | None = None,
@@ -356,6 +357,20 @@ class MatchTable:
     @property
     def num_edges(self) -> int:
         return len(self.counts)
+
+    def group_slices(self) -> list[tuple[int, int, int, int, np.ndarray, np.ndarray]]:
+        """Per edge group: (e0, e1, m0, m1, counts, starts within the group), computed once."""
+        if self._group_slices is None:
+            self._group_slices = [(e0, e1, int(self.offsets[e0]), int(self.offsets[e1]), self.counts[e0:e1],
+                                   self.offsets[e0:e1] - self.offsets[e0]) for e0, e1 in self.groups]
+        return self._group_slices
+
+    def group_code_range(self, code: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Smallest and largest of a per-edge integer ``code`` within each group."""
+        if not self.groups:
+            return np.zeros(0, dtype=code.dtype), np.zeros(0, dtype=code.dtype)
+        first = np.array([e0 for e0, _ in self.groups])
+        return np.minimum.reduceat(code, first), np.maximum.reduceat(code, first)
 
     def match_index(self, edges: np.ndarray) -> np.ndarray:
         """Positions (in this table) of the matches of ``edges``, edge by edge."""
@@ -754,24 +769,44 @@ def trrm_evaluate(R: np.ndarray, table: MatchTable, jacobian: np.ndarray | bool 
         out["ps"] = np.zeros((E, 6))
         out["t_plain"] = np.zeros((E, 3))
     data, w_all = table.data, table.weights
-    for e0, e1 in table.groups:
-        m0, m1 = table.offsets[e0], table.offsets[e1]
-        for group_mode in (NORMAL, GRADIENT, COST):
-            sel = np.flatnonzero(ev[e0:e1] & (mode[e0:e1] == group_mode))
+    # per group: one call on the contiguous slice when all its edges share a mode (the common
+    # case), else one call per mode on gathered matches; mode -1: not evaluated
+    code = np.where(ev, mode, -1)
+    group_lo, group_hi = table.group_code_range(code)
+    for g, (e0, e1, m0, m1, cnt, starts) in enumerate(table.group_slices()):
+        lo, hi = group_lo[g], group_hi[g]
+        if hi < 0:
+            continue
+        modes = (NORMAL, GRADIENT, COST)
+        if lo >= 0 and np.count_nonzero(code[e0:e1] == COST) * 2 >= e1 - e0:
+            # mostly COST (an LM iteration where most edges test their last candidate): COST on
+            # the whole slice without a gather, then the other modes on their edges, which
+            # overwrite the same cost, t and ‖r‖² (the forward pass is shared) with their own
+            w = None if w_all is None else w_all[m0:m1]
+            sq = None if sq_out is None else sq_out[m0:m1]
+            _lean_group(R[e0:e1], cnt, starts, data[:, m0:m1], w, COST, unit_theta, out, slice(e0, e1), sq,
+                        plain_ps)
+            if lo == hi:
+                continue
+            modes = (NORMAL, GRADIENT)
+        elif lo == hi:
+            w = None if w_all is None else w_all[m0:m1]
+            sq = None if sq_out is None else sq_out[m0:m1]
+            _lean_group(R[e0:e1], cnt, starts, data[:, m0:m1], w, int(lo), unit_theta, out, slice(e0, e1), sq,
+                        plain_ps)
+            continue
+        for group_mode in modes:
+            sel = np.flatnonzero(code[e0:e1] == group_mode)
             if sel.size == 0:
                 continue
-            cnt = table.counts[e0:e1][sel]
-            starts = np.concatenate([[0], np.cumsum(cnt)[:-1]])
-            if sel.size == e1 - e0:
-                d = data[:, m0:m1]
-                idx = slice(m0, m1)
-            else:
-                within = np.arange(cnt.sum()) - np.repeat(starts, cnt)
-                idx = np.repeat(table.offsets[e0:e1][sel], cnt) + within
-                d = data[:, idx]
+            cnt_sel = cnt[sel]
+            starts_sel = np.concatenate([[0], np.cumsum(cnt_sel)[:-1]])
+            within = np.arange(cnt_sel.sum()) - np.repeat(starts_sel, cnt_sel)
+            idx = np.repeat(table.offsets[e0:e1][sel], cnt_sel) + within
             w = None if w_all is None else w_all[idx]
-            sq = None if sq_out is None else np.empty(cnt.sum())
-            _lean_group(R[e0:e1][sel], cnt, starts, d, w, group_mode, unit_theta, out, e0 + sel, sq, plain_ps)
+            sq = None if sq_out is None else np.empty(idx.size)
+            _lean_group(R[e0:e1][sel], cnt_sel, starts_sel, data[:, idx], w, group_mode, unit_theta, out, e0 + sel,
+                        sq, plain_ps)
             if sq is not None:
                 sq_out[idx] = sq
     if plain_ps:
@@ -802,7 +837,13 @@ def epipolar_moments(table: MatchTable) -> np.ndarray:
         m = (xih[:, None, :] * xjh[None, :, :]).reshape(9, -1)
         wm = m if table.weights is None else m * table.weights[m0:m1]
         starts = table.offsets[e0:e1] - m0
-        upper[:, e0:e1] = np.add.reduceat(wm[pa] * m[pb], starts, axis=1)
+        # rows (a, b >= a) of the upper triangle in _IU order, by broadcasting (no gathered copies)
+        prods = np.empty((len(pa), m.shape[1]))
+        k = 0
+        for a in range(9):
+            np.multiply(wm[a], m[a:], out=prods[k:k + 9 - a])
+            k += 9 - a
+        upper[:, e0:e1] = np.add.reduceat(prods, starts, axis=1)
     M = np.empty((E, 9, 9))
     M[:, pa, pb] = upper.T
     M[:, pb, pa] = upper.T

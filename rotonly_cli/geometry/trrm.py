@@ -163,6 +163,12 @@ class _TRRMProblem:
         """The candidates of ``rows`` were accepted: keep their per-match ‖r‖²."""
         if rows.size == 0:
             return
+        if rows.size == self.cur.num_edges:  # every edge of the current table: no per-match mask
+            if self.cur is self.full:
+                np.copyto(self.sq, self._sq_candidate)
+            else:
+                self.sq[self.cur.match_pos] = self._sq_candidate
+            return
         mask = np.zeros(self.cur.num_edges, dtype=bool)
         mask[self.pos[rows]] = True
         matches = np.repeat(mask, self.cur.counts)
