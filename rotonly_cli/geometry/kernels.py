@@ -453,39 +453,46 @@ COST, GRADIENT, NORMAL = 0, 1, 2  #: what _lean_group computes: cost; + Jᵀr; +
 
 
 def _lean_group(R: np.ndarray, cnt: np.ndarray, starts: np.ndarray, d: np.ndarray, w: np.ndarray | None,
-                mode: int, unit_theta: bool, out: dict, rows: np.ndarray, sq_out: np.ndarray | None,
+                mode: int, unit_theta: bool, out: dict, rows: np.ndarray | slice, sq_out: np.ndarray | None,
                 plain_ps: bool) -> None:
     """TRRM terms of one edge group (edges ``rows`` of the outputs), one pass.
 
     Pˢ weights: 1/‖θ‖² with ``unit_theta`` (each match one vote), else ``w`` (or 1).
     Residual weights: ``w`` (or 1) times validity. ``sq_out`` receives the per-match
-    validity-masked ‖r‖² (without ``w``), the input of the IRLS weights."""
-    rep = np.repeat
-    Rr = rep(R.reshape(-1, 9).T, cnt, axis=1)
-    xi0, xi1, xi2, xj0, xj1, xj2 = d[0], d[1], d[2], d[3], d[4], d[5]
-    u0 = Rr[0] * xi0 + Rr[1] * xi1 + Rr[2] * xi2
-    u1 = Rr[3] * xi0 + Rr[4] * xi1 + Rr[5] * xi2
-    u2 = Rr[6] * xi0 + Rr[7] * xi1 + Rr[8] * xi2
-    th0 = u1 * xj2 - u2 * xj1
-    th1 = u2 * xj0 - u0 * xj2
-    th2 = u0 * xj1 - u1 * xj0
-    bb = th0 * th0 + th1 * th1 + th2 * th2  # ‖θ‖²
+    validity-masked ‖r‖² (without ``w``), the input of the IRLS weights.
+
+    3-vectors are (3, n) blocks of one scratch array, so a vector operation is one numpy call
+    (a third of the calls of per-component arrays, no allocation); a dot product is a product
+    block summed over its rows, which numpy adds row after row: the same operation order, and
+    so the same bits, as the per-component expressions in the comments."""
+    n = d.shape[1]
+    work = np.empty((52, n))
+    u, th, tm, tmp3 = work[0:3], work[3:6], work[6:9], work[9:12]
+    sj, si, r = work[12:15], work[15:18], work[18:24]  # r: r_i (3), r_j (3)
+    hj, hi, uh = work[24:27], work[27:30], work[30:33]
+    bb, ux, xt, ut, aj, ai, b, bs, nsj, nsi, isj, isi, tmp = work[33:46]
+    Rr = np.repeat(R.reshape(-1, 9).T, cnt, axis=1)  # Rr[3k + c] = R_kc per match
+    xi, xj = d[XI:XI + 3], d[XJ:XJ + 3]
+    np.multiply(Rr[0::3], xi[0], out=u)  # u_k = R_k0 x_i0 + R_k1 x_i1 + R_k2 x_i2
+    np.multiply(Rr[1::3], xi[1], out=tmp3)
+    u += tmp3
+    np.multiply(Rr[2::3], xi[2], out=tmp3)
+    u += tmp3
+    u0, u1, u2 = u
+    xj0, xj1, xj2 = xj
+    _cross_into(th, u, xj, tmp3[0])  # θ = u × x_j
+    th0, th1, th2 = th
+    _rowsum_into(bb, np.multiply(th, th, out=tmp3))  # ‖θ‖²
     pw = 1.0 / np.maximum(bb, 1e-300) if unit_theta else w
-    wt = (th0, th1, th2) if pw is None else (pw * th0, pw * th1, pw * th2)
+    wt = th if pw is None else np.multiply(th, pw)
     nsum = 12 if plain_ps and pw is not None else 6
-    prods = np.empty((nsum, len(th0)))
-    np.multiply(wt[0], th0, out=prods[0])
-    np.multiply(wt[0], th1, out=prods[1])
-    np.multiply(wt[0], th2, out=prods[2])
-    np.multiply(wt[1], th1, out=prods[3])
-    np.multiply(wt[1], th2, out=prods[4])
-    np.multiply(wt[2], th2, out=prods[5])
+    prods = np.empty((nsum, n))
+    np.multiply(th, wt[0], out=prods[0:3])  # wt_0 θ_0, wt_0 θ_1, wt_0 θ_2, wt_1 θ_1, wt_1 θ_2, wt_2 θ_2
+    np.multiply(th[1:], wt[1], out=prods[3:5])
+    np.multiply(th[2], wt[2], out=prods[5])
     if nsum == 12:
-        np.multiply(th0, th0, out=prods[6])
-        np.multiply(th0, th1, out=prods[7])
-        np.multiply(th0, th2, out=prods[8])
-        np.multiply(th1, th1, out=prods[9])
-        np.multiply(th1, th2, out=prods[10])
+        np.multiply(th, th0, out=prods[6:9])
+        np.multiply(th[1:], th1, out=prods[9:11])
         np.multiply(th2, th2, out=prods[11])
     sums = np.add.reduceat(prods, starts, axis=1)
     P6 = sums[:6]
@@ -493,75 +500,103 @@ def _lean_group(R: np.ndarray, cnt: np.ndarray, starts: np.ndarray, d: np.ndarra
         out["ps"][rows] = (sums[6:] if nsum == 12 else P6).T
     lam, t = smallest_eigenpair_lean(*P6)
     ni2, nj2 = d[NXI2], d[NXJ2]
-    ux = u0 * xj0 + u1 * xj1 + u2 * xj2
+    _rowsum_into(ux, np.multiply(u, xj, out=tmp3))
 
-    def chirality(t: np.ndarray):
-        """t per match, x_j·t, u·t and the chirality sign per edge (twoview.chirality_sign):
-        the depths in views i and j from the dot identities."""
-        tm = rep(t.T, cnt, axis=1)
-        xt = xj0 * tm[0] + xj1 * tm[1] + xj2 * tm[2]
-        ut = u0 * tm[0] + u1 * tm[1] + u2 * tm[2]
+    def chirality(t: np.ndarray, tm: np.ndarray, xt: np.ndarray, ut: np.ndarray) -> np.ndarray:
+        """t per match, x_j·t, u·t (into ``tm``, ``xt``, ``ut``) and the chirality sign per edge
+        (twoview.chirality_sign): the depths in views i and j from the dot identities."""
+        tm[:] = np.repeat(t.T, cnt, axis=1)
+        _rowsum_into(xt, np.multiply(xj, tm, out=tmp3))
+        _rowsum_into(ut, np.multiply(u, tm, out=tmp3))
         depth_i = ux * xt - nj2 * ut
         depth_j = ni2 * xt - ux * ut
-        front = ((depth_i > 0) & (depth_j > 0)).view(np.int8)
-        back = ((depth_i < 0) & (depth_j < 0)).view(np.int8)
-        vote = np.add.reduceat(front, starts, dtype=np.int64) - np.add.reduceat(back, starts, dtype=np.int64)
-        return tm, xt, ut, np.where(vote < 0, -1.0, 1.0)
+        # +1 in front of both cameras, -1 behind both, else 0 (NaN compares false either way)
+        both = (np.minimum(depth_i, depth_j) > 0).view(np.int8) - (np.maximum(depth_i, depth_j) < 0).view(np.int8)
+        vote = np.add.reduceat(both, starts, dtype=np.int64)
+        return np.where(vote < 0, -1.0, 1.0)
 
     if plain_ps:  # t of the plain Pˢ with its chirality sign (= twoview.translation_directions)
         t_plain = t if nsum == 6 else smallest_eigenpair_lean(*sums[6:])[1]
-        out["t_plain"][rows] = t_plain * chirality(t_plain)[3][:, None]
-    tm, xt, ut, sign = chirality(t)
-    t0, t1, t2 = tm[0], tm[1], tm[2]
+        out["t_plain"][rows] = t_plain * chirality(t_plain, tm, xt, ut)[:, None]
+    sign = chirality(t, tm, xt, ut)
+    t0, t1, t2 = tm
     out["t"][rows] = t * sign[:, None]
-    sg = rep(sign, cnt)
-    aj = np.sqrt(np.maximum(nj2 - xt * xt, 0.0))  # ‖x_j × t‖
-    ai = np.sqrt(np.maximum(ni2 - ut * ut, 0.0))  # ‖u × t‖
-    b = np.sqrt(bb)
-    bs = b * sg  # ‖θ‖ with the sign of t
-    bt0, bt1, bt2 = bs * t0, bs * t1, bs * t2
-    sj0, sj1, sj2 = aj * u0 + bt0, aj * u1 + bt1, aj * u2 + bt2  # Y^j (eq:PA1)
-    si0, si1, si2 = ai * xj0 - bt0, ai * xj1 - bt1, ai * xj2 - bt2  # R Y^i
-    nsj = np.sqrt(sj0 * sj0 + sj1 * sj1 + sj2 * sj2)
-    nsi = np.sqrt(si0 * si0 + si1 * si1 + si2 * si2)
+    sg = np.repeat(sign, cnt)
+    np.multiply(xt, xt, out=aj)  # ‖x_j × t‖ = sqrt(‖x_j‖² - (x_j·t)²)
+    np.subtract(nj2, aj, out=aj)
+    np.maximum(aj, 0.0, out=aj)
+    np.sqrt(aj, out=aj)
+    np.multiply(ut, ut, out=ai)  # ‖u × t‖
+    np.subtract(ni2, ai, out=ai)
+    np.maximum(ai, 0.0, out=ai)
+    np.sqrt(ai, out=ai)
+    np.sqrt(bb, out=b)
+    np.multiply(b, sg, out=bs)  # ‖θ‖ with the sign of t
+    bt = np.multiply(tm, bs, out=tmp3)
+    np.multiply(u, aj, out=sj)  # Y^j = a_j u + bs t (eq:PA1)
+    sj += bt
+    np.multiply(xj, ai, out=si)  # R Y^i = a_i x_j - bs t
+    si -= bt
+    _rowsum_into(nsj, np.multiply(sj, sj, out=tmp3))
+    np.sqrt(nsj, out=nsj)
+    _rowsum_into(nsi, np.multiply(si, si, out=tmp3))
+    np.sqrt(nsi, out=nsi)
     valid = (nsj > 1e-14) & (nsi > 1e-14)  # a match on the baseline has no prediction
-    isj = 1.0 / np.maximum(nsj, 1e-14)
-    isi = 1.0 / np.maximum(nsi, 1e-14)
-    hj0, hj1, hj2 = sj0 * isj, sj1 * isj, sj2 * isj
-    hi0, hi1, hi2 = si0 * isi, si1 * isi, si2 * isi
+    np.maximum(nsj, 1e-14, out=isj)
+    np.divide(1.0, isj, out=isj)
+    np.maximum(nsi, 1e-14, out=isi)
+    np.divide(1.0, isi, out=isi)
+    np.multiply(sj, isj, out=hj)
+    np.multiply(si, isi, out=hi)
     inv_ni = d[INV_NXI]
-    uh0, uh1, uh2 = u0 * inv_ni, u1 * inv_ni, u2 * inv_ni
-    ri0, ri1, ri2 = uh0 - hi0, uh1 - hi1, uh2 - hi2
-    rj0, rj1, rj2 = d[XJH] - hj0, d[XJH + 1] - hj1, d[XJH + 2] - hj2
-    sq = ri0 * ri0 + ri1 * ri1 + ri2 * ri2 + rj0 * rj0 + rj1 * rj1 + rj2 * rj2
+    np.multiply(u, inv_ni, out=uh)
+    np.subtract(uh, hi, out=r[0:3])
+    np.subtract(d[XJH:XJH + 3], hj, out=r[3:6])
+    sq = _rowsum_into(np.empty(n) if sq_out is None else sq_out, np.multiply(r, r, out=work[46:52]))
     sq *= valid
-    if sq_out is not None:
-        sq_out[:] = sq
+    hj0, hj1, hj2 = hj
+    hi0, hi1, hi2 = hi
+    uh0, uh1, uh2 = uh
+    ri0, ri1, ri2, rj0, rj1, rj2 = r
     rw = valid if w is None else w * valid  # residual weight
     if mode == COST:
         out["cost"][rows] = np.add.reduceat(sq if w is None else w * sq, starts)
         return
     # dt/dδ = -(Pˢ - λI)^+ (dPˢ t)/dδ, dPˢ t = Σ pw [(θ·t) A + θ (Aᵀt)ᵀ], A = u x_jᵀ - (u·x_j) I
-    e = th0 * t0 + th1 * t1 + th2 * t2
+    e = _rowsum_into(np.empty(n), np.multiply(th, tm, out=tmp3))
     pe = e if pw is None else pw * e
-    pu0, pu1, pu2, pux = pe * u0, pe * u1, pe * u2, pe * ux
-    At0, At1, At2 = xj0 * ut - ux * t0, xj1 * ut - ux * t1, xj2 * ut - ux * t2
-    acc = np.empty((10, len(th0)))
-    np.multiply(pu0, xj0, out=acc[0]); acc[0] += wt[0] * At0; acc[0] -= pux  # noqa: E702
-    np.multiply(pu0, xj1, out=acc[1]); acc[1] += wt[0] * At1  # noqa: E702
-    np.multiply(pu0, xj2, out=acc[2]); acc[2] += wt[0] * At2  # noqa: E702
-    np.multiply(pu1, xj0, out=acc[3]); acc[3] += wt[1] * At0  # noqa: E702
-    np.multiply(pu1, xj1, out=acc[4]); acc[4] += wt[1] * At1; acc[4] -= pux  # noqa: E702
-    np.multiply(pu1, xj2, out=acc[5]); acc[5] += wt[1] * At2  # noqa: E702
-    np.multiply(pu2, xj0, out=acc[6]); acc[6] += wt[2] * At0  # noqa: E702
-    np.multiply(pu2, xj1, out=acc[7]); acc[7] += wt[2] * At1  # noqa: E702
-    np.multiply(pu2, xj2, out=acc[8]); acc[8] += wt[2] * At2; acc[8] -= pux  # noqa: E702
+    pu = np.multiply(u, pe)
+    pux = pe * ux
+    At = np.multiply(xj, ut)  # Aᵀt = x_j (u·t) - (u·x_j) t
+    np.multiply(tm, ux, out=tmp3)
+    At -= tmp3
+    acc = np.empty((10, n))
+    for k in range(3):  # acc[3k + c] = pu_k x_j,c + wt_k (Aᵀt)_c - [k = c] pux
+        np.multiply(xj, pu[k], out=acc[3 * k:3 * k + 3])
+        np.multiply(At, wt[k], out=tmp3)
+        acc[3 * k:3 * k + 3] += tmp3
+        acc[4 * k] -= pux
     dPt = np.add.reduceat(acc[:9], starts, axis=1).T.reshape(-1, 3, 3)
     T = -_pinv_times(P6, lam, t, dPt)  # unsigned t; the sign rides on bs and kb
     if mode == GRADIENT:
         _adjoint_gradient(locals(), acc, out, rows)
         return
     _normal_equations(locals(), acc, out, rows)
+
+
+def _rowsum_into(dst: np.ndarray, block: np.ndarray) -> np.ndarray:
+    """dst = block[0] + block[1] + ... (numpy reduces axis 0 of a C-contiguous block row after
+    row, so the order is that of the written-out sum)."""
+    return np.add.reduce(block, axis=0, out=dst)
+
+
+def _cross_into(dst: np.ndarray, a, b, tmp: np.ndarray) -> np.ndarray:
+    """dst = a × b per match (rows of (3, n) blocks), as a_1 b_2 - a_2 b_1, ..."""
+    for k, (p, q) in enumerate(((1, 2), (2, 0), (0, 1))):
+        np.multiply(a[p], b[q], out=dst[k])
+        np.multiply(a[q], b[p], out=tmp)
+        dst[k] -= tmp
+    return dst
 
 
 def _dot3_into(dst: np.ndarray, a, b, tmp: np.ndarray) -> np.ndarray:
