@@ -938,8 +938,12 @@ def segment_median(values: np.ndarray, offsets: np.ndarray) -> np.ndarray:
         edges = order[b0:b1]
         n = counts[edges]
         if n[0] == n[-1]:  # equal sizes (sorted): no padding, the median sits at column n // 2
-            src = (offsets[:-1][edges][:, None] + np.arange(n[0])[None, :]).ravel()
-            out[edges] = np.partition(values[src].reshape(len(edges), n[0]), n[0] // 2, axis=1)[:, n[0] // 2]
+            if edges[-1] - edges[0] == len(edges) - 1:  # consecutive edges (stable sort): a view, no gather
+                block = values[offsets[edges[0]]:offsets[edges[-1] + 1]].reshape(len(edges), n[0])
+            else:
+                block = values[(offsets[:-1][edges][:, None] + np.arange(n[0])[None, :]).ravel()].reshape(
+                    len(edges), n[0])
+            out[edges] = np.partition(block, n[0] // 2, axis=1)[:, n[0] // 2]
             b0 = b1
             continue
         half = n // 2
@@ -965,12 +969,13 @@ def rotated_bearing_sq(R: np.ndarray, table: MatchTable) -> np.ndarray:
         d = table.data[:, m0:m1]
         cnt = table.counts[e0:e1]
         Rr = np.repeat(R[e0:e1].reshape(-1, 9).T, cnt, axis=1)
-        inv = d[INV_NXI]
-        acc = None
-        for k in range(3):
-            dk = d[XJH + k] - (Rr[3 * k] * d[0] + Rr[3 * k + 1] * d[1] + Rr[3 * k + 2] * d[2]) * inv
-            acc = dk * dk if acc is None else acc + dk * dk
-        sq[m0:m1] = acc
+        # (3, n) blocks: R x_i = R_k0 x_i0 + R_k1 x_i1 + R_k2 x_i2, then x̂_j - (R x_i)/‖x_i‖
+        diff = np.multiply(Rr[0::3], d[0])
+        diff += np.multiply(Rr[1::3], d[1], out=Rr[1::3])
+        diff += np.multiply(Rr[2::3], d[2], out=Rr[2::3])
+        diff *= d[INV_NXI]
+        np.subtract(d[XJH:XJH + 3], diff, out=diff)
+        np.add.reduce(np.multiply(diff, diff, out=diff), axis=0, out=sq[m0:m1])
     return sq
 
 
