@@ -452,25 +452,20 @@ def _pinv_times(P6, lam: np.ndarray, t: np.ndarray, D: np.ndarray) -> np.ndarray
 COST, GRADIENT, NORMAL = 0, 1, 2  #: what _lean_group computes: cost; + Jᵀr; + JᵀJ and Jᵀr
 
 
-def _lean_group(R: np.ndarray, cnt: np.ndarray, starts: np.ndarray, d: np.ndarray, w: np.ndarray | None,
-                mode: int, unit_theta: bool, out: dict, rows: np.ndarray | slice, sq_out: np.ndarray | None,
-                plain_ps: bool) -> None:
-    """TRRM terms of one edge group (edges ``rows`` of the outputs), one pass.
+#: edge groups whose Pˢ eigenproblems are solved in one call (the closed form is ~200 numpy
+#: calls whatever the number of edges, so per group it was ~8 % of a pass); their heads (u, θ,
+#: ‖θ‖², weighted θ: 10 rows of matches) stay alive meanwhile
+EIGEN_BATCH_GROUPS = 4
 
-    Pˢ weights: 1/‖θ‖² with ``unit_theta`` (each match one vote), else ``w`` (or 1).
-    Residual weights: ``w`` (or 1) times validity. ``sq_out`` receives the per-match
-    validity-masked ‖r‖² (without ``w``), the input of the IRLS weights.
 
-    3-vectors are (3, n) blocks of one scratch array, so a vector operation is one numpy call
-    (a third of the calls of per-component arrays, no allocation); a dot product is a product
-    block summed over its rows, which numpy adds row after row: the same operation order, and
-    so the same bits, as the per-component expressions in the comments."""
+def _lean_head(R: np.ndarray, cnt: np.ndarray, starts: np.ndarray, d: np.ndarray, w: np.ndarray | None,
+               unit_theta: bool, plain_ps: bool) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """First part of a pass: ``head`` (10, n) = u = R x_i (3), θ = u × x_j (3), ‖θ‖², pw θ (3)
+    (rows 7-9 unused when pw is None), the Pˢ weights ``pw`` and the per-edge Pˢ sums (6, E)
+    (12 with ``plain_ps`` and weights: the unweighted sums follow)."""
     n = d.shape[1]
-    work = np.empty((52, n))
-    u, th, tm, tmp3 = work[0:3], work[3:6], work[6:9], work[9:12]
-    sj, si, r = work[12:15], work[15:18], work[18:24]  # r: r_i (3), r_j (3)
-    hj, hi, uh = work[24:27], work[27:30], work[30:33]
-    bb, ux, xt, ut, aj, ai, b, bs, nsj, nsi, isj, isi, tmp = work[33:46]
+    head = np.empty((13, n))
+    u, th, bb, tmp3 = head[0:3], head[3:6], head[6], head[10:13]
     Rr = np.repeat(R.reshape(-1, 9).T, cnt, axis=1)  # Rr[3k + c] = R_kc per match
     xi, xj = d[XI:XI + 3], d[XJ:XJ + 3]
     np.multiply(Rr[0::3], xi[0], out=u)  # u_k = R_k0 x_i0 + R_k1 x_i1 + R_k2 x_i2
@@ -478,27 +473,65 @@ def _lean_group(R: np.ndarray, cnt: np.ndarray, starts: np.ndarray, d: np.ndarra
     u += tmp3
     np.multiply(Rr[2::3], xi[2], out=tmp3)
     u += tmp3
-    u0, u1, u2 = u
-    xj0, xj1, xj2 = xj
     _cross_into(th, u, xj, tmp3[0])  # θ = u × x_j
-    th0, th1, th2 = th
     _rowsum_into(bb, np.multiply(th, th, out=tmp3))  # ‖θ‖²
     pw = 1.0 / np.maximum(bb, 1e-300) if unit_theta else w
-    wt = th if pw is None else np.multiply(th, pw)
+    wt = th if pw is None else np.multiply(th, pw, out=head[7:10])
     nsum = 12 if plain_ps and pw is not None else 6
     prods = np.empty((nsum, n))
     np.multiply(th, wt[0], out=prods[0:3])  # wt_0 θ_0, wt_0 θ_1, wt_0 θ_2, wt_1 θ_1, wt_1 θ_2, wt_2 θ_2
     np.multiply(th[1:], wt[1], out=prods[3:5])
     np.multiply(th[2], wt[2], out=prods[5])
     if nsum == 12:
-        np.multiply(th, th0, out=prods[6:9])
-        np.multiply(th[1:], th1, out=prods[9:11])
-        np.multiply(th2, th2, out=prods[11])
-    sums = np.add.reduceat(prods, starts, axis=1)
+        np.multiply(th, th[0], out=prods[6:9])
+        np.multiply(th[1:], th[1], out=prods[9:11])
+        np.multiply(th[2], th[2], out=prods[11])
+    return head, pw, np.add.reduceat(prods, starts, axis=1)
+
+
+def _head_eigen(sums: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """λ_min and null vector of the Pˢ sums (6 or 12 rows, edges along axis 1) and the null
+    vector of the unweighted Pˢ (the same one when there are 6 rows)."""
+    lam, t = smallest_eigenpair_lean(*sums[:6])
+    t_plain = t if sums.shape[0] == 6 else smallest_eigenpair_lean(*sums[6:])[1]
+    return lam, t, t_plain
+
+
+def _lean_group(R: np.ndarray, cnt: np.ndarray, starts: np.ndarray, d: np.ndarray, w: np.ndarray | None,
+                mode: int, unit_theta: bool, out: dict, rows: np.ndarray | slice, sq_out: np.ndarray | None,
+                plain_ps: bool, pre: tuple | None = None) -> None:
+    """TRRM terms of one edge group (edges ``rows`` of the outputs), one pass.
+
+    Pˢ weights: 1/‖θ‖² with ``unit_theta`` (each match one vote), else ``w`` (or 1).
+    Residual weights: ``w`` (or 1) times validity. ``sq_out`` receives the per-match
+    validity-masked ‖r‖² (without ``w``), the input of the IRLS weights. ``pre``: the
+    group's (_lean_head, _head_eigen) results when the caller batched the eigenproblems.
+
+    3-vectors are (3, n) blocks of one scratch array, so a vector operation is one numpy call
+    (a third of the calls of per-component arrays, no allocation); a dot product is a product
+    block summed over its rows, which numpy adds row after row: the same operation order, and
+    so the same bits, as the per-component expressions in the comments."""
+    if pre is None:
+        head, pw, sums = _lean_head(R, cnt, starts, d, w, unit_theta, plain_ps)
+        eig = _head_eigen(sums)
+    else:
+        (head, pw, sums), eig = pre
+    lam, t, t_plain = eig
+    n = d.shape[1]
+    work = np.empty((52, n))
+    u, th, bb = head[0:3], head[3:6], head[6]
+    wt = th if pw is None else head[7:10]
+    tm, tmp3 = work[6:9], work[9:12]
+    sj, si, r = work[12:15], work[15:18], work[18:24]  # r: r_i (3), r_j (3)
+    hj, hi, uh = work[24:27], work[27:30], work[30:33]
+    ux, xt, ut, aj, ai, b, bs, nsj, nsi, isj, isi, tmp = work[34:46]
+    xj = d[XJ:XJ + 3]
+    u0, u1, u2 = u
+    xj0, xj1, xj2 = xj
+    th0, th1, th2 = th
     P6 = sums[:6]
     if plain_ps:
-        out["ps"][rows] = (sums[6:] if nsum == 12 else P6).T
-    lam, t = smallest_eigenpair_lean(*P6)
+        out["ps"][rows] = sums[-6:].T
     ni2, nj2 = d[NXI2], d[NXJ2]
     _rowsum_into(ux, np.multiply(u, xj, out=tmp3))
 
@@ -516,7 +549,6 @@ def _lean_group(R: np.ndarray, cnt: np.ndarray, starts: np.ndarray, d: np.ndarra
         return np.where(vote < 0, -1.0, 1.0)
 
     if plain_ps:  # t of the plain Pˢ with its chirality sign (= twoview.translation_directions)
-        t_plain = t if nsum == 6 else smallest_eigenpair_lean(*sums[6:])[1]
         out["t_plain"][rows] = t_plain * chirality(t_plain, tm, xt, ut)[:, None]
     sign = chirality(t, tm, xt, ut)
     t0, t1, t2 = tm
@@ -806,31 +838,28 @@ def trrm_evaluate(R: np.ndarray, table: MatchTable, jacobian: np.ndarray | bool 
         out["ps"] = np.zeros((E, 6))
         out["t_plain"] = np.zeros((E, 3))
     data, w_all = table.data, table.weights
-    # per group: one call on the contiguous slice when all its edges share a mode (the common
-    # case), else one call per mode on gathered matches; mode -1: not evaluated
+    # per group: one task on the contiguous slice when all its edges share a mode (the common
+    # case), else one task per mode on gathered matches; mode -1: not evaluated
     code = np.where(ev, mode, -1)
     group_lo, group_hi = table.group_code_range(code)
+    tasks = []  # (R, cnt, starts, d, w, mode, rows, sq, idx): idx = where to scatter a gathered sq
     for g, (e0, e1, m0, m1, cnt, starts) in enumerate(table.group_slices()):
         lo, hi = group_lo[g], group_hi[g]
         if hi < 0:
             continue
+        whole = (R[e0:e1], cnt, starts, data[:, m0:m1], None if w_all is None else w_all[m0:m1])
+        sq_view = None if sq_out is None else sq_out[m0:m1]
         modes = (NORMAL, GRADIENT, COST)
         if lo >= 0 and np.count_nonzero(code[e0:e1] == COST) * 2 >= e1 - e0:
             # mostly COST (an LM iteration where most edges test their last candidate): COST on
             # the whole slice without a gather, then the other modes on their edges, which
             # overwrite the same cost, t and ‖r‖² (the forward pass is shared) with their own
-            w = None if w_all is None else w_all[m0:m1]
-            sq = None if sq_out is None else sq_out[m0:m1]
-            _lean_group(R[e0:e1], cnt, starts, data[:, m0:m1], w, COST, unit_theta, out, slice(e0, e1), sq,
-                        plain_ps)
+            tasks.append((*whole, COST, slice(e0, e1), sq_view, None))
             if lo == hi:
                 continue
             modes = (NORMAL, GRADIENT)
         elif lo == hi:
-            w = None if w_all is None else w_all[m0:m1]
-            sq = None if sq_out is None else sq_out[m0:m1]
-            _lean_group(R[e0:e1], cnt, starts, data[:, m0:m1], w, int(lo), unit_theta, out, slice(e0, e1), sq,
-                        plain_ps)
+            tasks.append((*whole, int(lo), slice(e0, e1), sq_view, None))
             continue
         for group_mode in modes:
             sel = np.flatnonzero(code[e0:e1] == group_mode)
@@ -840,11 +869,20 @@ def trrm_evaluate(R: np.ndarray, table: MatchTable, jacobian: np.ndarray | bool 
             starts_sel = np.concatenate([[0], np.cumsum(cnt_sel)[:-1]])
             within = np.arange(cnt_sel.sum()) - np.repeat(starts_sel, cnt_sel)
             idx = np.repeat(table.offsets[e0:e1][sel], cnt_sel) + within
-            w = None if w_all is None else w_all[idx]
-            sq = None if sq_out is None else np.empty(idx.size)
-            _lean_group(R[e0:e1][sel], cnt_sel, starts_sel, data[:, idx], w, group_mode, unit_theta, out, e0 + sel,
-                        sq, plain_ps)
-            if sq is not None:
+            tasks.append((R[e0:e1][sel], cnt_sel, starts_sel, data[:, idx], None if w_all is None else w_all[idx],
+                          group_mode, e0 + sel, None if sq_out is None else np.empty(idx.size), idx))
+    for k0 in range(0, len(tasks), EIGEN_BATCH_GROUPS):
+        batch_tasks = tasks[k0:k0 + EIGEN_BATCH_GROUPS]
+        heads = [_lean_head(Rk, cnt, starts, d, w, unit_theta, plain_ps)
+                 for Rk, cnt, starts, d, w, *_ in batch_tasks]
+        sizes = np.cumsum([len(cnt) for _, cnt, *_ in batch_tasks])[:-1]
+        lam, t, t_plain = _head_eigen(np.concatenate([h[2] for h in heads], axis=1))
+        for task, head, lam_k, t_k, tp_k in zip(batch_tasks, heads, np.split(lam, sizes), np.split(t, sizes),
+                                                np.split(t_plain, sizes)):
+            Rk, cnt, starts, d, w, group_mode, rows, sq, idx = task
+            _lean_group(Rk, cnt, starts, d, w, group_mode, unit_theta, out, rows, sq, plain_ps,
+                        pre=(head, (lam_k, t_k, tp_k)))
+            if idx is not None and sq is not None:
                 sq_out[idx] = sq
     if plain_ps:
         p = out["ps"]
