@@ -518,13 +518,13 @@ def _lean_group(R: np.ndarray, cnt: np.ndarray, starts: np.ndarray, d: np.ndarra
         (head, pw, sums), eig = pre
     lam, t, t_plain = eig
     n = d.shape[1]
-    work = np.empty((52, n))
+    work = np.empty((45, n))
     u, th, bb = head[0:3], head[3:6], head[6]
     wt = th if pw is None else head[7:10]
-    tm, tmp3 = work[6:9], work[9:12]
-    sj, si, r = work[12:15], work[15:18], work[18:24]  # r: r_i (3), r_j (3)
-    hj, hi, uh = work[24:27], work[27:30], work[30:33]
-    ux, xt, ut, aj, ai, b, bs, nsj, nsi, isj, isi, tmp = work[34:46]
+    tm, tmp3 = work[0:3], work[3:6]
+    sj, si, r = work[6:9], work[9:12], work[12:18]  # r: r_i (3), r_j (3)
+    hj, hi, uh = work[18:21], work[21:24], work[24:27]
+    ux, xt, ut, aj, ai, b, bs, nsj, nsi, isj, isi, tmp = work[27:39]
     xj = d[XJ:XJ + 3]
     u0, u1, u2 = u
     xj0, xj1, xj2 = xj
@@ -584,7 +584,7 @@ def _lean_group(R: np.ndarray, cnt: np.ndarray, starts: np.ndarray, d: np.ndarra
     np.multiply(u, inv_ni, out=uh)
     np.subtract(uh, hi, out=r[0:3])
     np.subtract(d[XJH:XJH + 3], hj, out=r[3:6])
-    sq = _rowsum_into(np.empty(n) if sq_out is None else sq_out, np.multiply(r, r, out=work[46:52]))
+    sq = _rowsum_into(np.empty(n) if sq_out is None else sq_out, np.multiply(r, r, out=work[39:45]))
     sq *= valid
     hj0, hj1, hj2 = hj
     hi0, hi1, hi2 = hi
