@@ -453,16 +453,17 @@ COST, GRADIENT, NORMAL = 0, 1, 2  #: what _lean_group computes: cost; + Jᵀr; +
 
 
 #: edge groups whose Pˢ eigenproblems are solved in one call (the closed form is ~200 numpy
-#: calls whatever the number of edges, so per group it was ~8 % of a pass); their heads (u, θ,
-#: ‖θ‖², weighted θ: 10 rows of matches) stay alive meanwhile
+#: calls whatever the number of edges, so per group it was ~8 % of a pass); their heads (13
+#: rows of matches each) stay alive meanwhile. Measured (CPU time, 1M matches): 4-8 best,
+#: 16 and more slower again (the heads leave the cache before their second use)
 EIGEN_BATCH_GROUPS = 4
 
 
 def _lean_head(R: np.ndarray, cnt: np.ndarray, starts: np.ndarray, d: np.ndarray, w: np.ndarray | None,
                unit_theta: bool, plain_ps: bool) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
-    """First part of a pass: ``head`` (10, n) = u = R x_i (3), θ = u × x_j (3), ‖θ‖², pw θ (3)
-    (rows 7-9 unused when pw is None), the Pˢ weights ``pw`` and the per-edge Pˢ sums (6, E)
-    (12 with ``plain_ps`` and weights: the unweighted sums follow)."""
+    """First part of a pass: ``head`` (13, n) = u = R x_i (3), θ = u × x_j (3), ‖θ‖², pw θ (3)
+    (rows 7-9 unused when pw is None), 3 scratch rows; the Pˢ weights ``pw`` and the per-edge
+    Pˢ sums (6, E) (12 with ``plain_ps`` and weights: the unweighted sums follow)."""
     n = d.shape[1]
     head = np.empty((13, n))
     u, th, bb, tmp3 = head[0:3], head[3:6], head[6], head[10:13]
