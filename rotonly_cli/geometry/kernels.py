@@ -311,7 +311,14 @@ def epipolar_normal_equations(R: np.ndarray, batch: tv.EdgeBatch, with_jacobian:
 #   x_j·dt and u·dt;
 # * the sign of t enters only through ‖θ‖ t, so it is carried as a per-match sign of ‖θ‖;
 # * the Jacobian is needed per edge only through JᵀJ and Jᵀr; an edge whose LM step will
-#   end it if accepted is evaluated without it (trrm.py).
+#   end it if accepted is evaluated without it (trrm.py);
+# * at ~16k matches per group a numpy call costs about as much in interpreter overhead as in
+#   arithmetic, so the pass is organised to make fewer calls: 3-vectors are (3, n) blocks
+#   (one call per vector operation), temporaries are rows of one scratch block (out=), the
+#   closed-form eigenproblems of several groups are solved in one call (_lean_head, then
+#   _head_eigen, then _lean_group), and a group whose edges share a mode is one call on its
+#   contiguous slice. Every rewrite keeps the order of the floating-point operations, so
+#   results are bit-identical to the per-component expressions written in the comments.
 #
 # The λ_min(Pˢ) phase needs no per-match work per iteration at all: θ = L(R) m with
 # m = vec(x_i x_jᵀ) (9 numbers per match) and L linear in R, so Pˢ(R) = L M Lᵀ with the
