@@ -8,26 +8,10 @@ import pytest
 import scipy.sparse as sp
 
 from rotonly_cli import multiview
-from rotonly_cli.geometry import alignment, averaging, grrm, so3
-from rotonly_cli.simulation.multiview import simulate_multiview
+from rotonly_cli.geometry import alignment, grrm, so3
 
-
-def _problem(setup="circular", noise=1.0, seed=1, views=10, points=400, window=3, init="ransac", corrupt=0.0):
-    p = simulate_multiview(setup, num_views=views, num_points=points, noise_px=noise, rng=seed, window=window,
-                           init=init, corrupt_fraction=corrupt)
-    vids = sorted(p.scene.views)
-    keys = sorted(p.scene.pairs)
-    prob = multiview.build_problem(p.scene.normalized, {k: p.scene.pairs[k].matches for k in keys}, vids)
-    R_gt = np.stack([p.gt_poses[v].R_cam_from_world for v in vids])
-    return p, prob, R_gt
-
-
-def _l1_irls_start(p, prob):
-    sc = p.scene
-    R_rel = np.stack([sc.pairs[k].R_j_from_i for k in prob.pair_keys])
-    weights = np.array([len(sc.pairs[k].matches) for k in prob.pair_keys], dtype=float)
-    res = averaging.average_rotations(len(prob.view_ids), prob.edge_views[:, 0], prob.edge_views[:, 1], R_rel, weights)
-    return res.R_cam_from_world
+from multiview_scene import grrm_problem as _problem
+from multiview_scene import l1_irls_start as _l1_irls_start
 
 
 def _mean_err_deg(R, R_gt):

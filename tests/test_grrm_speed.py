@@ -10,32 +10,15 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from rotonly_cli import multiview
-from rotonly_cli.geometry import averaging, grrm, so3
-from rotonly_cli.simulation.multiview import simulate_multiview
+from rotonly_cli.geometry import grrm, so3
 
-
-def _problem(seed=5, views=8, window=3, noise=1.0, points=400):
-    p = simulate_multiview("circular", num_views=views, num_points=points, noise_px=noise, rng=seed, window=window,
-                           init="ransac")
-    vids = sorted(p.scene.views)
-    keys = sorted(p.scene.pairs)
-    prob = multiview.build_problem(p.scene.normalized, {k: p.scene.pairs[k].matches for k in keys}, vids)
-    R_gt = np.stack([p.gt_poses[v].R_cam_from_world for v in vids])
-    return p, prob, R_gt
-
-
-def _l1_irls_start(p, prob):
-    sc = p.scene
-    R_rel = np.stack([sc.pairs[k].R_j_from_i for k in prob.pair_keys])
-    weights = np.array([len(sc.pairs[k].matches) for k in prob.pair_keys], dtype=float)
-    return averaging.average_rotations(len(prob.view_ids), prob.edge_views[:, 0], prob.edge_views[:, 1], R_rel,
-                                       weights).R_cam_from_world
+from multiview_scene import grrm_problem as _problem
+from multiview_scene import l1_irls_start as _l1_irls_start
 
 
 @pytest.fixture(scope="module")
 def setup():
-    p, prob, R_gt = _problem()
+    p, prob, R_gt = _problem(seed=5, views=8)
     R = so3.exp(np.random.default_rng(2).normal(scale=0.003, size=(8, 3))) @ R_gt
     V, J = grrm.grrm_residuals(R, prob.edge_views, prob.batch, prob.obs_ids, with_jacobian=True)
     sq = np.einsum("gk,gk->g", V, V)
@@ -61,7 +44,6 @@ def test_linearize_equals_explicit_jacobian(setup, chunk, dense, monkeypatch):
     excess = np.maximum(2 * u / (1 + u) - 1, 0)
     assert 0.05 < np.mean(excess > 0) < 0.5  # the remainder is really exercised
     v_hat = V / np.sqrt(sq)[:, None]
-    G = len(V)
     # per observation: ρ' (I - β v̂v̂ᵀ) and the remainder's ρ' (β_exact - 1)₊ v̂v̂ᵀ as 3x3 blocks
     W_blocks = drho[:, None, None] * (np.eye(3) - beta[:, None, None] * v_hat[:, :, None] * v_hat[:, None, :])
     X_blocks = (drho * excess)[:, None, None] * v_hat[:, :, None] * v_hat[:, None, :]

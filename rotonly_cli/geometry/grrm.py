@@ -354,7 +354,7 @@ class _Problem:
         Bs = B[:, contrib]
         v_c = [np.repeat(scaled[a], sizes) for a in range(3)]
         q = np.stack([v_c[0] * Bs[c] + v_c[1] * Bs[3 + c] + v_c[2] * Bs[6 + c] for c in range(3)])
-        diag += _outer_products(q, q, self.edge_sorted[s0:s1][contrib], self.E, symmetric=True)
+        diag += _block_products(q, q, self.edge_sorted[s0:s1][contrib], self.E, symmetric=True)
         if p1 > p0:
             # pairs of those observations, as positions in ``contrib`` (pairs are ordered by
             # observation and contiguous per observation)
@@ -367,7 +367,7 @@ class _Problem:
                 index[contrib] = np.arange(len(contrib))
                 qa = q.take(index[pa[keep]], axis=1)
                 qb = q.take(index[self.pair_b[p0:p1][keep] - s0], axis=1)
-                off += _outer_products(qa, qb, self.pair_block[p0:p1][keep], len(off))
+                off += _block_products(qa, qb, self.pair_block[p0:p1][keep], len(off))
 
     def chain_matrix(self, R: np.ndarray) -> sp.csr_matrix:
         """C (3E x 3n): δ_e = δ_j - R_ij δ_i."""
@@ -466,27 +466,19 @@ class _Problem:
         return self._assemble(R, sums, dense=False)
 
 
-def _outer_products(qa: np.ndarray, qb: np.ndarray, index: np.ndarray, length: int,
-                    symmetric: bool = False) -> np.ndarray:
-    """Σ over ``index`` of q_aᵀ q_b (rows q (3, ·)), (length, 9); ``symmetric``: qa is qb."""
-    out = np.empty((length, 9))
-    for p in range(3):
-        for r in range(p if symmetric else 0, 3):
-            out[:, 3 * p + r] = np.bincount(index, weights=qa[p] * qb[r], minlength=length)
-            if symmetric and r > p:
-                out[:, 3 * r + p] = out[:, 3 * p + r]
-    return out
-
-
 def _block_products(Ba: np.ndarray, Bb: np.ndarray, index: np.ndarray, length: int,
                     symmetric: bool = False) -> np.ndarray:
-    """Σ over ``index`` of B_aᵀ B_b (3x3 blocks as 9 component rows), (length, 9);
+    """Σ over ``index`` of B_aᵀ B_b, (length, 9): columns of 3k stacked rows (k x 3 blocks as
+    3k component rows, e.g. the (9, ·) Jacobian blocks or (3, ·) row vectors q);
     ``symmetric`` (Ba is Bb): the 6 upper products only, mirrored."""
     out = np.empty((length, 9))
+    rows = range(0, len(Ba), 3)
     for p in range(3):
         for q in range(p if symmetric else 0, 3):
-            out[:, 3 * p + q] = np.bincount(index, weights=Ba[p] * Bb[q] + Ba[3 + p] * Bb[3 + q] + Ba[6 + p] * Bb[6 + q],
-                                            minlength=length)
+            weights = Ba[p] * Bb[q]
+            for k in rows[1:]:
+                weights = weights + Ba[k + p] * Bb[k + q]
+            out[:, 3 * p + q] = np.bincount(index, weights=weights, minlength=length)
             if symmetric and q > p:
                 out[:, 3 * q + p] = out[:, 3 * p + q]
     return out
