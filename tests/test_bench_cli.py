@@ -101,3 +101,53 @@ def test_bench_strecha_bad_root_is_input_error(tmp_path: Path) -> None:
     result = CliRunner().invoke(cli, ["bench", "strecha", "--root", str(tmp_path), "-o", str(tmp_path / "x")])
     assert result.exit_code != 0
     assert not (tmp_path / "x").exists()
+
+
+def test_bench_twoview_resumes_finished_cells(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run killed after its first cell keeps that cell in a checkpoint beside the output;
+    the rerun computes only the missing cell, gives the same numbers as an uninterrupted run,
+    and removes the checkpoint. Cells from other settings are never reused."""
+    from rotonly_cli.bench import twoview as bench_twoview
+
+    args = ["bench", "twoview", "--no-progress", "--scenes", "standard", "--noise", "1 2", "--trials", "3",
+            "--points", "100", "--methods", "TRRM"]
+    _run(args + ["-o", str(tmp_path / "whole")])
+    whole = json.loads((tmp_path / "whole" / "results.json").read_text())["rows"]
+    assert not list(tmp_path.glob(".*.cells.jsonl"))
+
+    real_run_cell = bench_twoview.run_cell
+    computed: list[float] = []
+
+    def dies_on_second_cell(scene, noise_px, *rest):
+        if computed:
+            raise RuntimeError("killed")
+        computed.append(noise_px)
+        return real_run_cell(scene, noise_px, *rest)
+
+    monkeypatch.setattr(bench_twoview, "run_cell", dies_on_second_cell)
+    with pytest.raises(RuntimeError, match="killed"):
+        CliRunner().invoke(cli, args + ["-o", str(tmp_path / "cut")], catch_exceptions=False)
+    checkpoint = tmp_path / ".cut.cells.jsonl"
+    assert len(checkpoint.read_text().splitlines()) == 1 and not (tmp_path / "cut").exists()
+
+    def counting(scene, noise_px, *rest):
+        computed.append(noise_px)
+        return real_run_cell(scene, noise_px, *rest)
+
+    computed.clear()
+    monkeypatch.setattr(bench_twoview, "run_cell", counting)
+    _run(args + ["--seed", "1", "-o", str(tmp_path / "cut")])  # other settings: the saved cell is not theirs
+    assert computed == [1.0, 2.0]
+    assert not checkpoint.exists()  # a finished run removes it
+
+    monkeypatch.setattr(bench_twoview, "run_cell", dies_on_second_cell)
+    computed.clear()
+    with pytest.raises(RuntimeError, match="killed"):
+        CliRunner().invoke(cli, args + ["-o", str(tmp_path / "cut")], catch_exceptions=False)
+    monkeypatch.setattr(bench_twoview, "run_cell", counting)
+    computed.clear()
+    _run(args + ["-o", str(tmp_path / "cut")])
+    assert computed == [2.0]  # only the cell the killed run had not finished
+    assert not checkpoint.exists()
+    resumed = json.loads((tmp_path / "cut" / "results.json").read_text())["rows"]
+    assert [r["errors_deg"] for r in resumed] == [r["errors_deg"] for r in whole]

@@ -55,16 +55,55 @@ def result_dir(target: str | os.PathLike) -> Iterator[Path]:
         yield tmp
 
 
+def _json_default(o):
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.floating):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
 def write_json(path: Path, payload: dict) -> None:
-    def default(o):
-        if isinstance(o, np.integer):
-            return int(o)
-        if isinstance(o, np.floating):
-            return float(o)
-        if isinstance(o, np.ndarray):
-            return o.tolist()
-        return str(o)
-    path.write_text(json.dumps(payload, indent=1, default=default, allow_nan=True) + "\n")
+    path.write_text(json.dumps(payload, indent=1, default=_json_default, allow_nan=True) + "\n")
+
+
+class CellCheckpoint:
+    """Finished cells of a long benchmark, one JSON line each, in a hidden file beside the
+    output folder (``.<name>.cells.jsonl``). A run stopped part-way keeps them, and the next
+    run with the same settings reuses them instead of recomputing; a finished run deletes the
+    file. Cells computed under other settings are ignored, never mixed in."""
+
+    def __init__(self, out_dir: str | os.PathLike, settings: dict):
+        out_dir = Path(out_dir)
+        self.path = out_dir.parent / f".{out_dir.name}.cells.jsonl"
+        self.settings = json.loads(json.dumps(settings))
+        self.done: dict[str, dict] = {}
+        if self.path.exists():
+            for line in self.path.read_text().splitlines():
+                try:
+                    record = json.loads(line)
+                except json.JSONDecodeError:  # a line cut short when the run was killed
+                    continue
+                if record.get("settings") == self.settings:
+                    self.done[record["cell"]] = record["row"]
+            if self.done:
+                print(f"resuming: {len(self.done)} finished cell(s) from {self.path}", file=sys.stderr)
+
+    def get_or_run(self, cell: tuple, compute: Callable[[], dict]) -> dict:
+        key = json.dumps(list(cell))
+        if key in self.done:
+            return self.done[key]
+        row = compute()
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        with open(self.path, "a") as f:
+            f.write(json.dumps(dict(settings=self.settings, cell=key, row=row), default=_json_default) + "\n")
+        self.done[key] = row
+        return row
+
+    def remove(self) -> None:
+        self.path.unlink(missing_ok=True)
 
 
 def parallel_map(fn: Callable, tasks: list, jobs: int, desc: str, progress: bool = True) -> list:

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rotonly_cli.bench.common import error_deg, fmt, markdown_table, parallel_map, plot_curves, stats, write_json
+from rotonly_cli.bench.common import CellCheckpoint, error_deg, fmt, markdown_table, parallel_map, plot_curves, stats, write_json
 
 SCENES = ("standard", "planar", "holoplane", "rankregular_line", "pure_rotation")
 EXPECTED_KIND = {"standard": "REGULAR", "planar": "REGULAR", "holoplane": "ROTATION_SINGULAR",
@@ -156,7 +156,9 @@ def run(out_dir, scenes=SCENES, noise_levels=(0.5, 1.0, 2.0, 5.0), trials: int =
     from rotonly_cli.bench.common import result_dir
 
     started = time.perf_counter()
-    rows = [run_cell(scene, float(noise), trials, num_points, seed, jobs, progress, methods)
+    checkpoint = CellCheckpoint(out_dir, dict(trials=trials, num_points=num_points, seed=seed, methods=list(methods)))
+    rows = [checkpoint.get_or_run((scene, float(noise)), lambda scene=scene, noise=noise: run_cell(
+                scene, float(noise), trials, num_points, seed, jobs, progress, methods))
             for scene in scenes for noise in noise_levels]
     config = dict(scenes=list(scenes), noise_levels_px=list(noise_levels), trials=trials, num_points=num_points,
                   methods=list(_methods_of(rows)),
@@ -174,4 +176,5 @@ def run(out_dir, scenes=SCENES, noise_levels=(0.5, 1.0, 2.0, 5.0), trials: int =
                       for scene in scenes}
             plot_curves(tmp / f"error_vs_noise_{stat}.png", panels, "noise (px)", f"{stat} rotation error (deg)",
                         f"Two-view rotation error ({stat}) vs noise")
+    checkpoint.remove()
     return table, payload
