@@ -2,6 +2,7 @@
 
 Usage: python scripts/bench_strecha.py --root /work/shared/data/strecha [--scenes fountain-P11 ...]
                                        [-o RESULTS_DIR] [--threads N] [--skip-mapper]
+                                       [--openmvg-bin ../shared/tools/openmvg-2.1/bin]
 
 For every scene folder under ROOT (database.db, gt_dense_cameras/, openmvg/{sfm_data.json,
 matches.e.bin, global/sfm_data.json}; data/strecha/README.md), in the same run:
@@ -20,7 +21,9 @@ matches.e.bin, global/sfm_data.json}; data/strecha/README.md), in the same run:
 * pycolmap's global mapper (GLOMAP: rotation averaging + global positioning + BA, K fixed) on
   a private copy of the database;
 * OpenMVG 2.1's own global SfM result stored in openmvg/global/sfm_data.json (its time is the
-  README's, it is not re-run here).
+  README's, whole seconds as OpenMVG prints them); with ``--openmvg-bin DIR`` also OpenMVG's
+  global SfM re-run here on a copy of the same matches, its process wall time measured like
+  rotonly's.
 
 One evaluator for all: ``rotonly_cli.evaluation.quality.evaluate`` against
 ``rotonly_cli.io.strecha.read_ground_truth(scene)``: rotation error (geodesic after the best
@@ -297,9 +300,59 @@ def run_global_mapper(database: Path, gt: SfMScene, threads: int, seed: int = 0)
         return result
 
 
+# ============================================================================ OpenMVG
+
+#: OpenMVG's global SfM as data/strecha/README.md ran it (openmvg/global was made with -T 4)
+OPENMVG_THREADS = 4
+OPENMVG_TOOLS = ("openMVG_main_SfM", "openMVG_main_ConvertSfM_DataFormat")
+
+
+def run_openmvg_global(project_dir: Path, gt: SfMScene, openmvg_bin: Path, work: Path, log_dir: Path) -> MethodResult:
+    """OpenMVG 2.1's own global SfM (L2 rotation averaging + LiGT + BA) re-run on a copy of the
+    project's matches, timed like ``rotonly run``: the whole process's wall time. OpenMVG's own
+    "Total Sfm took (s)" line (whole seconds, without start-up and loading) goes to extra.
+    The result is converted to sfm_data.json by OpenMVG's ConvertSfM_DataFormat (not timed)."""
+    import re
+
+    method = "OpenMVG 2.1 global SfM (LiGT + BA, re-run here)"
+    copy = work / "openmvg_project"
+    shutil.copytree(project_dir, copy, ignore=shutil.ignore_patterns("global", "eval"))
+    out = work / "openmvg_global"
+    command = [str(openmvg_bin / OPENMVG_TOOLS[0]), "--sfm_engine", "GLOBAL", "-T", str(OPENMVG_THREADS),
+               "--input_file", str(copy / "sfm_data.json"), "--match_file", str(copy / "matches.e.bin"),
+               "--output_dir", str(out)]
+    start = time.perf_counter()
+    completed = subprocess.run(command, capture_output=True, text=True)
+    wall = time.perf_counter() - start
+    convert = [str(openmvg_bin / OPENMVG_TOOLS[1]), "-i", str(out / "sfm_data.bin"), "-o",
+               str(out / "sfm_data.json"), "-V", "-I", "-E"]
+    converted = subprocess.run(convert, capture_output=True, text=True) if completed.returncode == 0 else None
+    (log_dir / "openmvg_global.log").write_text(
+        f"$ {' '.join(command)}\nexit {completed.returncode}\n--- stdout\n{completed.stdout}"
+        f"--- stderr\n{completed.stderr}" + ("" if converted is None else
+                                            f"$ {' '.join(convert)}\nexit {converted.returncode}\n"))
+    if completed.returncode != 0 or converted is None or converted.returncode != 0:
+        failed = completed if completed.returncode != 0 else converted
+        tail = (failed.stderr or failed.stdout).strip().splitlines()[-1:] if failed is not None else []
+        return MethodResult(method, num_gt=len(gt.poses), time_s=wall, time_note="subprocess wall",
+                            error=f"exit {failed.returncode if failed is not None else '?'}: {tail}")
+    result = evaluate_scene(method, gt, openmvg.read_sfm_data(out / "sfm_data.json"), wall,
+                            f"subprocess wall, -T {OPENMVG_THREADS}")
+    own = re.search(r"Total Sfm took \(s\):\s*([0-9.]+)", completed.stdout + completed.stderr)
+    result.extra["openmvg_reported_s"] = float(own.group(1)) if own else None
+    return result
+
+
+def check_openmvg_bin(openmvg_bin: Path) -> str | None:
+    """Why ``openmvg_bin`` cannot be used, or None."""
+    missing = [t for t in OPENMVG_TOOLS if not os.access(openmvg_bin / t, os.X_OK)]
+    return f"{openmvg_bin} lacks {', '.join(missing)}" if missing else None
+
+
 # ============================================================================ one scene
 
-def bench_scene(scene_dir: Path, work: Path, log_dir: Path, threads: int, skip_mapper: bool) -> list[MethodResult]:
+def bench_scene(scene_dir: Path, work: Path, log_dir: Path, threads: int, skip_mapper: bool,
+                openmvg_bin: Path | None = None) -> list[MethodResult]:
     name = scene_dir.name
     gt = strecha.read_ground_truth(scene_dir)
     database = scene_dir / "database.db"
@@ -330,6 +383,9 @@ def bench_scene(scene_dir: Path, work: Path, log_dir: Path, threads: int, skip_m
             guarded("pycolmap RA on stored geometries", run_pycolmap_stored, database, gt)
             if not skip_mapper:
                 guarded("pycolmap global mapper", run_global_mapper, database, gt, threads)
+        if openmvg_bin is not None and (project.parent / "matches.e.bin").is_file():
+            guarded("OpenMVG 2.1 global SfM (re-run)", run_openmvg_global, project.parent, gt, openmvg_bin, tmp,
+                    log_dir)
     global_sfm = scene_dir / "openmvg" / "global" / "sfm_data.json"
     if global_sfm.is_file():
         guarded("OpenMVG 2.1 global SfM", lambda: evaluate_scene(
@@ -403,6 +459,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="results folder (replaced atomically)")
     parser.add_argument("--threads", type=int, default=-1, help="pycolmap global mapper threads (-1: all)")
     parser.add_argument("--skip-mapper", action="store_true", help="leave out the pycolmap global mapper")
+    parser.add_argument("--openmvg-bin", type=Path, default=None,
+                        help="folder of OpenMVG 2.1's tools (openMVG_main_SfM, ..._ConvertSfM_DataFormat): also "
+                             "re-run OpenMVG's global SfM on each scene's openmvg/ matches and time it like rotonly")
     args = parser.parse_args(argv)
 
     root = args.root.resolve()
@@ -417,6 +476,9 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"unknown scenes: {', '.join(sorted(unknown))}")
     if not scene_dirs:
         parser.error(f"no scene folder with {strecha.GT_SUBDIR}/ under {root}")
+    openmvg_bin = args.openmvg_bin.resolve() if args.openmvg_bin is not None else None
+    if openmvg_bin is not None and check_openmvg_bin(openmvg_bin):
+        parser.error(f"--openmvg-bin: {check_openmvg_bin(openmvg_bin)}")
 
     results_dir.parent.mkdir(parents=True, exist_ok=True)
     # subprocess logs and rotonly workspaces live beside RESULTS_DIR until the end
@@ -430,7 +492,7 @@ def main(argv: list[str] | None = None) -> int:
         for scene_dir in scene_dirs:
             print(f"== {scene_dir.name}", file=sys.stderr, flush=True)
             all_results[scene_dir.name] = bench_scene(scene_dir, results_dir.parent, log_dir, args.threads,
-                                                      args.skip_mapper)
+                                                      args.skip_mapper, openmvg_bin)
             print(scene_table(scene_dir.name, all_results[scene_dir.name]) + "\n", flush=True)
         summary = summary_table(all_results) + (
             f"\n\nLoad average (1 min) at start / end: {load_at_start:.1f} / {os.getloadavg()[0]:.1f} "

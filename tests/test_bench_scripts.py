@@ -172,3 +172,50 @@ def test_bench_scale_measure_on_small_simulated_scene(tmp_path):
                                 {"simulation": info, "error": "timeout 10 s"}])
     assert "| 10 | 800 |" in table and "failed: timeout 10 s" in table
     assert "| met |" in table  # a 10-view GRRM is far inside 60 s / 4 GB
+
+
+def _fake_openmvg_tools(folder: Path, result_json: Path) -> Path:
+    """Stand-ins for openMVG_main_SfM (writes <output_dir>/sfm_data.bin, prints OpenMVG's timing
+    line) and openMVG_main_ConvertSfM_DataFormat (copies -i to -o): the glue is what is tested."""
+    folder.mkdir()
+    sfm = folder / "openMVG_main_SfM"
+    sfm.write_text(f"#!{sys.executable}\nimport shutil, sys\nout = sys.argv[sys.argv.index('--output_dir') + 1]\n"
+                   f"import os; os.makedirs(out)\nshutil.copyfile({str(result_json)!r}, out + '/sfm_data.bin')\n"
+                   "print('INFO: [main_SfM.cpp:618]  Total Sfm took (s): 3')\n")
+    convert = folder / "openMVG_main_ConvertSfM_DataFormat"
+    convert.write_text(f"#!{sys.executable}\nimport shutil, sys\na = sys.argv\n"
+                       "shutil.copyfile(a[a.index('-i') + 1], a[a.index('-o') + 1])\n")
+    for tool in (sfm, convert):
+        tool.chmod(0o755)
+    return folder
+
+
+def test_openmvg_global_rerun_is_timed_converted_and_evaluated(tmp_path: Path):
+    """--openmvg-bin: OpenMVG's global SfM runs on a copy of the project (ROOT untouched), its
+    process wall time and its own "Total Sfm took" line are kept, its result is evaluated."""
+    from dataclasses import replace
+
+    from rotonly_cli.io import openmvg, strecha
+
+    scene_dir = FIXTURES / "herzjesu_p8"
+    gt = strecha.read_ground_truth(scene_dir)
+    result_scene = replace(gt, intrinsics={k: replace(v, model="pinhole", params=v.params[[0, 2, 3]])
+                                           for k, v in gt.intrinsics.items()})
+    openmvg.write_sfm_data(tmp_path / "result.json", result_scene)
+    tools = _fake_openmvg_tools(tmp_path / "bin", tmp_path / "result.json")
+    assert bench_strecha.check_openmvg_bin(tools) is None
+    assert "openMVG_main_SfM" in bench_strecha.check_openmvg_bin(tmp_path)
+    before = {p.name: _digest(p) for p in (scene_dir / "openmvg").iterdir()}
+    (tmp_path / "work").mkdir()
+    (tmp_path / "logs").mkdir()
+    result = bench_strecha.run_openmvg_global(scene_dir / "openmvg", gt, tools, tmp_path / "work", tmp_path / "logs")
+    assert result.error == ""
+    assert result.num_registered == 8 and result.rotation_mean_deg < 1e-6
+    assert result.extra["openmvg_reported_s"] == 3.0 and 0 < result.time_s < 30
+    assert result.time_note.startswith("subprocess wall")
+    assert (tmp_path / "work" / "openmvg_project" / "matches.e.bin").is_file()
+    assert {p.name: _digest(p) for p in (scene_dir / "openmvg").iterdir()} == before
+
+    (tools / "openMVG_main_SfM").write_text("#!/bin/sh\necho 'cannot open matches' >&2\nexit 3\n")
+    failed = bench_strecha.run_openmvg_global(scene_dir / "openmvg", gt, tools, tmp_path / "work2", tmp_path / "logs")
+    assert failed.error.startswith("exit 3") and "cannot open matches" in failed.error
