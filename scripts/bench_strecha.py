@@ -356,16 +356,18 @@ def run_openmvg_global(project_dir: Path, gt: SfMScene, openmvg_bin: Path, work:
     wall = time.perf_counter() - start
     convert = [str(openmvg_bin / OPENMVG_TOOLS[1]), "-i", str(out / "sfm_data.bin"), "-o",
                str(out / "sfm_data.json"), "-V", "-I", "-E"]
-    converted = subprocess.run(convert, capture_output=True, text=True) if completed.returncode == 0 else None
-    (log_dir / "openmvg_global.log").write_text(
-        f"$ {' '.join(command)}\nexit {completed.returncode}\n--- stdout\n{completed.stdout}"
-        f"--- stderr\n{completed.stderr}" + ("" if converted is None else
-                                            f"$ {' '.join(convert)}\nexit {converted.returncode}\n"))
-    if completed.returncode != 0 or converted is None or converted.returncode != 0:
-        failed = completed if completed.returncode != 0 else converted
-        tail = (failed.stderr or failed.stdout).strip().splitlines()[-1:] if failed is not None else []
+    log = f"$ {' '.join(command)}\nexit {completed.returncode}\n--- stdout\n{completed.stdout}--- stderr\n" \
+          f"{completed.stderr}"
+    failed = completed if completed.returncode != 0 else None
+    if failed is None:
+        converted = subprocess.run(convert, capture_output=True, text=True)
+        log += f"$ {' '.join(convert)}\nexit {converted.returncode}\n{converted.stderr}"
+        failed = converted if converted.returncode != 0 else None
+    (log_dir / f"openmvg_global_{project_dir.parent.name}.log").write_text(log)
+    if failed is not None:
+        tail = (failed.stderr or failed.stdout).strip().splitlines()[-1:]
         return MethodResult(method, num_gt=len(gt.poses), time_s=wall, time_note="subprocess wall",
-                            error=f"exit {failed.returncode if failed is not None else '?'}: {tail}")
+                            error=f"exit {failed.returncode}: {tail}")
     result = evaluate_scene(method, gt, openmvg.read_sfm_data(out / "sfm_data.json"), wall,
                             f"subprocess wall, -T {OPENMVG_THREADS}")
     own = re.search(r"Total Sfm took \(s\):\s*([0-9.]+)", completed.stdout + completed.stderr)
