@@ -38,7 +38,16 @@ def test_bench_twoview_quick(tmp_path: Path) -> None:
     for row in payload["rows"]:
         assert set(row["methods"]) == {"initial", "BA", "PA", "Kneip eigen", "Kneip nonlinear", "TRRM"}
         for m, s in row["methods"].items():
-            assert s["count"] == 3 and 0.0 <= s["mean"] < 20.0 and s["ms_per_edge"] >= 0.0, (m, s)
+            assert s["count"] == 3 and 0.0 <= s["mean"] <= 180.0 and s["ms_per_edge"] >= 0.0, (m, s)
+            # Standard is well posed: every method stays near the truth. PlanarScene is degenerate
+            # for the 6-DoF baselines: from a 6.4 deg start (seed 1500354) Kneip nonlinear spends
+            # its whole evaluation budget without converging and ends at 173.9 deg with OpenBLAS's
+            # Haswell/Zen kernels, at 7.66 deg with its Sandybridge kernels (OPENBLAS_CORETYPE), so a
+            # baseline's planar mean depends on the CPU; its median does not (7.2 deg on both).
+            if row["scene"] == "standard" or m == "TRRM":
+                assert s["mean"] < 20.0, (row["scene"], m, s)
+            else:
+                assert s["median"] < 20.0, (row["scene"], m, s)
         # every refinement improves the 5-point start on the Standard scene at 5 px
         if row["scene"] == "standard" and row["noise_px"] == 5.0:
             assert row["methods"]["TRRM"]["mean"] < row["methods"]["initial"]["mean"]
