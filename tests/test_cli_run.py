@@ -139,6 +139,18 @@ def test_bad_input_exit_2_one_line_nothing_written(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.db"]
 
 
+def test_bad_input_is_reported_before_scipy_is_imported():
+    """`rotonly run` checks INPUT and OUT before the numerical stages: importing the CLI
+    command and the pipeline must not import scipy (~0.3 s, half of a bad-input exit)."""
+    import subprocess
+    import sys
+
+    code = ("import sys; import rotonly_cli.cli.run, rotonly_cli.pipeline; "
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'scipy', 'pycolmap', 'cv2', 'matplotlib'}))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
 def test_fewer_than_two_usable_images_exit_1(tmp_path, capsys):
     # the fixture with --min-inliers above every pair's inlier count: no edge survives
     assert _rotonly("run", HERZ_JESU / "database.db", "-o", tmp_path / "out", "--min-inliers", "100000") == 1

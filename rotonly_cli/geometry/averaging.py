@@ -24,14 +24,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import Enum
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
-from scipy.sparse.linalg import splu
 
 from rotonly_cli.errors import AlgorithmError, InputError
 from rotonly_cli.geometry import so3
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
 
 __all__ = ["RobustWeight", "AveragingOptions", "AveragingResult", "average_rotations",
            "spanning_tree_rotations", "edge_residuals"]
@@ -108,6 +109,9 @@ def spanning_tree_rotations(num_views: int, edges_i: np.ndarray, edges_j: np.nda
 
     Views not reached get NaN. Parallel edges: the heaviest of a pair is used.
     """
+    import scipy.sparse as sp  # lazily (~0.3 s): `rotonly run` reports bad input before it
+    from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
+
     low, high = np.minimum(edges_i, edges_j), np.maximum(edges_i, edges_j)
     order = np.lexsort((-weights, high, low))  # heaviest first inside each pair
     first = np.ones(order.size, dtype=bool)
@@ -135,6 +139,8 @@ def spanning_tree_rotations(num_views: int, edges_i: np.ndarray, edges_j: np.nda
 def _incidence(edges_i: np.ndarray, edges_j: np.ndarray, column_of_view: np.ndarray, num_free: int
                ) -> sp.csr_matrix:
     """Scalar incidence (E × num_free): −1 at i, +1 at j, the fixed view's column dropped."""
+    import scipy.sparse as sp
+
     num_edges = edges_i.size
     rows = np.concatenate([np.arange(num_edges), np.arange(num_edges)])
     cols = np.concatenate([column_of_view[edges_i], column_of_view[edges_j]])
@@ -224,6 +230,10 @@ def average_rotations(num_views: int, edges_i: np.ndarray, edges_j: np.ndarray, 
         raise InputError("self-loop edge (i == j)", field="edges")
     if not 0 <= fixed_view < num_views:
         raise InputError("fixed_view out of range", field="fixed_view")
+
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+    from scipy.sparse.linalg import splu
 
     graph = sp.coo_matrix((np.ones(num_edges), (edges_i, edges_j)), shape=(num_views, num_views))
     _, component = connected_components(graph, directed=False)
