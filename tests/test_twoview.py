@@ -267,7 +267,7 @@ def test_identification_at_1px():
 
 
 def test_pure_rotation_ratio_bands():
-    """The two populations the PR/B/I threshold (5) separates (geometry/scene.py docstring)."""
+    """The two populations the PR/B/I threshold (3) separates (geometry/scene.py docstring)."""
     rho_pure = [r.pure_rotation_ratio for r in _identify_many("pure_rotation", 40, seed0=7)]
     rho_std = [r.pure_rotation_ratio for r in _identify_many("standard", 40, seed0=7)]
     assert max(rho_pure) < 1.0
