@@ -54,6 +54,7 @@ class RunOptions:
     average: AverageOptions = AverageOptions()
     grrm: bool = True  # False: keep the averaged rotations (ablation)
     progress: bool = False
+    jobs: int = 1  # processes for TRRM (rotonly_cli.parallel; same numbers for any value)
 
 
 @dataclass
@@ -109,7 +110,7 @@ def refine_stage(run: Run) -> None:
     from rotonly_cli.stages.refine import refine_edges
 
     run.reports["refine"] = refine_edges(run.graph, run.scene.normalized, run.options.trrm,
-                                         run.options.identification)
+                                         run.options.identification, jobs=run.options.jobs)
     _ensure_two_views(run.graph, "TRRM")
 
 

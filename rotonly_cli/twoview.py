@@ -22,6 +22,7 @@ import numpy as np
 from rotonly_cli.geometry import twoview as _tv
 from rotonly_cli.geometry.scene import IdentificationOptions, SceneKind, identify
 from rotonly_cli.geometry.trrm import TRRMOptions, refine
+from rotonly_cli.parallel import map_edges
 
 __all__ = [
     "SceneKind", "SceneIdentification", "TwoViewRefinement", "BatchRefinement", "IdentificationOptions",
@@ -105,6 +106,12 @@ def _prepare(R_j_from_i, xs_i: Sequence, xs_j: Sequence) -> tuple[np.ndarray, _t
     return R, batch
 
 
+def _jobs(jobs) -> int:
+    if isinstance(jobs, bool) or not isinstance(jobs, (int, np.integer)) or jobs < 1:
+        raise ValueError(f"jobs: must be an integer >= 1, got {jobs!r}")
+    return int(jobs)
+
+
 def _quiet():
     """Numerical corner cases are handled explicitly; no numpy warning may escape."""
     ctx = np.errstate(all="ignore")
@@ -112,8 +119,10 @@ def _quiet():
 
 
 def identify_scenes(R_j_from_i, xs_i: Sequence, xs_j: Sequence,
-                    options: IdentificationOptions = IdentificationOptions()) -> list[SceneIdentification]:
-    """Identify many edges at once (batched), each at the rotation given for it.
+                    options: IdentificationOptions = IdentificationOptions(), jobs: int = 1) -> list[SceneIdentification]:
+    """Identify many edges at once (batched), each at the rotation given for it. ``jobs`` > 1
+    splits the edges over that many forked processes (rotonly_cli.parallel: Linux, large
+    batches; same numbers).
 
     ROTATION_SINGULAR does not depend on the rotation; the PR/B/I ratio does (geometry/scene.py):
     from a poor rotation a regular edge can read as PURE_ROTATION (Standard scene, 1 px, starts
@@ -122,7 +131,7 @@ def identify_scenes(R_j_from_i, xs_i: Sequence, xs_j: Sequence,
     R, batch = _prepare(R_j_from_i, xs_i, xs_j)
     with _quiet(), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        ident = identify(R, batch, options)
+        ident = map_edges(lambda R_part, batch_part: identify(R_part, batch_part, options), R, batch, _jobs(jobs))
     return [SceneIdentification(kind=ident.kinds[e], detection_value=float(ident.detection_value[e]),
                                 pure_rotation_ratio=float(ident.pure_rotation_ratio[e]),
                                 ps_eigenvalues=tuple(float(v) for v in ident.ps_eigenvalues[e]))
@@ -139,12 +148,16 @@ def identify_scene(R_j_from_i, x_i, x_j, options: IdentificationOptions = Identi
 
 
 def refine_rotations(R_j_from_i, xs_i: Sequence, xs_j: Sequence, options: TRRMOptions = TRRMOptions(),
-                     identification_options: IdentificationOptions = IdentificationOptions()) -> BatchRefinement:
-    """TRRM (Alg. 2) on many edges at once, in lock-step."""
+                     identification_options: IdentificationOptions = IdentificationOptions(),
+                     jobs: int = 1) -> BatchRefinement:
+    """TRRM (Alg. 2) on many edges at once, in lock-step. ``jobs`` > 1 splits the edges over
+    that many forked processes (rotonly_cli.parallel: Linux, large batches; same numbers)."""
     R, batch = _prepare(R_j_from_i, xs_i, xs_j)
+    jobs = _jobs(jobs)
     with _quiet(), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        res = refine(R, batch, options, identification_options)
+        res = map_edges(lambda R_part, batch_part: refine(R_part, batch_part, options, identification_options),
+                        R, batch, jobs)
     return BatchRefinement(rotations=res.rotations, translation_directions=res.translation_directions, costs=res.cost,
                            initial_costs=res.initial_cost, iterations=res.iterations, converged=res.converged,
                            kinds=res.kinds, detection_values=res.identification.detection_value,

@@ -135,8 +135,9 @@ def rotation_errors(names: list[str], R_est: np.ndarray, gt: dict) -> dict:
             "max": report.rotation_error_deg.max, "registered": report.num_matched}
 
 
-def measure(scene_dir: Path, out_json: Path) -> None:
-    """Run the stages on scene_dir/database.db in this process; per-stage time and peak RSS."""
+def measure(scene_dir: Path, out_json: Path, jobs: int = 1) -> None:
+    """Run the stages on scene_dir/database.db in this process; per-stage time and peak RSS.
+    ``jobs``: TRRM processes (RunOptions.jobs, `rotonly run --jobs`)."""
     from rotonly_cli.pipeline import STAGE_FUNCTIONS, RunOptions, load_stage, write_outputs
 
     resettable = reset_peak_rss()
@@ -150,7 +151,7 @@ def measure(scene_dir: Path, out_json: Path) -> None:
             cpu_start = time.process_time()
             start = time.perf_counter()
             if stage == "load":
-                run = load_stage(scene_dir / "database.db", RunOptions())
+                run = load_stage(scene_dir / "database.db", RunOptions(jobs=jobs))
             elif stage == "export":
                 write_outputs(Path(export_dir), run)
             else:
@@ -242,6 +243,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="simulated databases are kept here and reused")
     parser.add_argument("-o", "--output", type=Path, default=Path("bench_results/scale"))
     parser.add_argument("--timeout", type=float, default=3600.0, help="per child process (s)")
+    parser.add_argument("--jobs", type=int, default=None,
+                        help="TRRM processes, as `rotonly run --jobs` (default: the usable CPUs, as rotonly run)")
     parser.add_argument("--_simulate", nargs=2, metavar=("VIEWS", "DIR"), help=argparse.SUPPRESS)
     parser.add_argument("--_measure", nargs=2, metavar=("DIR", "JSON"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -252,9 +255,12 @@ def main(argv: list[str] | None = None) -> int:
                     args.max_height, args.seed)
         return 0
     if args._measure:
-        measure(Path(args._measure[0]), Path(args._measure[1]))
+        measure(Path(args._measure[0]), Path(args._measure[1]), args.jobs or 1)
         return 0
 
+    from rotonly_cli.cli.run import usable_cpus
+
+    jobs = usable_cpus() if args.jobs is None else args.jobs
     results = []
     load_at_start = os.getloadavg()[0]  # other processes on the 2 cores inflate every time here
     common = ["--points-per-view", str(args.points_per_view), "--setup", args.setup, "--window", str(args.window),
@@ -276,7 +282,8 @@ def main(argv: list[str] | None = None) -> int:
         with tempfile.TemporaryDirectory(prefix="bench_scale_") as tmp:
             out_json = Path(tmp) / "measure.json"
             try:
-                elapsed, completed = run_child(["--_measure", str(scene_dir), str(out_json)], args.timeout)
+                elapsed, completed = run_child(["--jobs", str(jobs), "--_measure", str(scene_dir), str(out_json)],
+                                               args.timeout)
                 entry["child_wall_s"] = elapsed
                 if completed.returncode == 0:
                     entry["measure"] = json.loads(out_json.read_text())
@@ -287,7 +294,8 @@ def main(argv: list[str] | None = None) -> int:
         results.append(entry)
 
     table = tables(results) + (f"\n\nLoad average (1 min) at start / end: {load_at_start:.1f} / "
-                               f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; code {code_version()}.")
+                               f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; TRRM jobs={jobs}; "
+                               f"code {code_version()}.")
     print(table)
     payload = {"command": " ".join(["bench_scale.py"] + (argv if argv is not None else sys.argv[1:])),
                "code_version": code_version(), "cpu_count": os.cpu_count(),

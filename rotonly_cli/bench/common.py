@@ -108,9 +108,9 @@ class CellCheckpoint:
 
 def parallel_map(fn: Callable, tasks: list, jobs: int, desc: str, progress: bool = True) -> list:
     """``[fn(t) for t in tasks]`` in order, over ``jobs`` forked processes, with a tqdm bar."""
-    from tqdm import tqdm
+    from rotonly_cli.progress import progress_bar
 
-    bar = tqdm(total=len(tasks), desc=desc, disable=not progress, file=sys.stderr, leave=False)
+    bar = progress_bar(total=len(tasks), desc=desc, disable=not progress, file=sys.stderr, leave=False)
     try:
         if jobs > 1 and len(tasks) > 1:
             with mp.get_context("fork").Pool(min(jobs, len(tasks))) as pool:

@@ -17,6 +17,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from rotonly_cli.cli.run import jobs_option, usable_cpus
 from rotonly_cli.errors import AlgorithmError, InputError
 
 
@@ -103,7 +104,9 @@ def format_table(row: dict) -> str:
               default=2.0, show_default=True, help="RANSAC epipolar threshold (px).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of RANSAC / the perturbation.")
 @click.option("--json", "as_json", is_flag=True, help="Print the numbers as JSON.")
-def command(target: Path, init: str, perturb_deg: float, ransac_threshold_px: float, seed: int, as_json: bool) -> None:
+@jobs_option
+def command(target: Path, init: str, perturb_deg: float, ransac_threshold_px: float, seed: int, as_json: bool,
+            jobs: int | None) -> None:
     """TRRM-refine the edges of a workspace, or the simulated edge of a .npz file.
 
     \b
@@ -116,12 +119,12 @@ def command(target: Path, init: str, perturb_deg: float, ransac_threshold_px: fl
     if target.is_dir():
         from rotonly_cli.cli.run import echo_summary
         from rotonly_cli.io.workspace import STATE_FILE
-        from rotonly_cli.pipeline import resume
+        from rotonly_cli.pipeline import RunOptions, resume
 
         if not (target / STATE_FILE).is_file():
             raise InputError(f"folder is not a rotonly workspace (no {STATE_FILE}; make one with "
                              "`rotonly identify INPUT -o OUT`)", path=target, field="TARGET")
-        echo_summary(resume(target, "refine"), target)
+        echo_summary(resume(target, "refine", RunOptions(jobs=usable_cpus() if jobs is None else jobs)), target)
         return
     if target.suffix.lower() != ".npz":
         raise InputError("expected a workspace folder (from `rotonly identify`) or a .npz from "

@@ -34,6 +34,23 @@ def shared_load_options(function):
     return function
 
 
+def usable_cpus() -> int:
+    """CPUs this process may run on (the affinity mask where the OS has one)."""
+    import os
+
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def jobs_option(function):
+    return click.option("--jobs", type=click.IntRange(min=1), default=None,
+                        help="Processes for TRRM (forked, Linux; default: the usable CPUs). The numbers do "
+                             "not depend on it. TRRM stays in one process while images are being decoded "
+                             "for the point colours (a fork is unsafe with a thread running).")(function)
+
+
 def run_options(ctx: click.Context, matches_dir, image_path, min_inliers, reestimate, ransac_max_error, seed,
                 **extra):
     from rotonly_cli.pipeline import RunOptions
@@ -76,9 +93,10 @@ def echo_summary(summary: dict, out_dir: Path) -> None:
 @click.option("--max-residual-deg", type=click.FloatRange(min=0, min_open=True), default=5.0, show_default=True,
               help="Edges further than this from the averaged rotations are filtered as outliers.")
 @click.option("--no-grrm", is_flag=True, help="Skip GRRM (keep the averaged rotations).")
+@jobs_option
 @click.pass_context
 def command(ctx: click.Context, input_path: Path, out_dir: Path, gt_path: Path | None, no_grrm: bool,
-            **load_options) -> None:
+            jobs: int | None, **load_options) -> None:
     """Reconstruct camera poses and 3D points from feature matches.
 
     INPUT is a COLMAP database (.db) or an OpenMVG sfm_data.json (with --matches-dir).
@@ -93,7 +111,8 @@ def command(ctx: click.Context, input_path: Path, out_dir: Path, gt_path: Path |
     try:
         from rotonly_cli.pipeline import run_pipeline
 
-        options = run_options(ctx, grrm=not no_grrm, gt=None if gt_path is None else str(gt_path), **load_options)
+        options = run_options(ctx, grrm=not no_grrm, gt=None if gt_path is None else str(gt_path),
+                              jobs=usable_cpus() if jobs is None else jobs, **load_options)
         summary = run_pipeline(input_path, out_dir, options)
     finally:
         if collecting:

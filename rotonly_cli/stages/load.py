@@ -155,10 +155,10 @@ def build_view_graph(scene: SfMScene, options: LoadOptions = LoadOptions()) -> t
 
     with ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1)) as pool:
         estimated = pool.map(estimate_edge, to_estimate)
-        if options.progress:  # tqdm imported only for a bar (10-20 ms of a run otherwise)
-            from tqdm import tqdm
+        if options.progress:
+            from rotonly_cli.progress import progress_bar
 
-            estimated = tqdm(estimated, total=len(to_estimate), desc="relative poses (RANSAC)", unit="edge")
+            estimated = progress_bar(estimated, total=len(to_estimate), desc="relative poses (RANSAC)", unit="edge")
         estimates = list(estimated)
     for k, estimate in zip(to_estimate, estimates):
         edge = graph.edges[k]

@@ -1,0 +1,138 @@
+"""Edge-parallel TRRM and scene identification over forked processes.
+
+Every per-edge quantity of the two-view core (geometry/trrm.py, geometry/scene.py) depends
+on that edge's matches only, so the edges can be cut into contiguous parts that are refined
+side by side. Threads do not pay: the lean kernels issue many small numpy calls per group of
+edges and hold the GIL between them (two threads on edge halves: 1.16-1.6x on 2 cores,
+scripts/bench_throughput.py), while two processes reach 1.8x. The parts go to forked
+children (they inherit the match arrays; only the small per-edge results come back through
+a pipe) and the first part runs in this process.
+
+Forking is only used where it is safe and pays: on Linux, when this process runs no other
+Python thread (``rotonly run`` decodes images for point colours on a background thread
+while TRRM runs: it then refines in-process), and with at least ``MIN_MATCHES_PER_JOB``
+matches per part. Otherwise the same code runs serially, so ``jobs`` never changes the
+numbers beyond the last bits (per-edge results are the same functions of the same data).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import multiprocessing as mp
+import sys
+import threading
+from typing import Callable, Sequence
+
+import numpy as np
+
+#: fewest matches per part: a fork costs ~10-30 ms (page tables of a large process) and a
+#: pass of the lean kernels ~0.15 us per match, so below ~1e5 matches a part is not worth it
+MIN_MATCHES_PER_JOB = 100_000
+
+
+def fork_safe() -> bool:
+    """Whether forking this process is safe: Linux, no other Python thread alive (a fork
+    copies only the calling thread; locks held by the others would stay locked in the child),
+    and not a daemonic multiprocessing worker (those may not start children)."""
+    return sys.platform.startswith("linux") and "fork" in mp.get_all_start_methods() \
+        and threading.active_count() == 1 and not mp.current_process().daemon
+
+
+def edge_parts(counts: np.ndarray, jobs: int, min_matches: int | None = None) -> list[tuple[int, int]]:
+    """Contiguous edge ranges [e0, e1) with about equal numbers of matches: at most ``jobs``
+    of them and no more than one per ``min_matches`` (default ``MIN_MATCHES_PER_JOB``)
+    matches in all (one range when that is impossible)."""
+    min_matches = MIN_MATCHES_PER_JOB if min_matches is None else min_matches
+    counts = np.asarray(counts, dtype=np.int64)
+    E = len(counts)
+    total = int(counts.sum())
+    parts = int(max(1, min(jobs, E, total // max(min_matches, 1))))
+    if parts == 1:
+        return [(0, E)]
+    before = np.concatenate([[0], np.cumsum(counts)])  # matches before edge b, b = 0..E
+    targets = total * np.arange(1, parts) / parts
+    right = np.clip(np.searchsorted(before, targets), 1, E)
+    # the edge boundary nearest to each equal share
+    cuts = np.where(targets - before[right - 1] < before[right] - targets, right - 1, right)
+    bounds = np.unique(np.concatenate([[0], cuts, [E]]))
+    return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+
+
+def _child(conn, fn: Callable, item) -> None:
+    try:
+        message = ("ok", fn(item))
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it
+        message = ("error", exc)
+    try:
+        conn.send(message)
+    except Exception as exc:  # the result or the exception did not pickle
+        conn.send(("error", RuntimeError(f"worker result could not be sent back: {exc}")))
+    finally:
+        conn.close()
+
+
+def fork_map(fn: Callable, items: Sequence) -> list:
+    """``[fn(x) for x in items]``: items[1:] in forked children, items[0] in this process.
+    ``fn`` may be a closure (nothing is pickled but the results). A child's exception is
+    raised here; a child that dies without a result raises RuntimeError."""
+    if len(items) <= 1 or not fork_safe():
+        return [fn(x) for x in items]
+    ctx = mp.get_context("fork")
+    children = []
+    try:
+        for item in items[1:]:
+            receive, send = ctx.Pipe(duplex=False)
+            process = ctx.Process(target=_child, args=(send, fn, item), daemon=True)
+            process.start()
+            send.close()  # the child holds the write end; EOF here when it dies
+            children.append((process, receive))
+        results = [fn(items[0])]
+        for process, receive in children:
+            try:
+                status, value = receive.recv()
+            except EOFError:
+                process.join()
+                raise RuntimeError(f"worker process died (exit code {process.exitcode})") from None
+            if status == "error":
+                raise value
+            results.append(value)
+        return results
+    finally:
+        for process, receive in children:
+            receive.close()
+            if process.is_alive():
+                process.terminate()
+            process.join()
+
+
+def concat_results(parts: Sequence):
+    """Concatenate per-edge dataclass results (arrays along axis 0, nested dataclasses field
+    by field) in the order given."""
+    first = parts[0]
+    values = {}
+    for field in dataclasses.fields(first):
+        items = [getattr(p, field.name) for p in parts]
+        if dataclasses.is_dataclass(items[0]):
+            values[field.name] = concat_results(items)
+        else:
+            values[field.name] = np.concatenate(items, axis=0)
+    return type(first)(**values)
+
+
+def _edge_range(batch, e0: int, e1: int):
+    """The batch's edges [e0, e1) as views (no copy of the matches)."""
+    from rotonly_cli.geometry.twoview import EdgeBatch
+
+    m0, m1 = int(batch.offsets[e0]), int(batch.offsets[e1])
+    return EdgeBatch(batch.x_i[m0:m1], batch.x_j[m0:m1], batch.offsets[e0:e1 + 1] - m0,
+                     None if batch.weights is None else batch.weights[m0:m1])
+
+
+def map_edges(fn: Callable, R: np.ndarray, batch, jobs: int = 1):
+    """``fn(R, batch)`` (a per-edge dataclass result) on up to ``jobs`` contiguous parts of
+    the edges in forked processes, concatenated; serial when forking is unsafe or does not
+    pay (module docstring)."""
+    ranges = edge_parts(batch.counts, jobs) if jobs > 1 and fork_safe() else [(0, batch.num_edges)]
+    if len(ranges) == 1:
+        return fn(R, batch)
+    return concat_results(fork_map(lambda r: fn(R[r[0]:r[1]], _edge_range(batch, *r)), ranges))

@@ -1,0 +1,160 @@
+"""rotonly_cli.parallel: edge-parallel TRRM / identification over forked processes gives the
+numbers of one process, bit for bit; failures in a worker surface in the caller."""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from rotonly_cli import parallel, twoview
+from rotonly_cli.simulation.fivepoint import perturbed_rotation
+from rotonly_cli.simulation.twoview import simulate_twoview
+
+pytestmark = pytest.mark.skipif(not parallel.fork_safe(), reason="needs fork (Linux, no other thread)")
+
+
+def _edges(num_edges: int = 24, num_points: int = 150, seed: int = 3):
+    rng = np.random.default_rng(seed)
+    scenes = ("standard", "standard", "pure_rotation", "holoplane")
+    problems = [simulate_twoview(scenes[e % len(scenes)], num_points=num_points + 7 * e, noise_px=1.0, rng=rng)
+                for e in range(num_edges)]
+    R0 = np.stack([perturbed_rotation(p.R_j_from_i, 2.0, rng) for p in problems])
+    return R0, [p.x_i for p in problems], [p.x_j for p in problems]
+
+
+@pytest.fixture
+def small_parts(monkeypatch):
+    """Let small test batches split (the default needs 1e5 matches per part)."""
+    monkeypatch.setattr(parallel, "MIN_MATCHES_PER_JOB", 500)
+    calls = []
+    fork_map = parallel.fork_map
+
+    def spy(fn, items):
+        calls.append(len(items))
+        return fork_map(fn, items)
+
+    monkeypatch.setattr(parallel, "fork_map", spy)
+    return calls
+
+
+def test_edge_parts_are_contiguous_balanced_and_respect_the_minimum():
+    counts = np.array([100, 300, 50, 50, 500, 200, 100, 700])  # 2000 matches
+    parts = parallel.edge_parts(counts, 2, min_matches=100)
+    assert parts[0][0] == 0 and parts[-1][1] == len(counts)
+    assert all(a[1] == b[0] for a, b in zip(parts[:-1], parts[1:]))
+    sizes = [int(counts[a:b].sum()) for a, b in parts]
+    assert len(parts) == 2 and sizes == [1000, 1000]
+    # thirds: the boundaries nearest to 667 and 1333 matches are after 500 and 1300
+    assert parallel.edge_parts(counts, 3, min_matches=100) == [(0, 4), (4, 7), (7, 8)]
+    assert parallel.edge_parts(counts, 8, min_matches=600) == [(0, 4), (4, 7), (7, 8)]  # 2000 // 600 = 3 parts
+    assert parallel.edge_parts(counts, 4, min_matches=5000) == [(0, 8)]
+    assert parallel.edge_parts(counts[:1], 4, min_matches=1) == [(0, 1)]
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.integers(6, 5000), min_size=1, max_size=60), st.integers(1, 8), st.integers(1, 20000))
+def test_edge_parts_cover_every_edge_once(counts, jobs, min_matches):
+    counts = np.array(counts)
+    parts = parallel.edge_parts(counts, jobs, min_matches=min_matches)
+    assert parts[0][0] == 0 and parts[-1][1] == len(counts)
+    assert all(a[1] == b[0] and a[0] < a[1] for a, b in zip(parts[:-1], parts[1:]))
+    assert len(parts) <= max(1, min(jobs, len(counts), int(counts.sum()) // min_matches))
+
+
+def test_fork_map_runs_the_items_in_other_processes_in_order():
+    results = parallel.fork_map(lambda k: (k * k, os.getpid()), [0, 1, 2])
+    assert [r[0] for r in results] == [0, 1, 4]
+    assert results[0][1] == os.getpid()
+    assert len({r[1] for r in results}) == 3
+
+
+def test_fork_map_raises_a_worker_exception_in_the_caller():
+    def work(k):
+        if k == 1:
+            raise ValueError("edge 7: bad worker input")
+        return k
+
+    with pytest.raises(ValueError, match="edge 7: bad worker input"):
+        parallel.fork_map(work, [0, 1])
+
+
+def test_fork_map_reports_a_worker_that_dies():
+    def work(k):
+        if k == 1:
+            os._exit(3)
+        return k
+
+    with pytest.raises(RuntimeError, match="exit code 3"):
+        parallel.fork_map(work, [0, 1])
+
+
+def test_fork_map_stays_in_process_while_another_thread_runs():
+    release = threading.Event()
+    thread = threading.Thread(target=release.wait)
+    thread.start()
+    try:
+        assert not parallel.fork_safe()
+        pids = parallel.fork_map(lambda k: os.getpid(), [0, 1])
+    finally:
+        release.set()
+        thread.join()
+    assert pids == [os.getpid(), os.getpid()]
+
+
+def test_refine_rotations_with_jobs_equals_one_process_bit_for_bit(small_parts):
+    R0, x_i, x_j = _edges()
+    one = twoview.refine_rotations(R0, x_i, x_j)
+    assert small_parts == []
+    two = twoview.refine_rotations(R0, x_i, x_j, jobs=3)
+    assert small_parts == [3]  # three parts, two of them in forked children
+    for name in ("rotations", "translation_directions", "costs", "initial_costs", "iterations", "converged",
+                 "detection_values", "pure_rotation_ratios"):
+        assert np.array_equal(getattr(one, name), getattr(two, name)), name
+    assert list(one.kinds) == list(two.kinds)
+    assert {k.value for k in one.kinds} == {"REGULAR", "PURE_ROTATION", "ROTATION_SINGULAR"}
+
+
+def test_identify_scenes_with_jobs_equals_one_process(small_parts):
+    R0, x_i, x_j = _edges()
+    one = twoview.identify_scenes(R0, x_i, x_j)
+    two = twoview.identify_scenes(R0, x_i, x_j, jobs=2)
+    assert small_parts == [2]
+    assert one == two
+
+
+@pytest.mark.parametrize("jobs", [0, -1, 1.5, True])
+def test_bad_jobs_is_a_value_error_naming_it(jobs):
+    R0, x_i, x_j = _edges(num_edges=2)
+    with pytest.raises(ValueError, match="jobs"):
+        twoview.refine_rotations(R0, x_i, x_j, jobs=jobs)
+
+
+def test_run_with_jobs_writes_the_same_files(tmp_path, small_parts):
+    """`rotonly run --jobs 2` (TRRM in two processes) writes the sfm_data.json of --jobs 1."""
+    from rotonly_cli.io import colmap
+    from rotonly_cli.pipeline import RunOptions, run_pipeline
+    from rotonly_cli.simulation.multiview import simulate_multiview
+
+    problem = simulate_multiview("linear", num_views=8, num_points=800, noise_px=0.5, rng=4, init="perturbed",
+                                 init_noise_deg=0.5, window=3, min_shared=30)
+    db = tmp_path / "database.db"
+    colmap.write_database(db, problem.scene)
+    run_pipeline(db, tmp_path / "one", RunOptions(jobs=1))
+    run_pipeline(db, tmp_path / "two", RunOptions(jobs=2))
+    assert small_parts == [2]
+    assert json.loads((tmp_path / "two" / "reports" / "refine.json").read_text())["processes"] == 2
+    assert (tmp_path / "one" / "sfm_data.json").read_bytes() == (tmp_path / "two" / "sfm_data.json").read_bytes()
+
+
+def test_a_progress_bar_leaves_forking_possible():
+    """tqdm's monitor thread would outlive the bar and turn every later fork_map serial."""
+    from rotonly_cli.progress import progress_bar
+
+    assert sum(progress_bar(range(5), disable=False)) == 10
+    assert parallel.fork_safe()
