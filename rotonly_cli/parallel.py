@@ -128,11 +128,16 @@ def _edge_range(batch, e0: int, e1: int):
                      None if batch.weights is None else batch.weights[m0:m1])
 
 
+def plan(batch, jobs: int) -> list[tuple[int, int]]:
+    """The edge ranges :func:`map_edges` runs as separate processes (one range: in-process)."""
+    return edge_parts(batch.counts, jobs) if jobs > 1 and fork_safe() else [(0, batch.num_edges)]
+
+
 def map_edges(fn: Callable, R: np.ndarray, batch, jobs: int = 1):
     """``fn(R, batch)`` (a per-edge dataclass result) on up to ``jobs`` contiguous parts of
     the edges in forked processes, concatenated; serial when forking is unsafe or does not
     pay (module docstring)."""
-    ranges = edge_parts(batch.counts, jobs) if jobs > 1 and fork_safe() else [(0, batch.num_edges)]
+    ranges = plan(batch, jobs)
     if len(ranges) == 1:
         return fn(R, batch)
     return concat_results(fork_map(lambda r: fn(R[r[0]:r[1]], _edge_range(batch, *r)), ranges))

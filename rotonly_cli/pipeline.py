@@ -54,7 +54,7 @@ class RunOptions:
     average: AverageOptions = AverageOptions()
     grrm: bool = True  # False: keep the averaged rotations (ablation)
     progress: bool = False
-    jobs: int = 1  # processes for TRRM (rotonly_cli.parallel; same numbers for any value)
+    jobs: int = 1  # processes for identification + TRRM (rotonly_cli.parallel; same numbers for any value)
 
 
 @dataclass
@@ -102,7 +102,8 @@ def load_stage(input_path: str | Path, options: RunOptions) -> Run:
 def identify_stage(run: Run) -> None:
     from rotonly_cli.stages.identify import identify_edges
 
-    run.reports["identify"] = identify_edges(run.graph, run.scene.normalized, run.options.identification)
+    run.reports["identify"] = identify_edges(run.graph, run.scene.normalized, run.options.identification,
+                                             jobs=run.options.jobs)
     _ensure_two_views(run.graph, "scene identification")
 
 

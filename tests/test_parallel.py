@@ -136,7 +136,8 @@ def test_bad_jobs_is_a_value_error_naming_it(jobs):
 
 
 def test_run_with_jobs_writes_the_same_files(tmp_path, small_parts):
-    """`rotonly run --jobs 2` (TRRM in two processes) writes the sfm_data.json of --jobs 1."""
+    """`rotonly run --jobs 2` (identification and TRRM in two processes) writes the
+    sfm_data.json of --jobs 1."""
     from rotonly_cli.io import colmap
     from rotonly_cli.pipeline import RunOptions, run_pipeline
     from rotonly_cli.simulation.multiview import simulate_multiview
@@ -147,8 +148,10 @@ def test_run_with_jobs_writes_the_same_files(tmp_path, small_parts):
     colmap.write_database(db, problem.scene)
     run_pipeline(db, tmp_path / "one", RunOptions(jobs=1))
     run_pipeline(db, tmp_path / "two", RunOptions(jobs=2))
-    assert small_parts == [2]
-    assert json.loads((tmp_path / "two" / "reports" / "refine.json").read_text())["processes"] == 2
+    assert small_parts == [2, 2]  # identify and refine
+    for stage in ("identify", "refine"):
+        assert json.loads((tmp_path / "two" / "reports" / f"{stage}.json").read_text())["processes"] == 2
+        assert json.loads((tmp_path / "one" / "reports" / f"{stage}.json").read_text())["processes"] == 1
     assert (tmp_path / "one" / "sfm_data.json").read_bytes() == (tmp_path / "two" / "sfm_data.json").read_bytes()
 
 

@@ -46,9 +46,10 @@ def usable_cpus() -> int:
 
 def jobs_option(function):
     return click.option("--jobs", type=click.IntRange(min=1), default=None,
-                        help="Processes for TRRM (forked, Linux; default: the usable CPUs). The numbers do "
-                             "not depend on it. TRRM stays in one process while images are being decoded "
-                             "for the point colours (a fork is unsafe with a thread running).")(function)
+                        help="Processes for scene identification and TRRM (forked, Linux; default: the "
+                             "usable CPUs). The numbers do not depend on it. Both stay in one process while "
+                             "images are being decoded for the point colours (a fork is unsafe with a "
+                             "thread running).")(function)
 
 
 def run_options(ctx: click.Context, matches_dir, image_path, min_inliers, reestimate, ransac_max_error, seed,

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import click
 
-from rotonly_cli.cli.run import echo_summary, run_options, shared_load_options
+from rotonly_cli.cli.run import echo_summary, jobs_option, run_options, shared_load_options, usable_cpus
 
 
 @click.command("identify")
@@ -24,14 +24,15 @@ from rotonly_cli.cli.run import echo_summary, run_options, shared_load_options
 @click.option("-o", "--output", "out_dir", required=True, type=click.Path(path_type=Path),
               help="Workspace folder to create (or a previous workspace to replace).")
 @shared_load_options
+@jobs_option
 @click.pass_context
-def identify(ctx: click.Context, input_path: Path, out_dir: Path, **load_options) -> None:
+def identify(ctx: click.Context, input_path: Path, out_dir: Path, jobs: int | None, **load_options) -> None:
     """Load INPUT (COLMAP .db or OpenMVG sfm_data.json), estimate the view graph and identify
     every edge's scene kind (REGULAR / PURE_ROTATION / ROTATION_SINGULAR) into OUT."""
     from rotonly_cli.pipeline import run_pipeline
 
-    echo_summary(run_pipeline(input_path, out_dir, run_options(ctx, **load_options), stages=("load", "identify")),
-                 out_dir)
+    options = run_options(ctx, jobs=usable_cpus() if jobs is None else jobs, **load_options)
+    echo_summary(run_pipeline(input_path, out_dir, options, stages=("load", "identify")), out_dir)
 
 
 def _stage_command(stage: str, summary: str, extra_options=()):

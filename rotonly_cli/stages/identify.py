@@ -15,6 +15,7 @@ import numpy as np
 
 from rotonly_cli.geometry.scene import IdentificationOptions, SceneKind, identify
 from rotonly_cli.io.viewgraph import ViewGraph, largest_component
+from rotonly_cli.parallel import map_edges, plan
 from rotonly_cli.stages.common import edge_batch
 
 logger = logging.getLogger(__name__)
@@ -41,15 +42,18 @@ def kind_counts(graph: ViewGraph, edges: list[int]) -> dict:
 
 
 def identify_edges(graph: ViewGraph, normalized: dict[int, np.ndarray],
-                   options: IdentificationOptions = IdentificationOptions()) -> dict:
-    """Set scene_kind / detection values of the active edges at their current rotations."""
+                   options: IdentificationOptions = IdentificationOptions(), jobs: int = 1) -> dict:
+    """Set scene_kind / detection values of the active edges at their current rotations.
+    ``jobs`` > 1: over forked processes where that is safe and pays (rotonly_cli.parallel)."""
     start = time.perf_counter()
     edges = graph.active_edges()
+    processes = 1
     if edges:
         batch = edge_batch(graph, normalized, edges)
         R = np.stack([graph.edges[k].R_j_from_i for k in edges])
+        processes = len(plan(batch, jobs))
         with np.errstate(all="ignore"):  # handled corner cases (twoview._quiet)
-            result = identify(R, batch, options)
+            result = map_edges(lambda R_part, batch_part: identify(R_part, batch_part, options), R, batch, jobs)
         for row, k in enumerate(edges):
             edge = graph.edges[k]
             edge.scene_kind = result.kinds[row].value
@@ -62,4 +66,4 @@ def identify_edges(graph: ViewGraph, normalized: dict[int, np.ndarray],
             "num_active_edges": len(graph.active_edges()), "unregistered_views": list(graph.unregistered_views),
             "rotation_singular_threshold": options.rotation_singular_threshold,
             "pure_rotation_ratio_threshold": options.pure_rotation_ratio_threshold,
-            "time_s": time.perf_counter() - start}
+            "processes": processes, "time_s": time.perf_counter() - start}

@@ -15,7 +15,7 @@ from rotonly_cli.geometry import so3
 from rotonly_cli.geometry.scene import IdentificationOptions
 from rotonly_cli.geometry.trrm import TRRMOptions, refine
 from rotonly_cli.io.viewgraph import ViewGraph
-from rotonly_cli.parallel import edge_parts, fork_safe, map_edges
+from rotonly_cli.parallel import map_edges, plan
 from rotonly_cli.stages.common import edge_batch
 from rotonly_cli.stages.identify import apply_kind_filter, kind_counts
 
@@ -33,11 +33,10 @@ def refine_edges(graph: ViewGraph, normalized: dict[int, np.ndarray], options: T
     if edges:
         batch = edge_batch(graph, normalized, edges)
         R0 = np.stack([graph.edges[k].R_j_from_i for k in edges])
-        parts = len(edge_parts(batch.counts, jobs)) if jobs > 1 and fork_safe() else 1
+        report["processes"] = len(plan(batch, jobs))
         with np.errstate(all="ignore"):  # handled corner cases (twoview._quiet)
             result = map_edges(lambda R_part, batch_part: refine(R_part, batch_part, options, identification_options),
                                R0, batch, jobs)
-        report["processes"] = parts
         change = np.degrees(so3.geodesic_angle(result.rotations, R0))
         for row, k in enumerate(edges):
             edge = graph.edges[k]
