@@ -119,25 +119,15 @@ def concat_results(parts: Sequence):
     return type(first)(**values)
 
 
-def _edge_range(batch, e0: int, e1: int):
-    """The batch's edges [e0, e1) as views (no copy of the matches)."""
-    from rotonly_cli.geometry.twoview import EdgeBatch
-
-    m0, m1 = int(batch.offsets[e0]), int(batch.offsets[e1])
-    return EdgeBatch(batch.x_i[m0:m1], batch.x_j[m0:m1], batch.offsets[e0:e1 + 1] - m0,
-                     None if batch.weights is None else batch.weights[m0:m1])
-
-
 def plan(batch, jobs: int) -> list[tuple[int, int]]:
-    """The edge ranges :func:`map_edges` runs as separate processes (one range: in-process)."""
+    """The edge ranges to run as separate processes, for :func:`map_edges`: up to ``jobs``
+    of them where forking is safe and pays (module docstring), else one (in-process)."""
     return edge_parts(batch.counts, jobs) if jobs > 1 and fork_safe() else [(0, batch.num_edges)]
 
 
-def map_edges(fn: Callable, R: np.ndarray, batch, jobs: int = 1):
-    """``fn(R, batch)`` (a per-edge dataclass result) on up to ``jobs`` contiguous parts of
-    the edges in forked processes, concatenated; serial when forking is unsafe or does not
-    pay (module docstring)."""
-    ranges = plan(batch, jobs)
+def map_edges(fn: Callable, R: np.ndarray, batch, ranges: Sequence[tuple[int, int]]):
+    """``fn(R, batch)`` (a per-edge dataclass result) on the edge ``ranges`` of
+    :func:`plan`, each in its own process (the first in this one), concatenated."""
     if len(ranges) == 1:
         return fn(R, batch)
-    return concat_results(fork_map(lambda r: fn(R[r[0]:r[1]], _edge_range(batch, *r)), ranges))
+    return concat_results(fork_map(lambda r: fn(R[r[0]:r[1]], batch.edge_range(*r)), ranges))

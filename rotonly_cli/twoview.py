@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from functools import partial
 from typing import Sequence
 
 import numpy as np
@@ -22,7 +23,7 @@ import numpy as np
 from rotonly_cli.geometry import twoview as _tv
 from rotonly_cli.geometry.scene import IdentificationOptions, SceneKind, identify
 from rotonly_cli.geometry.trrm import TRRMOptions, refine
-from rotonly_cli.parallel import map_edges
+from rotonly_cli.parallel import map_edges, plan
 
 __all__ = [
     "SceneKind", "SceneIdentification", "TwoViewRefinement", "BatchRefinement", "IdentificationOptions",
@@ -131,7 +132,7 @@ def identify_scenes(R_j_from_i, xs_i: Sequence, xs_j: Sequence,
     R, batch = _prepare(R_j_from_i, xs_i, xs_j)
     with _quiet(), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        ident = map_edges(lambda R_part, batch_part: identify(R_part, batch_part, options), R, batch, _jobs(jobs))
+        ident = map_edges(partial(identify, options=options), R, batch, plan(batch, _jobs(jobs)))
     return [SceneIdentification(kind=ident.kinds[e], detection_value=float(ident.detection_value[e]),
                                 pure_rotation_ratio=float(ident.pure_rotation_ratio[e]),
                                 ps_eigenvalues=tuple(float(v) for v in ident.ps_eigenvalues[e]))
@@ -153,11 +154,11 @@ def refine_rotations(R_j_from_i, xs_i: Sequence, xs_j: Sequence, options: TRRMOp
     """TRRM (Alg. 2) on many edges at once, in lock-step. ``jobs`` > 1 splits the edges over
     that many forked processes (rotonly_cli.parallel: Linux, large batches; same numbers)."""
     R, batch = _prepare(R_j_from_i, xs_i, xs_j)
-    jobs = _jobs(jobs)
+    ranges = plan(batch, _jobs(jobs))
     with _quiet(), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        res = map_edges(lambda R_part, batch_part: refine(R_part, batch_part, options, identification_options),
-                        R, batch, jobs)
+        res = map_edges(partial(refine, options=options, identification_options=identification_options),
+                        R, batch, ranges)
     return BatchRefinement(rotations=res.rotations, translation_directions=res.translation_directions, costs=res.cost,
                            initial_costs=res.initial_cost, iterations=res.iterations, converged=res.converged,
                            kinds=res.kinds, detection_values=res.identification.detection_value,

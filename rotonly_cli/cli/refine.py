@@ -17,7 +17,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from rotonly_cli.cli.run import jobs_option, usable_cpus
+from rotonly_cli.cli.run import jobs_option
 from rotonly_cli.errors import AlgorithmError, InputError
 
 
@@ -106,7 +106,7 @@ def format_table(row: dict) -> str:
 @click.option("--json", "as_json", is_flag=True, help="Print the numbers as JSON.")
 @jobs_option
 def command(target: Path, init: str, perturb_deg: float, ransac_threshold_px: float, seed: int, as_json: bool,
-            jobs: int | None) -> None:
+            jobs: int) -> None:
     """TRRM-refine the edges of a workspace, or the simulated edge of a .npz file.
 
     \b
@@ -124,7 +124,7 @@ def command(target: Path, init: str, perturb_deg: float, ransac_threshold_px: fl
         if not (target / STATE_FILE).is_file():
             raise InputError(f"folder is not a rotonly workspace (no {STATE_FILE}; make one with "
                              "`rotonly identify INPUT -o OUT`)", path=target, field="TARGET")
-        echo_summary(resume(target, "refine", RunOptions(jobs=usable_cpus() if jobs is None else jobs)), target)
+        echo_summary(resume(target, "refine", RunOptions(jobs=jobs)), target)
         return
     if target.suffix.lower() != ".npz":
         raise InputError("expected a workspace folder (from `rotonly identify`) or a .npz from "

@@ -45,7 +45,9 @@ def usable_cpus() -> int:
 
 
 def jobs_option(function):
+    """``--jobs N`` (an int: the usable CPUs when not given)."""
     return click.option("--jobs", type=click.IntRange(min=1), default=None,
+                        callback=lambda ctx, param, value: usable_cpus() if value is None else value,
                         help="Processes for scene identification and TRRM (forked, Linux; default: the "
                              "usable CPUs). The numbers do not depend on it. Both stay in one process while "
                              "images are being decoded for the point colours (a fork is unsafe with a "
@@ -97,7 +99,7 @@ def echo_summary(summary: dict, out_dir: Path) -> None:
 @jobs_option
 @click.pass_context
 def command(ctx: click.Context, input_path: Path, out_dir: Path, gt_path: Path | None, no_grrm: bool,
-            jobs: int | None, **load_options) -> None:
+            jobs: int, **load_options) -> None:
     """Reconstruct camera poses and 3D points from feature matches.
 
     INPUT is a COLMAP database (.db) or an OpenMVG sfm_data.json (with --matches-dir).
@@ -113,7 +115,7 @@ def command(ctx: click.Context, input_path: Path, out_dir: Path, gt_path: Path |
         from rotonly_cli.pipeline import run_pipeline
 
         options = run_options(ctx, grrm=not no_grrm, gt=None if gt_path is None else str(gt_path),
-                              jobs=usable_cpus() if jobs is None else jobs, **load_options)
+                              jobs=jobs, **load_options)
         summary = run_pipeline(input_path, out_dir, options)
     finally:
         if collecting:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import click
 
-from rotonly_cli.cli.run import echo_summary, jobs_option, run_options, shared_load_options, usable_cpus
+from rotonly_cli.cli.run import echo_summary, jobs_option, run_options, shared_load_options
 
 
 @click.command("identify")
@@ -26,12 +26,12 @@ from rotonly_cli.cli.run import echo_summary, jobs_option, run_options, shared_l
 @shared_load_options
 @jobs_option
 @click.pass_context
-def identify(ctx: click.Context, input_path: Path, out_dir: Path, jobs: int | None, **load_options) -> None:
+def identify(ctx: click.Context, input_path: Path, out_dir: Path, jobs: int, **load_options) -> None:
     """Load INPUT (COLMAP .db or OpenMVG sfm_data.json), estimate the view graph and identify
     every edge's scene kind (REGULAR / PURE_ROTATION / ROTATION_SINGULAR) into OUT."""
     from rotonly_cli.pipeline import run_pipeline
 
-    options = run_options(ctx, jobs=usable_cpus() if jobs is None else jobs, **load_options)
+    options = run_options(ctx, jobs=jobs, **load_options)
     echo_summary(run_pipeline(input_path, out_dir, options, stages=("load", "identify")), out_dir)
 
 

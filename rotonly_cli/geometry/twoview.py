@@ -72,6 +72,12 @@ class EdgeBatch:
         return EdgeBatch(self.x_i[idx], self.x_j[idx], new_offsets,
                          None if self.weights is None else self.weights[idx])
 
+    def edge_range(self, e0: int, e1: int) -> "EdgeBatch":
+        """Edges [e0, e1) as views of this batch's arrays (no copy, unlike :meth:`subset`)."""
+        m0, m1 = int(self.offsets[e0]), int(self.offsets[e1])
+        return EdgeBatch(self.x_i[m0:m1], self.x_j[m0:m1], self.offsets[e0:e1 + 1] - m0,
+                         None if self.weights is None else self.weights[m0:m1])
+
     def with_weights(self, weights: np.ndarray | None) -> "EdgeBatch":
         return EdgeBatch(self.x_i, self.x_j, self.offsets, weights)
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
+from functools import partial
 
 import numpy as np
 
@@ -51,9 +52,10 @@ def identify_edges(graph: ViewGraph, normalized: dict[int, np.ndarray],
     if edges:
         batch = edge_batch(graph, normalized, edges)
         R = np.stack([graph.edges[k].R_j_from_i for k in edges])
-        processes = len(plan(batch, jobs))
+        ranges = plan(batch, jobs)
+        processes = len(ranges)
         with np.errstate(all="ignore"):  # handled corner cases (twoview._quiet)
-            result = map_edges(lambda R_part, batch_part: identify(R_part, batch_part, options), R, batch, jobs)
+            result = map_edges(partial(identify, options=options), R, batch, ranges)
         for row, k in enumerate(edges):
             edge = graph.edges[k]
             edge.scene_kind = result.kinds[row].value

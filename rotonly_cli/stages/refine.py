@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
+from functools import partial
 
 import numpy as np
 
@@ -33,10 +34,11 @@ def refine_edges(graph: ViewGraph, normalized: dict[int, np.ndarray], options: T
     if edges:
         batch = edge_batch(graph, normalized, edges)
         R0 = np.stack([graph.edges[k].R_j_from_i for k in edges])
-        report["processes"] = len(plan(batch, jobs))
+        ranges = plan(batch, jobs)
+        report["processes"] = len(ranges)
         with np.errstate(all="ignore"):  # handled corner cases (twoview._quiet)
-            result = map_edges(lambda R_part, batch_part: refine(R_part, batch_part, options, identification_options),
-                               R0, batch, jobs)
+            result = map_edges(partial(refine, options=options, identification_options=identification_options),
+                               R0, batch, ranges)
         change = np.degrees(so3.geodesic_angle(result.rotations, R0))
         for row, k in enumerate(edges):
             edge = graph.edges[k]
