@@ -25,7 +25,11 @@ matches.e.bin, global/sfm_data.json}; data/strecha/README.md), in the same run:
 * OpenMVG 2.1's own global SfM result stored in openmvg/global/sfm_data.json (its time is the
   README's, whole seconds as OpenMVG prints them); with ``--openmvg-bin DIR`` also OpenMVG's
   global SfM re-run here on a copy of the same matches, its process wall time measured like
-  rotonly's.
+  rotonly's, once as stored (its BA refines the intrinsics) and once with the intrinsics held
+  (``-f NONE``: K fixed, as rotonly and the mapper run);
+* a reference row per rotonly run: pycolmap's bundle adjustment (K fixed) started from
+  rotonly's own ``OUT/sparse`` model, i.e. where BA's optimum lies on exactly rotonly's
+  tracks (not a method of rotonly: it shows how far GRRM's optimum is from BA's).
 
 One evaluator for all: ``rotonly_cli.evaluation.quality.evaluate`` against
 ``rotonly_cli.io.strecha.read_ground_truth(scene)``: rotation error (geodesic after the best
@@ -143,9 +147,14 @@ def byte_compile_rotonly() -> None:
     compileall.compile_dir(Path(rotonly_cli.__file__).parent, quiet=1)
 
 
+def rotonly_out_dir(work: Path, method: str) -> Path:
+    """OUT of the ``rotonly run`` row ``method`` (the BA reference reads its sparse/ model)."""
+    return work / method.replace(" ", "_").replace("/", "_")
+
+
 def run_rotonly_subprocess(method: str, input_path: Path, gt: SfMScene, work: Path, log_dir: Path) -> MethodResult:
     """`rotonly -q run INPUT -o OUT` as a subprocess; wall time and OUT/reports stage times."""
-    out = work / method.replace(" ", "_").replace("/", "_")
+    out = rotonly_out_dir(work, method)
     command = rotonly_command() + ["-q", "run", str(input_path), "-o", str(out)]
     cpu_before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
@@ -294,6 +303,40 @@ def _mapper_worker(database: str, out: str, threads: str, seed: str) -> int:
     return 0
 
 
+def reconstruction_scene(rec) -> SfMScene:
+    """The posed images of a pycolmap Reconstruction (rotation, centre, name) for the evaluator."""
+    rotations, centers, names = {}, {}, {}
+    for image in rec.images.values():
+        if image.has_pose:
+            rotations[image.image_id] = np.asarray(image.cam_from_world().rotation.matrix())
+            centers[image.image_id] = np.asarray(image.projection_center())
+            names[image.image_id] = image.name
+    return rotations_scene(names, rotations, centers)
+
+
+def run_ba_on_rotonly(label: str, model_dir: Path, gt: SfMScene) -> MethodResult:
+    """Reference, not a method: pycolmap's bundle adjustment (K fixed, Ceres defaults, squared
+    loss) started from rotonly's own COLMAP model (its poses, points and observations). Where
+    BA moves rotonly's rotations shows how far GRRM's optimum lies from BA's on exactly the
+    same tracks; the time is the bundle_adjustment call alone."""
+    import pycolmap
+
+    method = f"reference: pycolmap BA (K fixed) started from rotonly's model ({label})"
+    rec = pycolmap.Reconstruction(str(model_dir))
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_focal_length = False
+    options.refine_principal_point = False
+    options.refine_extra_params = False
+    previous_level = quiet_pycolmap()
+    try:
+        start = time.perf_counter()
+        pycolmap.bundle_adjustment(rec, options)
+        elapsed = time.perf_counter() - start
+    finally:
+        pycolmap.logging.minloglevel = previous_level
+    return evaluate_scene(method, gt, reconstruction_scene(rec), elapsed, "bundle_adjustment call")
+
+
 def run_global_mapper(database: Path, gt: SfMScene, threads: int, seed: int = 0) -> MethodResult:
     """pycolmap's global mapper on a copy of the database, in a child process (_mapper_worker);
     largest model. time_s is the global_mapping call (what the data README's table reports);
@@ -316,13 +359,7 @@ def run_global_mapper(database: Path, gt: SfMScene, threads: int, seed: int = 0)
         if not report["num_models"]:
             return MethodResult(method, num_gt=len(gt.poses), time_s=report["call_s"], error="no model")
         rec = pycolmap.Reconstruction(str(Path(tmp) / "work" / "best"))
-        rotations, centers, names = {}, {}, {}
-        for image in rec.images.values():
-            if image.has_pose:
-                rotations[image.image_id] = np.asarray(image.cam_from_world().rotation.matrix())
-                centers[image.image_id] = np.asarray(image.projection_center())
-                names[image.image_id] = image.name
-        result = evaluate_scene(method, gt, rotations_scene(names, rotations, centers), report["call_s"],
+        result = evaluate_scene(method, gt, reconstruction_scene(rec), report["call_s"],
                                 f"global_mapping call, {threads if threads > 0 else 'all'} threads")
         result.extra["process_wall_s"] = wall
         result.extra["num_models"] = report["num_models"]
@@ -337,20 +374,27 @@ OPENMVG_THREADS = 4
 OPENMVG_TOOLS = ("openMVG_main_SfM", "openMVG_main_ConvertSfM_DataFormat")
 
 
-def run_openmvg_global(project_dir: Path, gt: SfMScene, openmvg_bin: Path, work: Path, log_dir: Path) -> MethodResult:
+def run_openmvg_global(project_dir: Path, gt: SfMScene, openmvg_bin: Path, work: Path, log_dir: Path,
+                       hold_intrinsics: bool = False) -> MethodResult:
     """OpenMVG 2.1's own global SfM (L2 rotation averaging + LiGT + BA) re-run on a copy of the
     project's matches, timed like ``rotonly run``: the whole process's wall time. OpenMVG's own
     "Total Sfm took (s)" line (whole seconds, without start-up and loading) goes to extra.
-    The result is converted to sfm_data.json by OpenMVG's ConvertSfM_DataFormat (not timed)."""
+    The result is converted to sfm_data.json by OpenMVG's ConvertSfM_DataFormat (not timed).
+
+    By default its BA refines the intrinsics (OpenMVG's default, as the stored result was
+    made); ``hold_intrinsics`` passes ``-f NONE``, the K-fixed setting rotonly and the
+    pycolmap mapper run in."""
     import re
 
-    method = "OpenMVG 2.1 global SfM (LiGT + BA, re-run here)"
-    copy = work / "openmvg_project"
+    variant = "_held_k" if hold_intrinsics else ""
+    method = ("OpenMVG 2.1 global SfM (LiGT + BA, intrinsics held: -f NONE, re-run here)" if hold_intrinsics
+              else "OpenMVG 2.1 global SfM (LiGT + BA, re-run here)")
+    copy = work / f"openmvg_project{variant}"
     shutil.copytree(project_dir, copy, ignore=shutil.ignore_patterns("global", "eval"))
-    out = work / "openmvg_global"
+    out = work / f"openmvg_global{variant}"
     command = [str(openmvg_bin / OPENMVG_TOOLS[0]), "--sfm_engine", "GLOBAL", "-T", str(OPENMVG_THREADS),
                "--input_file", str(copy / "sfm_data.json"), "--match_file", str(copy / "matches.e.bin"),
-               "--output_dir", str(out)]
+               "--output_dir", str(out)] + (["-f", "NONE"] if hold_intrinsics else [])
     start = time.perf_counter()
     completed = subprocess.run(command, capture_output=True, text=True)
     wall = time.perf_counter() - start
@@ -363,7 +407,7 @@ def run_openmvg_global(project_dir: Path, gt: SfMScene, openmvg_bin: Path, work:
         converted = subprocess.run(convert, capture_output=True, text=True)
         log += f"$ {' '.join(convert)}\nexit {converted.returncode}\n{converted.stderr}"
         failed = converted if converted.returncode != 0 else None
-    (log_dir / f"openmvg_global_{project_dir.parent.name}.log").write_text(log)
+    (log_dir / f"openmvg_global{variant}_{project_dir.parent.name}.log").write_text(log)
     if failed is not None:
         tail = (failed.stderr or failed.stdout).strip().splitlines()[-1:]
         return MethodResult(method, num_gt=len(gt.poses), time_s=wall, time_note="subprocess wall",
@@ -418,6 +462,13 @@ def bench_scene(scene_dir: Path, work: Path, log_dir: Path, threads: int, skip_m
         if openmvg_bin is not None and (project.parent / "matches.e.bin").is_file():
             guarded("OpenMVG 2.1 global SfM (re-run)", run_openmvg_global, project.parent, gt, openmvg_bin, tmp,
                     log_dir)
+            guarded("OpenMVG 2.1 global SfM (re-run, intrinsics held)", run_openmvg_global, project.parent, gt,
+                    openmvg_bin, tmp, log_dir, True)
+        for label, method in (("database.db", "rotonly run database.db"),
+                              ("openmvg", "rotonly run openmvg/sfm_data.json")):
+            model = rotonly_out_dir(tmp, method) / "sparse"
+            if model.is_dir():
+                guarded(f"pycolmap BA from rotonly's model ({label})", run_ba_on_rotonly, label, model, gt)
     global_sfm = scene_dir / "openmvg" / "global" / "sfm_data.json"
     if global_sfm.is_file():
         guarded("OpenMVG 2.1 global SfM", lambda: evaluate_scene(

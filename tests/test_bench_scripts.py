@@ -122,6 +122,12 @@ def test_bench_strecha_end_to_end_on_fixture(tmp_path, capsys):
     # the stored OpenMVG global result is the real one: the README's Herz-Jesu number
     openmvg_row = rows["OpenMVG 2.1 global SfM (LiGT + BA, stored result)"]
     assert abs(openmvg_row["rotation_mean_deg"] - 0.0258) < 5e-4 and openmvg_row["time_s"] == 1.0
+    # the BA reference starts from each rotonly run's own model and moves it (K fixed)
+    for label, run_method in (("database.db", "rotonly run database.db"),
+                              ("openmvg", "rotonly run openmvg/sfm_data.json")):
+        ba = rows[f"reference: pycolmap BA (K fixed) started from rotonly's model ({label})"]
+        assert ba["rotation_mean_deg"] < 0.1 and ba["position_mean"] < 0.05 and ba["time_s"] > 0
+        assert abs(ba["rotation_mean_deg"] - rows[run_method]["rotation_mean_deg"]) > 1e-6
     stored = rows["pycolmap RA on the stored two-view geometries"]
     assert 0.0 < stored["rotation_mean_deg"] < 1.0 and stored["extra"]["num_edges"] > 0
 
@@ -181,6 +187,7 @@ def _fake_openmvg_tools(folder: Path, result_json: Path) -> Path:
     sfm = folder / "openMVG_main_SfM"
     sfm.write_text(f"#!{sys.executable}\nimport shutil, sys\nout = sys.argv[sys.argv.index('--output_dir') + 1]\n"
                    f"import os; os.makedirs(out)\nshutil.copyfile({str(result_json)!r}, out + '/sfm_data.bin')\n"
+                   "open(out + '/argv.txt', 'w').write(' '.join(sys.argv[1:]))\n"
                    "print('INFO: [main_SfM.cpp:618]  Total Sfm took (s): 3')\n")
     convert = folder / "openMVG_main_ConvertSfM_DataFormat"
     convert.write_text(f"#!{sys.executable}\nimport shutil, sys\na = sys.argv\n"
@@ -214,6 +221,11 @@ def test_openmvg_global_rerun_is_timed_converted_and_evaluated(tmp_path: Path):
     assert result.extra["openmvg_reported_s"] == 3.0 and 0 < result.time_s < 30
     assert result.time_note.startswith("subprocess wall")
     assert (tmp_path / "work" / "openmvg_project" / "matches.e.bin").is_file()
+    assert "-f" not in (tmp_path / "work" / "openmvg_global" / "argv.txt").read_text().split()
+    held = bench_strecha.run_openmvg_global(scene_dir / "openmvg", gt, tools, tmp_path / "work", tmp_path / "logs",
+                                            hold_intrinsics=True)
+    assert held.error == "" and "intrinsics held" in held.method and held.method != result.method
+    assert (tmp_path / "work" / "openmvg_global_held_k" / "argv.txt").read_text().endswith("-f NONE")
     assert {p.name: _digest(p) for p in (scene_dir / "openmvg").iterdir()} == before
 
     (tools / "openMVG_main_SfM").write_text("#!/bin/sh\necho 'cannot open matches' >&2\nexit 3\n")
