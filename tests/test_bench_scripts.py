@@ -28,6 +28,7 @@ def _load_script(name: str):
 
 bench_strecha = _load_script("bench_strecha")
 bench_scale = _load_script("bench_scale")
+probe = _load_script("probe_grrm_residuals")
 
 
 def _digest(path: Path) -> str:
@@ -143,6 +144,33 @@ def test_bench_strecha_refuses_results_inside_root(tmp_path):
         bench_strecha.main(["--root", str(root), "-o", str(root / "results")])
     assert exc.value.code == 2
     assert not (root / "results").exists()
+
+
+# ============================================================================ probe_grrm_residuals
+
+def test_probe_grrm_residuals_on_fixture(tmp_path, capsys):
+    """The probe's rows on the Herz-Jesu fixture: the real keypoints and the same residuals
+    moved around; every rebuilt set gives a lower GRRM error than the real keypoints (the
+    property README "Known limits" rests on), and the input is untouched."""
+    (tmp_path / "root").mkdir()
+    (tmp_path / "root" / "Herz-Jesus-P8").symlink_to(FIXTURES / "herzjesu_p8")
+    before = _digest(FIXTURES / "herzjesu_p8" / "database.db")
+    assert probe.main(["--root", str(tmp_path / "root"), "--scene", "Herz-Jesus-P8", "--input", "database"]) == 0
+    assert _digest(FIXTURES / "herzjesu_p8" / "database.db") == before
+    rows = {line.split(" | ")[0].lstrip("| "): line.split(" | ") for line in capsys.readouterr().out.splitlines()
+            if line.startswith("| ") and not line.startswith("| keypoints")}
+    assert len(rows) == 5
+    errors = {label: float(cells[1]) for label, cells in rows.items()}
+    real = errors.pop("real keypoints")
+    assert 0.005 < real < 0.1
+    assert all(value < real for value in errors.values()), errors
+    assert all(len(cells[2].rstrip(" |").split()) == 8 for cells in rows.values())  # one error per camera
+
+
+def test_probe_grrm_residuals_refuses_a_missing_scene(tmp_path):
+    with pytest.raises(SystemExit) as exc:
+        probe.main(["--root", str(tmp_path), "--scene", "nothing"])
+    assert exc.value.code == 2
 
 
 # ============================================================================ bench_scale pieces

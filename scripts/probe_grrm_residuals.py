@@ -1,0 +1,139 @@
+#!/usr/bin/env python
+"""Probe: which property of a scene's keypoint errors drives GRRM's rotation error.
+
+Runs rotonly's chain in-process on one Strecha scene (database or OpenMVG input) up to its
+triangulated tracks, keeps only the matches inside those tracks, and re-runs GRRM from the
+same L1-IRLS start on keypoints rebuilt around the ground truth:
+
+* ``real``: the input keypoints themselves;
+* ``iid``: GT projections of the tracks (triangulated with the GT cameras) plus isotropic
+  Gaussian noise whose RMS equals the real keypoints' residual RMS;
+* ``shuffled all / within image / within track``: GT projections plus the real residuals,
+  permuted over all observations, among the observations of each image, or among those of
+  each track. The distribution of the errors is kept; only where each error sits changes.
+
+Prints the mean rotation error (deg, geodesic after the best global rotation) of every row
+and the per-camera errors. A large gap between ``real`` and the shuffled rows says that
+the error comes from where the residuals sit in the images, not from their size. This is
+how README "Known limits" explains Herz-Jesus-P8 from OpenMVG's matches.
+
+    python scripts/probe_grrm_residuals.py --root ../shared/data/strecha --scene Herz-Jesus-P8 --input openmvg
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def best_rotation_errors_deg(R: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
+    """Per-camera geodesic error after the best global rotation (the bench's metric)."""
+    from rotonly_cli.geometry import so3
+
+    Q = so3.project_to_so3(np.einsum("nji,njk->ik", R_gt, R))
+    return np.degrees(so3.geodesic_angle(R, R_gt @ Q))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--root", type=Path, required=True, help="folder of Strecha scenes (data/strecha layout)")
+    parser.add_argument("--scene", default="Herz-Jesus-P8")
+    parser.add_argument("--input", choices=("openmvg", "database"), default="openmvg")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    import logging
+
+    logging.basicConfig(level=logging.WARNING)  # the stages log at INFO; this prints a table
+
+    from rotonly_cli.geometry import so3
+    from rotonly_cli.geometry.triangulation import TriangulationOptions, triangulate_tracks
+    from rotonly_cli.io.strecha import read_ground_truth
+    from rotonly_cli.pipeline import STAGE_FUNCTIONS, RunOptions, load_stage
+    from rotonly_cli.stages.common import view_index
+    from rotonly_cli.stages.load import focal_length
+    from rotonly_cli.stages.optimize import optimize_graph
+
+    scene_dir = args.root / args.scene
+    input_path = scene_dir / ("openmvg/sfm_data.json" if args.input == "openmvg" else "database.db")
+    if not input_path.is_file():
+        parser.error(f"--root/--scene: no {input_path}")
+    gt = read_ground_truth(scene_dir)
+    gt_by_name = {Path(gt.views[v].name).name: pose for v, pose in gt.poses.items()}
+
+    run = load_stage(input_path, RunOptions(progress=False))
+    for stage in ("identify", "refine", "average"):
+        STAGE_FUNCTIONS[stage](run)
+    start = run.rotations.copy()
+    for stage in ("optimize", "translate", "triangulate"):
+        STAGE_FUNCTIONS[stage](run)
+    graph, scene = run.graph, run.scene
+    index = view_index(graph)
+    view_ids = graph.view_ids()
+    names = [Path(scene.views[v].name).name for v in view_ids]
+    R_gt = np.stack([so3.project_to_so3(gt_by_name[n].R_cam_from_world) for n in names])
+    C_gt = np.stack([gt_by_name[n].center for n in names])
+
+    # observations of rotonly's tracks, grouped by point, and the matches inside them
+    obs_point, obs_view, obs_kp = [], [], []
+    for p, observations in enumerate(run.structure.observations):
+        for v, kp in observations:
+            obs_point.append(p)
+            obs_view.append(index[v])
+            obs_kp.append(int(kp))
+    obs_point, obs_view, obs_kp = (np.array(a, dtype=np.int64) for a in (obs_point, obs_view, obs_kp))
+    point_of = {(view_ids[r], k): p for p, r, k in zip(obs_point, obs_view, obs_kp)}
+    for edge in graph.edges:
+        if edge.active:
+            a = np.array([point_of.get((edge.i, int(k)), -1) for k in edge.matches[:, 0]])
+            b = np.array([point_of.get((edge.j, int(k)), -2) for k in edge.matches[:, 1]])
+            edge.matches = edge.matches[a == b]
+
+    obs_xy = np.stack([scene.normalized[view_ids[r]][k] for r, k in zip(obs_view, obs_kp)])
+    loose = TriangulationOptions(max_reprojection_error=1.0, min_parallax_deg=0.0)
+    X = triangulate_tracks(R_gt, C_gt, obs_point, obs_view, obs_xy, options=loose).points_in_world
+    cam = np.einsum("nij,nj->ni", R_gt[obs_view], X[obs_point] - C_gt[obs_view])
+    clean = cam[:, :2] / cam[:, 2:3]
+    focal = np.array([focal_length(scene.intrinsics[scene.views[view_ids[r]].intrinsics_id]) for r in obs_view])
+    residual = obs_xy - clean  # normalized units
+    rms_px = float(np.sqrt(((residual * focal[:, None]) ** 2).sum(1).mean()))
+
+    rng = np.random.default_rng(args.seed)
+
+    def permuted_within(groups: np.ndarray) -> np.ndarray:
+        order = np.argsort(groups, kind="stable")
+        cuts = np.flatnonzero(np.diff(groups[order])) + 1
+        out = np.empty_like(order)
+        for part in np.split(order, cuts):
+            out[part] = rng.permutation(part)
+        return out
+
+    variants = {
+        "real keypoints": obs_xy,
+        f"GT projections + iid noise ({rms_px:.3f} px RMS)":
+            clean + rng.normal(size=clean.shape) * (rms_px / np.sqrt(2)) / focal[:, None],
+        "GT projections + real residuals shuffled over all": clean + residual[rng.permutation(len(residual))],
+        "... shuffled within each image": clean + residual[permuted_within(obs_view)],
+        "... shuffled within each track": clean + residual[permuted_within(obs_point)],
+    }
+    kept = sum(e.num_inliers for e in graph.edges if e.active)
+    print(f"{args.scene}, {args.input} input: {len(X)} tracks, {len(obs_xy)} observations, {kept} matches "
+          f"inside tracks; GT residual RMS {rms_px:.3f} px")
+    print(f"L1-IRLS start: {best_rotation_errors_deg(start, R_gt).mean():.4f} deg")
+    print("| keypoints | GRRM mean (deg) | per camera (deg) |")
+    print("|---|---|---|")
+    for label, xy in variants.items():
+        normalized = {v: x.copy() for v, x in scene.normalized.items()}
+        for r, k, value in zip(obs_view, obs_kp, xy):
+            normalized[view_ids[r]][k] = value
+        with np.errstate(all="ignore"):
+            R, _ = optimize_graph(graph, normalized, start)
+        errors = best_rotation_errors_deg(R, R_gt)
+        print(f"| {label} | {errors.mean():.4f} | {' '.join(f'{e:.3f}' for e in errors)} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
