@@ -224,11 +224,13 @@ def load_ground_truth(path: str | Path) -> SfMScene:
     raise InputError("neither a Strecha folder, an sfm_data.json nor a COLMAP model", path=str(path), field="--gt")
 
 
-def evaluate_against(gt_path: str | Path, estimate: SfMScene, report_dir: Path, estimate_path: str) -> dict:
+def evaluate_against(gt_path: str | Path, estimate: SfMScene, report_dir: Path, estimate_path: str,
+                     gt: SfMScene | None = None) -> dict:
+    """Evaluate ``estimate`` against the GT at ``gt_path`` (or the already loaded ``gt``)."""
     from rotonly_cli.evaluation.quality import evaluate
     from rotonly_cli.evaluation.report import write_report as write_eval_report
 
-    report = evaluate(load_ground_truth(gt_path), estimate)
+    report = evaluate(load_ground_truth(gt_path) if gt is None else gt, estimate)
     report.gt_path, report.estimate_path = str(gt_path), estimate_path
     write_eval_report(report, report_dir)
     rotation = report.rotation_error_deg
@@ -303,6 +305,9 @@ def run_pipeline(input_path: str | Path, out_dir: str | Path, options: RunOption
     check_out_dir(out_dir)
     if out_dir.exists() and input_path.resolve().is_relative_to(out_dir.resolve()):
         raise InputError("the input lies inside OUT, which would be replaced", path=str(input_path), field="-o")
+    # --gt is read before the run, so that a mistyped path fails at once instead of after the
+    # whole chain (whose result would then be discarded with the failed run)
+    gt = load_ground_truth(options.gt) if options.gt and "triangulate" in stages else None
     staging = make_staging_dir(out_dir)
     start = time.perf_counter()
     try:
@@ -318,7 +323,7 @@ def run_pipeline(input_path: str | Path, out_dir: str | Path, options: RunOption
                 for stage in stages[1:]:
                     STAGE_FUNCTIONS[stage](run)
                     done.append(stage)
-                summary = _finish(staging, out_dir, run, done, start)
+                summary = _finish(staging, out_dir, run, done, start, gt)
             except ValueError as exc:
                 raise _as_algorithm_error(exc) from exc
         replace_dir(staging, out_dir)
@@ -328,8 +333,10 @@ def run_pipeline(input_path: str | Path, out_dir: str | Path, options: RunOption
     return summary
 
 
-def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: float) -> dict:
-    """Write outputs of a finished chain into ``directory`` (which becomes ``out_dir``)."""
+def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: float,
+            gt: SfMScene | None = None) -> dict:
+    """Write outputs of a finished chain into ``directory`` (which becomes ``out_dir``);
+    ``gt``: the ground truth of ``run.options.gt``, if already loaded."""
     summary: dict = {"input": run.input_path, "stages": done}
     if done[-1] == "triangulate":
         scene = write_outputs(directory, run)
@@ -338,7 +345,7 @@ def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: fl
                        unregistered_views=[v for v in run.graph.view_ids() if v not in scene.poses])
         if run.options.gt:
             evaluation = evaluate_against(run.options.gt, scene, directory / "eval",
-                                          str(out_dir / "sfm_data.json"))
+                                          str(out_dir / "sfm_data.json"), gt)
             summary["rotation_error_deg"] = evaluation.get("rotation_error_deg")
     summary["num_active_edges"] = len(run.graph.active_edges())
     summary["time_s"] = time.perf_counter() - start

@@ -166,6 +166,22 @@ def test_bad_input_exit_2_one_line_nothing_written(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.db"]
 
 
+def test_bad_gt_fails_before_the_chain_runs(tmp_path, capsys, monkeypatch):
+    """A mistyped --gt is reported at once (exit 2, nothing written), not after the whole
+    chain, whose result would be thrown away with the failed run."""
+    from rotonly_cli import pipeline
+
+    def no_chain(*args, **kwargs):
+        raise AssertionError("the chain ran before --gt was checked")
+
+    monkeypatch.setattr(pipeline, "load_stage", no_chain)
+    for gt in (tmp_path / "missing", tmp_path):  # does not exist / is no GT at all
+        assert _rotonly("run", HERZ_JESU / "database.db", "-o", tmp_path / "out", "--gt", gt) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err[-1].startswith("error: ") and "--gt" in err[-1] and str(gt) in err[-1]
+        assert list(tmp_path.iterdir()) == []
+
+
 def test_bad_input_is_reported_before_scipy_is_imported():
     """`rotonly run` checks INPUT and OUT before the numerical stages: importing the CLI
     command and the pipeline must not import scipy (~0.3 s, half of a bad-input exit)."""
