@@ -2,8 +2,9 @@
 """Probe: which property of a scene's keypoint errors drives GRRM's rotation error.
 
 Runs rotonly's chain in-process on one Strecha scene (database or OpenMVG input) up to its
-triangulated tracks, keeps only the matches inside those tracks, and re-runs GRRM from the
-same L1-IRLS start on keypoints rebuilt around the ground truth:
+triangulated tracks, keeps only the matches inside those tracks, and re-runs identification,
+TRRM, the L1-IRLS average and GRRM (from the loaded relative poses) on keypoints rebuilt
+around the ground truth:
 
 * ``real``: the input keypoints themselves;
 * ``iid``: GT projections of the tracks (triangulated with the GT cameras) plus isotropic
@@ -12,10 +13,11 @@ same L1-IRLS start on keypoints rebuilt around the ground truth:
   permuted over all observations, among the observations of each image, or among those of
   each track. The distribution of the errors is kept; only where each error sits changes.
 
-Prints the mean rotation error (deg, geodesic after the best global rotation) of every row
-and the per-camera errors. A large gap between ``real`` and the shuffled rows says that
-the error comes from where the residuals sit in the images, not from their size. This is
-how README "Known limits" explains Herz-Jesus-P8 from OpenMVG's matches.
+Prints the mean rotation error (deg, geodesic after the best global rotation) of the
+L1-IRLS start and of GRRM for every row, and GRRM's per-camera errors. A large gap between
+``real`` and the shuffled rows says that the error comes from where the residuals sit in the
+images, not from their size. README "Known limits" uses this to explain Herz-Jesus-P8 from
+OpenMVG's matches, and GRRM against its start on fountain-P11.
 
     python scripts/probe_grrm_residuals.py --root ../shared/data/strecha --scene Herz-Jesus-P8 --input openmvg
 """
@@ -23,7 +25,9 @@ how README "Known limits" explains Herz-Jesus-P8 from OpenMVG's matches.
 from __future__ import annotations
 
 import argparse
+import copy
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -51,10 +55,9 @@ def main(argv: list[str] | None = None) -> int:
     from rotonly_cli.geometry import so3
     from rotonly_cli.geometry.triangulation import TriangulationOptions, triangulate_tracks
     from rotonly_cli.io.strecha import read_ground_truth
-    from rotonly_cli.pipeline import STAGE_FUNCTIONS, RunOptions, load_stage
+    from rotonly_cli.pipeline import STAGE_FUNCTIONS, Run, RunOptions, load_stage
     from rotonly_cli.stages.common import view_index
     from rotonly_cli.stages.load import focal_length
-    from rotonly_cli.stages.optimize import optimize_graph
 
     scene_dir = args.root / args.scene
     input_path = scene_dir / ("openmvg/sfm_data.json" if args.input == "openmvg" else "database.db")
@@ -63,11 +66,10 @@ def main(argv: list[str] | None = None) -> int:
     gt = read_ground_truth(scene_dir)
     gt_by_name = {Path(gt.views[v].name).name: pose for v, pose in gt.poses.items()}
 
-    run = load_stage(input_path, RunOptions(progress=False))
-    for stage in ("identify", "refine", "average"):
-        STAGE_FUNCTIONS[stage](run)
-    start = run.rotations.copy()
-    for stage in ("optimize", "translate", "triangulate"):
+    options = RunOptions(progress=False)
+    run = load_stage(input_path, options)
+    loaded = copy.deepcopy(run.graph)  # relative poses and matches as loaded
+    for stage in ("identify", "refine", "average", "optimize", "translate", "triangulate"):
         STAGE_FUNCTIONS[stage](run)
     graph, scene = run.graph, run.scene
     index = view_index(graph)
@@ -85,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
             obs_kp.append(int(kp))
     obs_point, obs_view, obs_kp = (np.array(a, dtype=np.int64) for a in (obs_point, obs_view, obs_kp))
     point_of = {(view_ids[r], k): p for p, r, k in zip(obs_point, obs_view, obs_kp)}
-    for edge in graph.edges:
+    for edge in loaded.edges:
         if edge.active:
             a = np.array([point_of.get((edge.i, int(k)), -1) for k in edge.matches[:, 0]])
             b = np.array([point_of.get((edge.j, int(k)), -2) for k in edge.matches[:, 1]])
@@ -118,20 +120,25 @@ def main(argv: list[str] | None = None) -> int:
         "... shuffled within each image": clean + residual[permuted_within(obs_view)],
         "... shuffled within each track": clean + residual[permuted_within(obs_point)],
     }
-    kept = sum(e.num_inliers for e in graph.edges if e.active)
+    kept = sum(e.num_inliers for e in loaded.edges if e.active)
     print(f"{args.scene}, {args.input} input: {len(X)} tracks, {len(obs_xy)} observations, {kept} matches "
-          f"inside tracks; GT residual RMS {rms_px:.3f} px")
-    print(f"L1-IRLS start: {best_rotation_errors_deg(start, R_gt).mean():.4f} deg")
-    print("| keypoints | GRRM mean (deg) | per camera (deg) |")
-    print("|---|---|---|")
+          f"inside tracks; GT residual RMS {rms_px:.3f} px; rotonly run: "
+          f"{best_rotation_errors_deg(run.rotations, R_gt).mean():.4f} deg")
+    print("| keypoints | L1-IRLS start (deg) | GRRM (deg) | GRRM per camera (deg) |")
+    print("|---|---|---|---|")
     for label, xy in variants.items():
         normalized = {v: x.copy() for v, x in scene.normalized.items()}
         for r, k, value in zip(obs_view, obs_kp, xy):
             normalized[view_ids[r]][k] = value
-        with np.errstate(all="ignore"):
-            R, _ = optimize_graph(graph, normalized, start)
-        errors = best_rotation_errors_deg(R, R_gt)
-        print(f"| {label} | {errors.mean():.4f} | {' '.join(f'{e:.3f}' for e in errors)} |", flush=True)
+        rebuilt = Run(str(input_path), run.input_kind, replace(scene, normalized=normalized), copy.deepcopy(loaded),
+                      options)
+        for stage in ("identify", "refine", "average"):
+            STAGE_FUNCTIONS[stage](rebuilt)
+        start = best_rotation_errors_deg(rebuilt.rotations, R_gt).mean()
+        STAGE_FUNCTIONS["optimize"](rebuilt)
+        errors = best_rotation_errors_deg(rebuilt.rotations, R_gt)
+        print(f"| {label} | {start:.4f} | {errors.mean():.4f} | {' '.join(f'{e:.3f}' for e in errors)} |",
+              flush=True)
     return 0
 
 

@@ -160,11 +160,13 @@ def test_probe_grrm_residuals_on_fixture(tmp_path, capsys):
     rows = {line.split(" | ")[0].lstrip("| "): line.split(" | ") for line in capsys.readouterr().out.splitlines()
             if line.startswith("| ") and not line.startswith("| keypoints")}
     assert len(rows) == 5
-    errors = {label: float(cells[1]) for label, cells in rows.items()}
-    real = errors.pop("real keypoints")
-    assert 0.005 < real < 0.1
-    assert all(value < real for value in errors.values()), errors
-    assert all(len(cells[2].rstrip(" |").split()) == 8 for cells in rows.values())  # one error per camera
+    start = {label: float(cells[1]) for label, cells in rows.items()}
+    grrm = {label: float(cells[2]) for label, cells in rows.items()}
+    real = grrm.pop("real keypoints")
+    assert 0.005 < real < 0.1 and 0.005 < start.pop("real keypoints") < 0.1
+    assert all(value < real for value in grrm.values()), grrm
+    assert all(value < real for value in start.values()), start  # the start is rebuilt too
+    assert all(len(cells[3].rstrip(" |").split()) == 8 for cells in rows.values())  # one error per camera
 
 
 def test_probe_grrm_residuals_refuses_a_missing_scene(tmp_path):
