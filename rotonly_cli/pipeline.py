@@ -224,13 +224,20 @@ def load_ground_truth(path: str | Path) -> SfMScene:
     raise InputError("neither a Strecha folder, an sfm_data.json nor a COLMAP model", path=str(path), field="--gt")
 
 
-def evaluate_against(gt_path: str | Path, estimate: SfMScene, report_dir: Path, estimate_path: str,
-                     gt: SfMScene | None = None) -> dict:
-    """Evaluate ``estimate`` against the GT at ``gt_path`` (or the already loaded ``gt``)."""
+def ground_truth_for(options: RunOptions, stages: tuple[str, ...] | list[str]) -> SfMScene | None:
+    """The --gt scene when ``stages`` end with triangulation (the evaluated result), else None.
+    Read before any stage runs, so that a mistyped path fails at once instead of after the
+    whole chain, whose result would then be discarded with the failed run."""
+    return load_ground_truth(options.gt) if options.gt and "triangulate" in stages else None
+
+
+def evaluate_against(gt_path: str | Path, gt: SfMScene, estimate: SfMScene, report_dir: Path,
+                     estimate_path: str) -> dict:
+    """Evaluate ``estimate`` against ``gt`` (read from ``gt_path``) into ``report_dir``."""
     from rotonly_cli.evaluation.quality import evaluate
     from rotonly_cli.evaluation.report import write_report as write_eval_report
 
-    report = evaluate(load_ground_truth(gt_path) if gt is None else gt, estimate)
+    report = evaluate(gt, estimate)
     report.gt_path, report.estimate_path = str(gt_path), estimate_path
     write_eval_report(report, report_dir)
     rotation = report.rotation_error_deg
@@ -305,9 +312,7 @@ def run_pipeline(input_path: str | Path, out_dir: str | Path, options: RunOption
     check_out_dir(out_dir)
     if out_dir.exists() and input_path.resolve().is_relative_to(out_dir.resolve()):
         raise InputError("the input lies inside OUT, which would be replaced", path=str(input_path), field="-o")
-    # --gt is read before the run, so that a mistyped path fails at once instead of after the
-    # whole chain (whose result would then be discarded with the failed run)
-    gt = load_ground_truth(options.gt) if options.gt and "triangulate" in stages else None
+    gt = ground_truth_for(options, stages)
     staging = make_staging_dir(out_dir)
     start = time.perf_counter()
     try:
@@ -334,18 +339,18 @@ def run_pipeline(input_path: str | Path, out_dir: str | Path, options: RunOption
 
 
 def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: float,
-            gt: SfMScene | None = None) -> dict:
+            gt: SfMScene | None) -> dict:
     """Write outputs of a finished chain into ``directory`` (which becomes ``out_dir``);
-    ``gt``: the ground truth of ``run.options.gt``, if already loaded."""
+    ``gt``: the ground truth of ``run.options.gt`` (:func:`ground_truth_for`) or None."""
     summary: dict = {"input": run.input_path, "stages": done}
     if done[-1] == "triangulate":
         scene = write_outputs(directory, run)
         summary.update(num_views=len(run.scene.views), num_registered=len(scene.poses),
                        num_points=0 if scene.structure is None else len(scene.structure.points),
                        unregistered_views=[v for v in run.graph.view_ids() if v not in scene.poses])
-        if run.options.gt:
-            evaluation = evaluate_against(run.options.gt, scene, directory / "eval",
-                                          str(out_dir / "sfm_data.json"), gt)
+        if gt is not None:
+            evaluation = evaluate_against(run.options.gt, gt, scene, directory / "eval",
+                                          str(out_dir / "sfm_data.json"))
             summary["rotation_error_deg"] = evaluation.get("rotation_error_deg")
     summary["num_active_edges"] = len(run.graph.active_edges())
     summary["time_s"] = time.perf_counter() - start
@@ -377,6 +382,7 @@ def resume(out_dir: str | Path, stage: str, options: RunOptions | None = None) -
     options = options or RunOptions()
     options = replace(options, matches_dir=options.matches_dir or saved.get("matches_dir"),
                       image_path=options.image_path or saved.get("image_path"))
+    gt = ground_truth_for(options, [stage])
     start = time.perf_counter()
     with _RunLog(out_dir), collector_paused():
         try:
@@ -390,6 +396,6 @@ def resume(out_dir: str | Path, stage: str, options: RunOptions | None = None) -
                 run.rotations = None  # stale: computed from the edges before this stage
             if position < STAGES.index("translate"):
                 run.centers = None
-            return _finish(out_dir, out_dir, run, done, start)
+            return _finish(out_dir, out_dir, run, done, start, gt)
         except ValueError as exc:
             raise _as_algorithm_error(exc) from exc

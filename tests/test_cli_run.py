@@ -182,6 +182,21 @@ def test_bad_gt_fails_before_the_chain_runs(tmp_path, capsys, monkeypatch):
         assert list(tmp_path.iterdir()) == []
 
 
+def test_bad_gt_of_a_stage_command_fails_before_the_stage(herzjesu_run, tmp_path, capsys, monkeypatch):
+    """`rotonly triangulate OUT --gt GT` checks GT the same way, before the stage runs."""
+    from rotonly_cli import pipeline
+
+    def no_stage(run):
+        raise AssertionError("the stage ran before --gt was checked")
+
+    _, _, out = herzjesu_run
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    monkeypatch.setitem(pipeline.STAGE_FUNCTIONS, "triangulate", no_stage)
+    assert _rotonly("triangulate", out, "--gt", tmp_path / "missing") == 2
+    assert "--gt" in capsys.readouterr().err.strip().splitlines()[-1]
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before
+
+
 def test_bad_input_is_reported_before_scipy_is_imported():
     """`rotonly run` checks INPUT and OUT before the numerical stages: importing the CLI
     command and the pipeline must not import scipy (~0.3 s, half of a bad-input exit)."""
