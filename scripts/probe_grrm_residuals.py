@@ -33,14 +33,6 @@ from pathlib import Path
 import numpy as np
 
 
-def best_rotation_errors_deg(R: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
-    """Per-camera geodesic error after the best global rotation (the bench's metric)."""
-    from rotonly_cli.geometry import so3
-
-    Q = so3.project_to_so3(np.einsum("nji,njk->ik", R_gt, R))
-    return np.degrees(so3.geodesic_angle(R, R_gt @ Q))
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--root", type=Path, required=True, help="folder of Strecha scenes (data/strecha layout)")
@@ -53,6 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING)  # the stages log at INFO; this prints a table
 
     from rotonly_cli.geometry import so3
+    from rotonly_cli.geometry.alignment import rotation_errors_after_alignment
     from rotonly_cli.geometry.triangulation import TriangulationOptions, triangulate_tracks
     from rotonly_cli.io.strecha import read_ground_truth
     from rotonly_cli.pipeline import STAGE_FUNCTIONS, Run, RunOptions, load_stage
@@ -78,27 +71,34 @@ def main(argv: list[str] | None = None) -> int:
     R_gt = np.stack([so3.project_to_so3(gt_by_name[n].R_cam_from_world) for n in names])
     C_gt = np.stack([gt_by_name[n].center for n in names])
 
-    # observations of rotonly's tracks, grouped by point, and the matches inside them
-    obs_point, obs_view, obs_kp = [], [], []
-    for p, observations in enumerate(run.structure.observations):
-        for v, kp in observations:
-            obs_point.append(p)
-            obs_view.append(index[v])
-            obs_kp.append(int(kp))
-    obs_point, obs_view, obs_kp = (np.array(a, dtype=np.int64) for a in (obs_point, obs_view, obs_kp))
-    point_of = {(view_ids[r], k): p for p, r, k in zip(obs_point, obs_view, obs_kp)}
+    def errors_deg(R: np.ndarray) -> np.ndarray:
+        return rotation_errors_after_alignment(R, R_gt)[0]
+
+    # observations of rotonly's tracks, grouped by point
+    observations = run.structure.observations
+    obs_point = np.repeat(np.arange(len(observations)), [len(o) for o in observations])
+    flat = np.array([vk for o in observations for vk in o], dtype=np.int64).reshape(-1, 2)
+    obs_view = np.searchsorted(view_ids, flat[:, 0])  # row of the view (view_ids are sorted)
+    obs_kp = flat[:, 1]
+    in_view = [np.flatnonzero(obs_view == r) for r in range(len(view_ids))]
+    # point of every keypoint (-1: in no track); keep the matches inside one track
+    point_of = [np.full(len(scene.normalized[v]), -1) for v in view_ids]
+    for r, rows in enumerate(in_view):
+        point_of[r][obs_kp[rows]] = obs_point[rows]
     for edge in loaded.edges:
         if edge.active:
-            a = np.array([point_of.get((edge.i, int(k)), -1) for k in edge.matches[:, 0]])
-            b = np.array([point_of.get((edge.j, int(k)), -2) for k in edge.matches[:, 1]])
-            edge.matches = edge.matches[a == b]
+            a = point_of[index[edge.i]][edge.matches[:, 0]]
+            b = point_of[index[edge.j]][edge.matches[:, 1]]
+            edge.matches = edge.matches[(a == b) & (a >= 0)]
 
-    obs_xy = np.stack([scene.normalized[view_ids[r]][k] for r, k in zip(obs_view, obs_kp)])
+    obs_xy = np.empty((len(obs_kp), 2))
+    for r, rows in enumerate(in_view):
+        obs_xy[rows] = scene.normalized[view_ids[r]][obs_kp[rows]]
     loose = TriangulationOptions(max_reprojection_error=1.0, min_parallax_deg=0.0)
     X = triangulate_tracks(R_gt, C_gt, obs_point, obs_view, obs_xy, options=loose).points_in_world
     cam = np.einsum("nij,nj->ni", R_gt[obs_view], X[obs_point] - C_gt[obs_view])
     clean = cam[:, :2] / cam[:, 2:3]
-    focal = np.array([focal_length(scene.intrinsics[scene.views[view_ids[r]].intrinsics_id]) for r in obs_view])
+    focal = np.array([focal_length(scene.intrinsics[scene.views[v].intrinsics_id]) for v in view_ids])[obs_view]
     residual = obs_xy - clean  # normalized units
     rms_px = float(np.sqrt(((residual * focal[:, None]) ** 2).sum(1).mean()))
 
@@ -123,20 +123,20 @@ def main(argv: list[str] | None = None) -> int:
     kept = sum(e.num_inliers for e in loaded.edges if e.active)
     print(f"{args.scene}, {args.input} input: {len(X)} tracks, {len(obs_xy)} observations, {kept} matches "
           f"inside tracks; GT residual RMS {rms_px:.3f} px; rotonly run: "
-          f"{best_rotation_errors_deg(run.rotations, R_gt).mean():.4f} deg")
+          f"{errors_deg(run.rotations).mean():.4f} deg")
     print("| keypoints | L1-IRLS start (deg) | GRRM (deg) | GRRM per camera (deg) |")
     print("|---|---|---|---|")
     for label, xy in variants.items():
         normalized = {v: x.copy() for v, x in scene.normalized.items()}
-        for r, k, value in zip(obs_view, obs_kp, xy):
-            normalized[view_ids[r]][k] = value
+        for r, rows in enumerate(in_view):
+            normalized[view_ids[r]][obs_kp[rows]] = xy[rows]
         rebuilt = Run(str(input_path), run.input_kind, replace(scene, normalized=normalized), copy.deepcopy(loaded),
                       options)
         for stage in ("identify", "refine", "average"):
             STAGE_FUNCTIONS[stage](rebuilt)
-        start = best_rotation_errors_deg(rebuilt.rotations, R_gt).mean()
+        start = errors_deg(rebuilt.rotations).mean()
         STAGE_FUNCTIONS["optimize"](rebuilt)
-        errors = best_rotation_errors_deg(rebuilt.rotations, R_gt)
+        errors = errors_deg(rebuilt.rotations)
         print(f"| {label} | {start:.4f} | {errors.mean():.4f} | {' '.join(f'{e:.3f}' for e in errors)} |",
               flush=True)
     return 0
