@@ -30,6 +30,10 @@ import numpy as np
 MIN_MATCHES_PER_JOB = 100_000
 
 
+#: seconds a child that sent its result may take to exit before it is terminated
+DELIVERED_EXIT_TIMEOUT_S = 10.0
+
+
 def fork_safe() -> bool:
     """Whether forking this process is safe: Linux, no other Python thread alive (a fork
     copies only the calling thread; locks held by the others would stay locked in the child),
@@ -79,6 +83,7 @@ def fork_map(fn: Callable, items: Sequence) -> list:
         return [fn(x) for x in items]
     ctx = mp.get_context("fork")
     children = []
+    delivered = False
     try:
         for item in items[1:]:
             receive, send = ctx.Pipe(duplex=False)
@@ -96,10 +101,15 @@ def fork_map(fn: Callable, items: Sequence) -> list:
             if status == "error":
                 raise value
             results.append(value)
+        delivered = True
         return results
     finally:
         for process, receive in children:
             receive.close()
+            # a child that delivered its result exits by itself: SIGTERM would race its exit
+            # (pycolmap's failure handler then prints a stack trace); the others are stopped
+            if delivered:
+                process.join(timeout=DELIVERED_EXIT_TIMEOUT_S)
             if process.is_alive():
                 process.terminate()
             process.join()

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -92,6 +93,28 @@ def test_fork_map_reports_a_worker_that_dies():
 
     with pytest.raises(RuntimeError, match="exit code 3"):
         parallel.fork_map(work, [0, 1])
+
+
+def _slow_exit_writes(path):
+    # runs when the child process exits normally, after its result was sent
+    time.sleep(0.5)
+    path.write_text("exited")
+
+
+def test_fork_map_lets_a_child_that_delivered_exit_by_itself(tmp_path):
+    """A child whose result arrived is joined, not sent SIGTERM while it is still exiting
+    (its exit handlers run; a SIGTERM would kill it in the 0.5 s sleep)."""
+    import multiprocessing.util
+
+    marker = tmp_path / "exit.txt"
+
+    def work(x):
+        if x == 1:  # in the child: an exit handler that takes a while
+            multiprocessing.util.Finalize(None, _slow_exit_writes, args=(marker,), exitpriority=10)
+        return x * 10
+
+    assert parallel.fork_map(work, [0, 1]) == [0, 10]
+    assert marker.read_text() == "exited"
 
 
 def test_fork_map_stays_in_process_while_another_thread_runs():
