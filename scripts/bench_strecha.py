@@ -2,7 +2,7 @@
 
 Usage: python scripts/bench_strecha.py --root /work/shared/data/strecha [--scenes fountain-P11 ...]
                                        [-o RESULTS_DIR] [--threads N] [--skip-mapper]
-                                       [--openmvg-bin ../shared/tools/openmvg-2.1/bin]
+                                       [--openmvg-bin ../shared/tools/openmvg-2.1/bin [--timing-rounds N]]
 
 For every scene folder under ROOT (database.db, gt_dense_cameras/, openmvg/{sfm_data.json,
 matches.e.bin, global/sfm_data.json}; data/strecha/README.md), in the same run:
@@ -26,7 +26,9 @@ matches.e.bin, global/sfm_data.json}; data/strecha/README.md), in the same run:
   README's, whole seconds as OpenMVG prints them); with ``--openmvg-bin DIR`` also OpenMVG's
   global SfM re-run here on a copy of the same matches, its process wall time measured like
   rotonly's, once as stored (its BA refines the intrinsics) and once with the intrinsics held
-  (``-f NONE``: K fixed, as rotonly and the mapper run);
+  (``-f NONE``: K fixed, as rotonly and the mapper run); with ``--timing-rounds N`` also
+  ``rotonly run`` and OpenMVG (default settings) on the same matches in N alternating rounds,
+  with the ratio of their median wall times (one pair of runs moves by ±15 % here);
 * a reference row per rotonly run: pycolmap's bundle adjustment (K fixed) started from
   rotonly's own ``OUT/sparse`` model, i.e. where BA's optimum lies on exactly rotonly's
   tracks (not a method of rotonly: it shows how far GRRM's optimum is from BA's).
@@ -52,6 +54,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -374,6 +377,55 @@ OPENMVG_THREADS = 4
 OPENMVG_TOOLS = ("openMVG_main_SfM", "openMVG_main_ConvertSfM_DataFormat")
 
 
+def openmvg_global_command(openmvg_bin: Path, project: Path, out: Path, hold_intrinsics: bool = False) -> list[str]:
+    """openMVG_main_SfM's global engine on ``project``'s sfm_data.json + matches.e.bin into ``out``."""
+    return [str(openmvg_bin / OPENMVG_TOOLS[0]), "--sfm_engine", "GLOBAL", "-T", str(OPENMVG_THREADS),
+            "--input_file", str(project / "sfm_data.json"), "--match_file", str(project / "matches.e.bin"),
+            "--output_dir", str(out)] + (["-f", "NONE"] if hold_intrinsics else [])
+
+
+def alternating_wall_times(commands: dict[str, Callable[[int], list[str]]], rounds: int) -> dict[str, list[float]]:
+    """Process wall time (s) of every command in ``rounds`` rounds, the order rotated each round
+    (round k starts with command k mod n), so that a slow stretch of the shared machine falls
+    on all of them alike. ``commands[name](k)`` is the argv of round k. RuntimeError (with the
+    tail of its stderr) if a command fails."""
+    names = list(commands)
+    times: dict[str, list[float]] = {name: [] for name in names}
+    for k in range(rounds):
+        for name in names[k % len(names):] + names[:k % len(names)]:
+            argv = commands[name](k)
+            start = time.perf_counter()
+            completed = subprocess.run(argv, capture_output=True, text=True)
+            times[name].append(time.perf_counter() - start)
+            if completed.returncode != 0:
+                tail = (completed.stderr or completed.stdout).strip().splitlines()[-1:]
+                raise RuntimeError(f"{name}: exit {completed.returncode}: {tail}")
+    return times
+
+
+def openmvg_input_timing(project_dir: Path, openmvg_bin: Path, work: Path, rounds: int) -> dict:
+    """``rotonly -q run`` and OpenMVG's global SfM (default settings, the issue's reference)
+    on one copy of the project, ``rounds`` alternating rounds (alternating_wall_times): both
+    lists of wall times, their medians and the ratio of the medians. A single pair of runs on
+    this shared 2-core machine moves by ±15 %, as much as the two tools differ by."""
+    copy = work / "openmvg_project_timing"
+    shutil.copytree(project_dir, copy, ignore=shutil.ignore_patterns("global", "eval"))
+
+    def openmvg_run(k: int) -> list[str]:
+        out = work / f"openmvg_timing_{k}"  # a fresh output folder per round
+        shutil.rmtree(work / f"openmvg_timing_{k - 1}", ignore_errors=True)
+        return openmvg_global_command(openmvg_bin, copy, out)
+
+    times = alternating_wall_times({
+        "rotonly": lambda k: rotonly_command() + ["-q", "run", str(copy / "sfm_data.json"), "-o",
+                                                  str(work / "rotonly_timing")],
+        "openmvg": openmvg_run}, rounds)
+    median = {name: float(np.median(values)) for name, values in times.items()}
+    return {"rounds": rounds, "rotonly_s": times["rotonly"], "openmvg_s": times["openmvg"],
+            "median_rotonly_s": median["rotonly"], "median_openmvg_s": median["openmvg"],
+            "ratio_of_medians": median["rotonly"] / median["openmvg"]}
+
+
 def run_openmvg_global(project_dir: Path, gt: SfMScene, openmvg_bin: Path, work: Path, log_dir: Path,
                        hold_intrinsics: bool = False) -> MethodResult:
     """OpenMVG 2.1's own global SfM (L2 rotation averaging + LiGT + BA) re-run on a copy of the
@@ -392,9 +444,7 @@ def run_openmvg_global(project_dir: Path, gt: SfMScene, openmvg_bin: Path, work:
     copy = work / f"openmvg_project{variant}"
     shutil.copytree(project_dir, copy, ignore=shutil.ignore_patterns("global", "eval"))
     out = work / f"openmvg_global{variant}"
-    command = [str(openmvg_bin / OPENMVG_TOOLS[0]), "--sfm_engine", "GLOBAL", "-T", str(OPENMVG_THREADS),
-               "--input_file", str(copy / "sfm_data.json"), "--match_file", str(copy / "matches.e.bin"),
-               "--output_dir", str(out)] + (["-f", "NONE"] if hold_intrinsics else [])
+    command = openmvg_global_command(openmvg_bin, copy, out, hold_intrinsics)
     start = time.perf_counter()
     completed = subprocess.run(command, capture_output=True, text=True)
     wall = time.perf_counter() - start
@@ -428,7 +478,7 @@ def check_openmvg_bin(openmvg_bin: Path) -> str | None:
 # ============================================================================ one scene
 
 def bench_scene(scene_dir: Path, work: Path, log_dir: Path, threads: int, skip_mapper: bool,
-                openmvg_bin: Path | None = None) -> list[MethodResult]:
+                openmvg_bin: Path | None = None, timing_rounds: int = 1) -> list[MethodResult]:
     name = scene_dir.name
     gt = strecha.read_ground_truth(scene_dir)
     database = scene_dir / "database.db"
@@ -464,6 +514,14 @@ def bench_scene(scene_dir: Path, work: Path, log_dir: Path, threads: int, skip_m
                     log_dir)
             guarded("OpenMVG 2.1 global SfM (re-run, intrinsics held)", run_openmvg_global, project.parent, gt,
                     openmvg_bin, tmp, log_dir, True)
+            ours = next((r for r in results if r.method == "rotonly run openmvg/sfm_data.json" and not r.error), None)
+            if timing_rounds > 1 and ours is not None:
+                try:
+                    ours.extra["alternating_timing"] = openmvg_input_timing(project.parent, openmvg_bin, tmp,
+                                                                            timing_rounds)
+                except Exception as exc:  # a failed timing is a note in the table, not a crashed benchmark
+                    ours.extra["alternating_timing"] = {"error": f"{type(exc).__name__}: {exc}"}
+                print(f"  [{name}] alternating wall times: done", file=sys.stderr, flush=True)
         for label, method in (("database.db", "rotonly run database.db"),
                               ("openmvg", "rotonly run openmvg/sfm_data.json")):
             model = rotonly_out_dir(tmp, method) / "sparse"
@@ -526,6 +584,14 @@ def ratio_lines(results: list[MethodResult]) -> list[str]:
                 text += f", {mine.time_s / ref.extra['process_wall_s']:.2f}x of its process wall " \
                         f"({ref.extra['process_wall_s']:.2f} s)"
             out.append(f"- time ratio {text}")
+    timing = by_method.get("rotonly run openmvg/sfm_data.json", MethodResult("")).extra.get("alternating_timing")
+    if timing and "error" in timing:
+        out.append(f"- alternating wall times failed: {timing['error']}")
+    elif timing:
+        ratios = np.array(timing["rotonly_s"]) / np.array(timing["openmvg_s"])
+        out.append(f"- {timing['rounds']} alternating rounds, rotonly run openmvg/sfm_data.json / OpenMVG 2.1 global "
+                   f"SfM (process wall, medians): {timing['median_rotonly_s']:.2f} / {timing['median_openmvg_s']:.2f} s"
+                   f" = **{timing['ratio_of_medians']:.2f}x** (per round {ratios.min():.2f}-{ratios.max():.2f}x)")
     return [""] + out if out else []
 
 
@@ -567,7 +633,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--openmvg-bin", type=Path, default=None,
                         help="folder of OpenMVG 2.1's tools (openMVG_main_SfM, ..._ConvertSfM_DataFormat): also "
                              "re-run OpenMVG's global SfM on each scene's openmvg/ matches and time it like rotonly")
+    parser.add_argument("--timing-rounds", type=int, default=1,
+                        help="with --openmvg-bin: also time rotonly and OpenMVG on each scene's OpenMVG matches in "
+                             "this many alternating rounds and report the medians (default 1: the single runs only)")
     args = parser.parse_args(argv)
+    if args.timing_rounds < 1:
+        parser.error("--timing-rounds: must be >= 1")
 
     root = args.root.resolve()
     results_dir = args.output.resolve()
@@ -597,7 +668,7 @@ def main(argv: list[str] | None = None) -> int:
         for scene_dir in scene_dirs:
             print(f"== {scene_dir.name}", file=sys.stderr, flush=True)
             all_results[scene_dir.name] = bench_scene(scene_dir, results_dir.parent, log_dir, args.threads,
-                                                      args.skip_mapper, openmvg_bin)
+                                                      args.skip_mapper, openmvg_bin, args.timing_rounds)
             print(scene_table(scene_dir.name, all_results[scene_dir.name]) + "\n", flush=True)
         summary = summary_table(all_results) + (
             f"\n\nLoad average (1 min) at start / end: {load_at_start:.1f} / {os.getloadavg()[0]:.1f} "

@@ -263,6 +263,46 @@ def test_openmvg_global_rerun_is_timed_converted_and_evaluated(tmp_path: Path):
     assert failed.error.startswith("exit 3") and "cannot open matches" in failed.error
 
 
+def test_alternating_wall_times_rotates_the_order_and_reports_failures(tmp_path: Path):
+    log = tmp_path / "order.txt"
+
+    def command(name):
+        return lambda k: [sys.executable, "-c", f"open({str(log)!r}, 'a').write('{name}{k} ')"]
+
+    times = bench_strecha.alternating_wall_times({"a": command("a"), "b": command("b")}, 3)
+    assert log.read_text().split() == ["a0", "b0", "b1", "a1", "a2", "b2"]
+    assert [len(v) for v in times.values()] == [3, 3] and all(t > 0 for v in times.values() for t in v)
+    failing = {"a": command("a"), "bad": lambda k: [sys.executable, "-c", "import sys; sys.exit('no matches')"]}
+    with pytest.raises(RuntimeError, match="bad: exit 1: .*no matches"):
+        bench_strecha.alternating_wall_times(failing, 2)
+
+
+def test_openmvg_input_timing_runs_both_tools_on_one_copy(tmp_path: Path):
+    """--timing-rounds: the real `rotonly -q run` and (here a stand-in) OpenMVG's global SfM
+    on one copy of the project, alternating; medians, their ratio and the table line."""
+    scene_dir = FIXTURES / "herzjesu_p8"
+    tools = _fake_openmvg_tools(tmp_path / "bin", tmp_path / "unused.json")
+    (tools / "openMVG_main_SfM").write_text(f"#!{sys.executable}\nimport os, sys, time\n"
+                                            "os.makedirs(sys.argv[sys.argv.index('--output_dir') + 1])\n"
+                                            "time.sleep(0.2)\n")
+    before = {p.name: _digest(p) for p in (scene_dir / "openmvg").iterdir()}
+    (tmp_path / "work").mkdir()
+    timing = bench_strecha.openmvg_input_timing(scene_dir / "openmvg", tools, tmp_path / "work", 2)
+    assert {p.name: _digest(p) for p in (scene_dir / "openmvg").iterdir()} == before
+    assert timing["rounds"] == 2 and len(timing["rotonly_s"]) == len(timing["openmvg_s"]) == 2
+    assert min(timing["openmvg_s"]) >= 0.2 and min(timing["rotonly_s"]) > 0.3  # a real rotonly run
+    assert timing["ratio_of_medians"] == pytest.approx(timing["median_rotonly_s"] / timing["median_openmvg_s"])
+    assert (tmp_path / "work" / "rotonly_timing" / "sfm_data.json").is_file()
+    row = bench_strecha.MethodResult("rotonly run openmvg/sfm_data.json", time_s=1.0,
+                                     extra={"alternating_timing": timing})
+    lines = bench_strecha.ratio_lines([row])
+    assert any(line.startswith("- 2 alternating rounds") and f"{timing['ratio_of_medians']:.2f}x" in line
+               for line in lines)
+    failed = bench_strecha.ratio_lines([bench_strecha.MethodResult(
+        "rotonly run openmvg/sfm_data.json", time_s=1.0, extra={"alternating_timing": {"error": "boom"}})])
+    assert "- alternating wall times failed: boom" in failed
+
+
 def test_global_mapper_runs_as_a_process_and_both_times_are_kept(tmp_path):
     """The pycolmap global mapper reference runs in a child process: its call time is time_s
     (the data README's measure), its whole process wall time is extra, and ratio_lines
