@@ -246,3 +246,29 @@ def test_colmap_input_gives_openmvg_ids_in_file_name_order(tmp_path):
             x = pose.R_cam_from_world @ (X - pose.center)
             errors.append(np.linalg.norm(focal * x[:2] / x[2] + [ppx, ppy] - pixel))
     assert np.median(errors) < 1.0
+
+
+def test_console_script_freezes_objects_before_shutdown_and_keeps_the_exit_code(monkeypatch, capsys, tmp_path):
+    """The installed `rotonly` is console_main: main, then gc.freeze before interpreter
+    shutdown (skips its full collection, ~0.2 s a run); exit codes are main's. main alone,
+    which the tests call in-process, freezes nothing."""
+    import gc
+    import importlib.metadata
+
+    from rotonly_cli import cli
+
+    (entry,) = [e for e in importlib.metadata.entry_points(group="console_scripts") if e.name == "rotonly"]
+    assert entry.value == "rotonly_cli.cli:console_main"
+    frozen = []
+    monkeypatch.setattr(gc, "freeze", lambda: frozen.append(True))
+    for argv, code in ((["rotonly", "--version"], 0), (["rotonly", "no-such-command"], 2),
+                       (["rotonly", "run", str(tmp_path / "missing.db"), "-o", str(tmp_path / "out")], 2)):
+        monkeypatch.setattr("sys.argv", argv)
+        with pytest.raises(SystemExit) as exit_info:
+            cli.console_main()
+        assert exit_info.value.code == code and frozen == [True], argv
+        frozen.clear()
+    with pytest.raises(SystemExit):
+        cli.main(["--version"])
+    assert frozen == [] and not (tmp_path / "out").exists()
+    capsys.readouterr()

@@ -7,6 +7,7 @@ never breaks the others.
 
 from __future__ import annotations
 
+import gc
 import importlib
 import logging
 import sys
@@ -97,5 +98,21 @@ def main(argv: list[str] | None = None) -> None:
     sys.exit(0)
 
 
+def console_main() -> None:
+    """The ``rotonly`` console script: :func:`main` in a process that ends right after it.
+
+    Before the interpreter shuts down, every object the run left is frozen (``gc.freeze``).
+    Otherwise shutdown runs one full garbage collection over all of them and over the
+    imported numpy/scipy/pycolmap modules: 0.15-0.2 s of a 2.3 s Herz-Jesus-P8 run (measured
+    from the end of ``main`` to the process exit: 0.14-0.24 s, frozen 0.045-0.053 s). Exit
+    handlers (``logging.shutdown``, atexit) still run, and outputs are closed by then (atomic
+    writes); the operating system takes the memory back. In-process callers (the tests) use
+    :func:`main`, which freezes nothing."""
+    try:
+        main()
+    finally:
+        gc.freeze()
+
+
 if __name__ == "__main__":  # pragma: no cover
-    main()
+    console_main()
