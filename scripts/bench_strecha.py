@@ -137,7 +137,7 @@ def rotonly_command() -> list[str]:
     exe = shutil.which("rotonly")
     if exe:
         return [exe]
-    return [sys.executable, "-c", "import sys; from rotonly_cli.cli import main; sys.exit(main())"]
+    return [sys.executable, "-c", "from rotonly_cli.cli import console_main; console_main()"]
 
 
 def byte_compile_rotonly() -> None:
