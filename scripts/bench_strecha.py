@@ -2,7 +2,7 @@
 
 Usage: python scripts/bench_strecha.py --root /work/shared/data/strecha [--scenes fountain-P11 ...]
                                        [-o RESULTS_DIR] [--threads N] [--skip-mapper]
-                                       [--openmvg-bin ../shared/tools/openmvg-2.1/bin [--timing-rounds N]]
+                                       [--openmvg-bin ../shared/tools/openmvg-2.1/bin] [--timing-rounds N]
 
 For every scene folder under ROOT (database.db, gt_dense_cameras/, openmvg/{sfm_data.json,
 matches.e.bin, global/sfm_data.json}; data/strecha/README.md), in the same run:
@@ -26,9 +26,10 @@ matches.e.bin, global/sfm_data.json}; data/strecha/README.md), in the same run:
   README's, whole seconds as OpenMVG prints them); with ``--openmvg-bin DIR`` also OpenMVG's
   global SfM re-run here on a copy of the same matches, its process wall time measured like
   rotonly's, once as stored (its BA refines the intrinsics) and once with the intrinsics held
-  (``-f NONE``: K fixed, as rotonly and the mapper run); with ``--timing-rounds N`` also
-  ``rotonly run`` and OpenMVG (default settings) on the same matches in N alternating rounds,
-  with the ratio of their median wall times (one pair of runs moves by ±15 % here);
+  (``-f NONE``: K fixed, as rotonly and the mapper run);
+* with ``--timing-rounds N``: ``rotonly run`` against the mapper on the database and against
+  OpenMVG (default settings) on the OpenMVG matches, N alternating rounds each, with the
+  ratio of the median times (one pair of runs moves by ±15 % here);
 * a reference row per rotonly run: pycolmap's bundle adjustment (K fixed) started from
   rotonly's own ``OUT/sparse`` model, i.e. where BA's optimum lies on exactly rotonly's
   tracks (not a method of rotonly: it shows how far GRRM's optimum is from BA's).
@@ -384,30 +385,37 @@ def openmvg_global_command(openmvg_bin: Path, project: Path, out: Path, hold_int
             "--output_dir", str(out)] + (["-f", "NONE"] if hold_intrinsics else [])
 
 
-def alternating_wall_times(commands: dict[str, Callable[[int], list[str]]], rounds: int) -> dict[str, list[float]]:
-    """Process wall time (s) of every command in ``rounds`` rounds, the order rotated each round
-    (round k starts with command k mod n), so that a slow stretch of the shared machine falls
-    on all of them alike. ``commands[name](k)`` is the argv of round k. RuntimeError (with the
-    tail of its stderr) if a command fails."""
+def alternating_runs(commands: dict[str, Callable[[int], list[str]]], rounds: int) -> dict[str, list[tuple[float, str]]]:
+    """(process wall time in s, stdout) of every command in ``rounds`` rounds, the order
+    rotated each round (round k starts with command k mod n), so that a slow stretch of the
+    shared machine falls on all of them alike. ``commands[name](k)`` is the argv of round k.
+    RuntimeError (with the tail of its stderr) if a command fails."""
     names = list(commands)
-    times: dict[str, list[float]] = {name: [] for name in names}
+    runs: dict[str, list[tuple[float, str]]] = {name: [] for name in names}
     for k in range(rounds):
         for name in names[k % len(names):] + names[:k % len(names)]:
             argv = commands[name](k)
             start = time.perf_counter()
             completed = subprocess.run(argv, capture_output=True, text=True)
-            times[name].append(time.perf_counter() - start)
+            runs[name].append((time.perf_counter() - start, completed.stdout))
             if completed.returncode != 0:
                 tail = (completed.stderr or completed.stdout).strip().splitlines()[-1:]
                 raise RuntimeError(f"{name}: exit {completed.returncode}: {tail}")
-    return times
+    return runs
+
+
+def _timing_summary(rounds: int, reference: str, ours: list[float], theirs: list[float], note: str) -> dict:
+    return {"rounds": rounds, "reference": reference, "reference_time": note, "rotonly_s": ours,
+            "reference_s": theirs, "median_rotonly_s": float(np.median(ours)),
+            "median_reference_s": float(np.median(theirs)),
+            "ratio_of_medians": float(np.median(ours) / np.median(theirs))}
 
 
 def openmvg_input_timing(project_dir: Path, openmvg_bin: Path, work: Path, rounds: int) -> dict:
     """``rotonly -q run`` and OpenMVG's global SfM (default settings, the issue's reference)
-    on one copy of the project, ``rounds`` alternating rounds (alternating_wall_times): both
-    lists of wall times, their medians and the ratio of the medians. A single pair of runs on
-    this shared 2-core machine moves by ±15 %, as much as the two tools differ by."""
+    on one copy of the project, ``rounds`` alternating rounds (alternating_runs): both lists
+    of process wall times, their medians and the ratio of the medians. A single pair of runs
+    on this shared 2-core machine moves by ±15 %, as much as the two tools differ by."""
     copy = work / "openmvg_project_timing"
     shutil.copytree(project_dir, copy, ignore=shutil.ignore_patterns("global", "eval"))
 
@@ -416,14 +424,37 @@ def openmvg_input_timing(project_dir: Path, openmvg_bin: Path, work: Path, round
         shutil.rmtree(work / f"openmvg_timing_{k - 1}", ignore_errors=True)
         return openmvg_global_command(openmvg_bin, copy, out)
 
-    times = alternating_wall_times({
+    runs = alternating_runs({
         "rotonly": lambda k: rotonly_command() + ["-q", "run", str(copy / "sfm_data.json"), "-o",
                                                   str(work / "rotonly_timing")],
         "openmvg": openmvg_run}, rounds)
-    median = {name: float(np.median(values)) for name, values in times.items()}
-    return {"rounds": rounds, "rotonly_s": times["rotonly"], "openmvg_s": times["openmvg"],
-            "median_rotonly_s": median["rotonly"], "median_openmvg_s": median["openmvg"],
-            "ratio_of_medians": median["rotonly"] / median["openmvg"]}
+    return _timing_summary(rounds, "OpenMVG 2.1 global SfM", [t for t, _ in runs["rotonly"]],
+                           [t for t, _ in runs["openmvg"]], f"process wall, -T {OPENMVG_THREADS}")
+
+
+def database_timing(database: Path, work: Path, threads: int, rounds: int, seed: int = 0) -> dict:
+    """``rotonly -q run`` and pycolmap's global mapper (the _mapper_worker process) on the
+    database, ``rounds`` alternating rounds: rotonly's process wall times against the
+    mapper's global_mapping call (the data README's measure, as in the single-run ratio) and
+    against the mapper's whole process."""
+    def mapper_run(k: int) -> list[str]:
+        folder = work / f"mapper_timing_{k}"
+        shutil.rmtree(work / f"mapper_timing_{k - 1}", ignore_errors=True)
+        folder.mkdir()
+        shutil.copyfile(database, folder / "database.db")  # Database.open rewrites the header
+        return [sys.executable, str(Path(__file__).resolve()), "--mapper-worker", str(folder / "database.db"),
+                str(folder / "work"), str(threads), str(seed)]
+
+    runs = alternating_runs({
+        "rotonly": lambda k: rotonly_command() + ["-q", "run", str(database), "-o", str(work / "rotonly_db_timing")],
+        "mapper": mapper_run}, rounds)
+    ours = [t for t, _ in runs["rotonly"]]
+    calls = [json.loads(out.strip().splitlines()[-1])["call_s"] for _, out in runs["mapper"]]
+    summary = _timing_summary(rounds, "pycolmap global mapper", ours, calls,
+                              f"global_mapping call, {threads if threads > 0 else 'all'} threads")
+    walls = [t for t, _ in runs["mapper"]]
+    summary.update(reference_process_s=walls, ratio_to_process_medians=float(np.median(ours) / np.median(walls)))
+    return summary
 
 
 def run_openmvg_global(project_dir: Path, gt: SfMScene, openmvg_bin: Path, work: Path, log_dir: Path,
@@ -493,6 +524,17 @@ def bench_scene(scene_dir: Path, work: Path, log_dir: Path, threads: int, skip_m
             results.append(MethodResult(method, num_gt=len(gt.poses), error=f"{type(exc).__name__}: {exc}"))
         print(f"  [{name}] {method}: done", file=sys.stderr, flush=True)
 
+    def attach_timing(method: str, fn, *args):
+        # --timing-rounds: the alternating timing goes with the rotonly row it refines
+        ours = next((r for r in results if r.method == method and not r.error), None)
+        if timing_rounds < 2 or ours is None:
+            return
+        try:
+            ours.extra["alternating_timing"] = fn(*args)
+        except Exception as exc:  # a failed timing is a note in the table, not a crashed benchmark
+            ours.extra["alternating_timing"] = {"error": f"{type(exc).__name__}: {exc}"}
+        print(f"  [{name}] alternating wall times ({method}): done", file=sys.stderr, flush=True)
+
     with tempfile.TemporaryDirectory(prefix=f"bench_{name}_", dir=work) as tmp:
         tmp = Path(tmp)
         if database.is_file():
@@ -509,19 +551,14 @@ def bench_scene(scene_dir: Path, work: Path, log_dir: Path, threads: int, skip_m
             guarded("pycolmap RA on stored geometries", run_pycolmap_stored, database, gt)
             if not skip_mapper:
                 guarded("pycolmap global mapper", run_global_mapper, database, gt, threads)
+                attach_timing("rotonly run database.db", database_timing, database, tmp, threads, timing_rounds)
         if openmvg_bin is not None and (project.parent / "matches.e.bin").is_file():
             guarded("OpenMVG 2.1 global SfM (re-run)", run_openmvg_global, project.parent, gt, openmvg_bin, tmp,
                     log_dir)
             guarded("OpenMVG 2.1 global SfM (re-run, intrinsics held)", run_openmvg_global, project.parent, gt,
                     openmvg_bin, tmp, log_dir, True)
-            ours = next((r for r in results if r.method == "rotonly run openmvg/sfm_data.json" and not r.error), None)
-            if timing_rounds > 1 and ours is not None:
-                try:
-                    ours.extra["alternating_timing"] = openmvg_input_timing(project.parent, openmvg_bin, tmp,
-                                                                            timing_rounds)
-                except Exception as exc:  # a failed timing is a note in the table, not a crashed benchmark
-                    ours.extra["alternating_timing"] = {"error": f"{type(exc).__name__}: {exc}"}
-                print(f"  [{name}] alternating wall times: done", file=sys.stderr, flush=True)
+            attach_timing("rotonly run openmvg/sfm_data.json", openmvg_input_timing, project.parent, openmvg_bin,
+                          tmp, timing_rounds)
         for label, method in (("database.db", "rotonly run database.db"),
                               ("openmvg", "rotonly run openmvg/sfm_data.json")):
             model = rotonly_out_dir(tmp, method) / "sparse"
@@ -584,14 +621,18 @@ def ratio_lines(results: list[MethodResult]) -> list[str]:
                 text += f", {mine.time_s / ref.extra['process_wall_s']:.2f}x of its process wall " \
                         f"({ref.extra['process_wall_s']:.2f} s)"
             out.append(f"- time ratio {text}")
-    timing = by_method.get("rotonly run openmvg/sfm_data.json", MethodResult("")).extra.get("alternating_timing")
-    if timing and "error" in timing:
-        out.append(f"- alternating wall times failed: {timing['error']}")
-    elif timing:
-        ratios = np.array(timing["rotonly_s"]) / np.array(timing["openmvg_s"])
-        out.append(f"- {timing['rounds']} alternating rounds, rotonly run openmvg/sfm_data.json / OpenMVG 2.1 global "
-                   f"SfM (process wall, medians): {timing['median_rotonly_s']:.2f} / {timing['median_openmvg_s']:.2f} s"
-                   f" = **{timing['ratio_of_medians']:.2f}x** (per round {ratios.min():.2f}-{ratios.max():.2f}x)")
+    for ours, _ in pairs:
+        timing = by_method.get(ours, MethodResult("")).extra.get("alternating_timing")
+        if timing and "error" in timing:
+            out.append(f"- alternating wall times of {ours} failed: {timing['error']}")
+        elif timing:
+            ratios = np.array(timing["rotonly_s"]) / np.array(timing["reference_s"])
+            text = (f"- {timing['rounds']} alternating rounds, {ours} / {timing['reference']} ({timing['reference_time']}"
+                    f", medians): {timing['median_rotonly_s']:.2f} / {timing['median_reference_s']:.2f} s = "
+                    f"**{timing['ratio_of_medians']:.2f}x** (per round {ratios.min():.2f}-{ratios.max():.2f}x)")
+            if "ratio_to_process_medians" in timing:
+                text += f"; {timing['ratio_to_process_medians']:.2f}x of its process wall"
+            out.append(text)
     return [""] + out if out else []
 
 
@@ -634,8 +675,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="folder of OpenMVG 2.1's tools (openMVG_main_SfM, ..._ConvertSfM_DataFormat): also "
                              "re-run OpenMVG's global SfM on each scene's openmvg/ matches and time it like rotonly")
     parser.add_argument("--timing-rounds", type=int, default=1,
-                        help="with --openmvg-bin: also time rotonly and OpenMVG on each scene's OpenMVG matches in "
-                             "this many alternating rounds and report the medians (default 1: the single runs only)")
+                        help="also time rotonly against the mapper on each database and (with --openmvg-bin) against "
+                             "OpenMVG on each scene's OpenMVG matches in this many alternating rounds, and report "
+                             "the medians (default 1: the single runs only)")
     args = parser.parse_args(argv)
     if args.timing_rounds < 1:
         parser.error("--timing-rounds: must be >= 1")

@@ -263,18 +263,19 @@ def test_openmvg_global_rerun_is_timed_converted_and_evaluated(tmp_path: Path):
     assert failed.error.startswith("exit 3") and "cannot open matches" in failed.error
 
 
-def test_alternating_wall_times_rotates_the_order_and_reports_failures(tmp_path: Path):
+def test_alternating_runs_rotate_the_order_and_report_failures(tmp_path: Path):
     log = tmp_path / "order.txt"
 
     def command(name):
-        return lambda k: [sys.executable, "-c", f"open({str(log)!r}, 'a').write('{name}{k} ')"]
+        return lambda k: [sys.executable, "-c", f"open({str(log)!r}, 'a').write('{name}{k} '); print('{name}{k}')"]
 
-    times = bench_strecha.alternating_wall_times({"a": command("a"), "b": command("b")}, 3)
+    runs = bench_strecha.alternating_runs({"a": command("a"), "b": command("b")}, 3)
     assert log.read_text().split() == ["a0", "b0", "b1", "a1", "a2", "b2"]
-    assert [len(v) for v in times.values()] == [3, 3] and all(t > 0 for v in times.values() for t in v)
+    assert [[out.strip() for _, out in runs[n]] for n in "ab"] == [["a0", "a1", "a2"], ["b0", "b1", "b2"]]
+    assert all(t > 0 for v in runs.values() for t, _ in v)
     failing = {"a": command("a"), "bad": lambda k: [sys.executable, "-c", "import sys; sys.exit('no matches')"]}
     with pytest.raises(RuntimeError, match="bad: exit 1: .*no matches"):
-        bench_strecha.alternating_wall_times(failing, 2)
+        bench_strecha.alternating_runs(failing, 2)
 
 
 def test_openmvg_input_timing_runs_both_tools_on_one_copy(tmp_path: Path):
@@ -289,18 +290,48 @@ def test_openmvg_input_timing_runs_both_tools_on_one_copy(tmp_path: Path):
     (tmp_path / "work").mkdir()
     timing = bench_strecha.openmvg_input_timing(scene_dir / "openmvg", tools, tmp_path / "work", 2)
     assert {p.name: _digest(p) for p in (scene_dir / "openmvg").iterdir()} == before
-    assert timing["rounds"] == 2 and len(timing["rotonly_s"]) == len(timing["openmvg_s"]) == 2
-    assert min(timing["openmvg_s"]) >= 0.2 and min(timing["rotonly_s"]) > 0.3  # a real rotonly run
-    assert timing["ratio_of_medians"] == pytest.approx(timing["median_rotonly_s"] / timing["median_openmvg_s"])
+    assert timing["rounds"] == 2 and len(timing["rotonly_s"]) == len(timing["reference_s"]) == 2
+    assert min(timing["reference_s"]) >= 0.2 and min(timing["rotonly_s"]) > 0.3  # a real rotonly run
+    assert timing["ratio_of_medians"] == pytest.approx(timing["median_rotonly_s"] / timing["median_reference_s"])
     assert (tmp_path / "work" / "rotonly_timing" / "sfm_data.json").is_file()
     row = bench_strecha.MethodResult("rotonly run openmvg/sfm_data.json", time_s=1.0,
                                      extra={"alternating_timing": timing})
     lines = bench_strecha.ratio_lines([row])
-    assert any(line.startswith("- 2 alternating rounds") and f"{timing['ratio_of_medians']:.2f}x" in line
-               for line in lines)
+    assert any(line.startswith("- 2 alternating rounds, rotonly run openmvg/sfm_data.json / OpenMVG")
+               and f"{timing['ratio_of_medians']:.2f}x" in line for line in lines)
     failed = bench_strecha.ratio_lines([bench_strecha.MethodResult(
         "rotonly run openmvg/sfm_data.json", time_s=1.0, extra={"alternating_timing": {"error": "boom"}})])
-    assert "- alternating wall times failed: boom" in failed
+    assert "- alternating wall times of rotonly run openmvg/sfm_data.json failed: boom" in failed
+
+
+def test_database_timing_compares_with_the_mapper_call_and_process(tmp_path: Path, monkeypatch):
+    """The database rounds: rotonly's wall time against the mapper worker's global_mapping call
+    (its JSON line) and its process wall; each mapper round gets its own database copy."""
+    database = FIXTURES / "herzjesu_p8" / "database.db"
+    seen = {}
+
+    def fake_runs(commands, rounds):
+        seen.update({name: [make(k) for k in range(rounds)] for name, make in commands.items()})
+        calls = [4.0, 6.0, 5.0]
+        return {"rotonly": [(1.0, ""), (1.5, ""), (1.2, "")],
+                "mapper": [(c + 1.0, json.dumps({"call_s": c, "num_models": 1}) + "\n") for c in calls]}
+
+    monkeypatch.setattr(bench_strecha, "alternating_runs", fake_runs)
+    (tmp_path / "work").mkdir()
+    timing = bench_strecha.database_timing(database, tmp_path / "work", 2, 3)
+    assert timing["median_rotonly_s"] == 1.2 and timing["median_reference_s"] == 5.0
+    assert timing["ratio_of_medians"] == pytest.approx(1.2 / 5.0)
+    assert timing["ratio_to_process_medians"] == pytest.approx(1.2 / 6.0)
+    assert timing["reference_time"] == "global_mapping call, 2 threads"
+    mapper_argv = seen["mapper"][-1]
+    assert "--mapper-worker" in mapper_argv and mapper_argv[-2:] == ["2", "0"]
+    copy = Path(mapper_argv[mapper_argv.index("--mapper-worker") + 1])
+    assert copy.parent.parent == tmp_path / "work" and _digest(copy) == _digest(database)
+    assert seen["rotonly"][0][-4:] == ["run", str(database), "-o", str(tmp_path / "work" / "rotonly_db_timing")]
+    line = bench_strecha.ratio_lines([bench_strecha.MethodResult("rotonly run database.db", time_s=1.0,
+                                                                 extra={"alternating_timing": timing})])[-1]
+    assert line.startswith("- 3 alternating rounds, rotonly run database.db / pycolmap global mapper")
+    assert "**0.24x**" in line and "0.20x of its process wall" in line
 
 
 def test_global_mapper_runs_as_a_process_and_both_times_are_kept(tmp_path):
