@@ -141,6 +141,11 @@ def rotonly_command() -> list[str]:
     return [sys.executable, "-c", "from rotonly_cli.cli import console_main; console_main()"]
 
 
+def rotonly_run_command(input_path: Path, out: Path) -> list[str]:
+    """``rotonly -q run INPUT -o OUT``, the way every rotonly row is timed."""
+    return rotonly_command() + ["-q", "run", str(input_path), "-o", str(out)]
+
+
 def byte_compile_rotonly() -> None:
     """Write rotonly's .pyc files (what ``pip install`` does at install time; an editable install
     under PYTHONDONTWRITEBYTECODE never gets them, and each subprocess would compile the sources)."""
@@ -159,7 +164,7 @@ def rotonly_out_dir(work: Path, method: str) -> Path:
 def run_rotonly_subprocess(method: str, input_path: Path, gt: SfMScene, work: Path, log_dir: Path) -> MethodResult:
     """`rotonly -q run INPUT -o OUT` as a subprocess; wall time and OUT/reports stage times."""
     out = rotonly_out_dir(work, method)
-    command = rotonly_command() + ["-q", "run", str(input_path), "-o", str(out)]
+    command = rotonly_run_command(input_path, out)
     cpu_before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     completed = subprocess.run(command, capture_output=True, text=True)
@@ -307,6 +312,16 @@ def _mapper_worker(database: str, out: str, threads: str, seed: str) -> int:
     return 0
 
 
+def mapper_worker_command(database: Path, out: Path, threads: int, seed: int) -> list[str]:
+    """This script as the _mapper_worker process on ``database`` (a private copy) into ``out``."""
+    return [sys.executable, str(Path(__file__).resolve()), "--mapper-worker", str(database), str(out), str(threads),
+            str(seed)]
+
+
+def mapper_time_note(threads: int) -> str:
+    return f"global_mapping call, {threads if threads > 0 else 'all'} threads"
+
+
 def reconstruction_scene(rec) -> SfMScene:
     """The posed images of a pycolmap Reconstruction (rotation, centre, name) for the evaluator."""
     rotations, centers, names = {}, {}, {}
@@ -337,7 +352,7 @@ def run_ba_on_rotonly(label: str, model_dir: Path, gt: SfMScene) -> MethodResult
         pycolmap.bundle_adjustment(rec, options)
         elapsed = time.perf_counter() - start
     finally:
-        pycolmap.logging.minloglevel = previous_level
+        quiet_pycolmap(previous_level)
     return evaluate_scene(method, gt, reconstruction_scene(rec), elapsed, "bundle_adjustment call")
 
 
@@ -351,8 +366,7 @@ def run_global_mapper(database: Path, gt: SfMScene, threads: int, seed: int = 0)
     with tempfile.TemporaryDirectory(prefix="bench_glomap_") as tmp:
         db_copy = Path(tmp) / "database.db"
         shutil.copyfile(database, db_copy)  # Database.open rewrites the header even to read
-        command = [sys.executable, str(Path(__file__).resolve()), "--mapper-worker", str(db_copy),
-                   str(Path(tmp) / "work"), str(threads), str(seed)]
+        command = mapper_worker_command(db_copy, Path(tmp) / "work", threads, seed)
         start = time.perf_counter()
         completed = subprocess.run(command, capture_output=True, text=True)
         wall = time.perf_counter() - start
@@ -363,8 +377,7 @@ def run_global_mapper(database: Path, gt: SfMScene, threads: int, seed: int = 0)
         if not report["num_models"]:
             return MethodResult(method, num_gt=len(gt.poses), time_s=report["call_s"], error="no model")
         rec = pycolmap.Reconstruction(str(Path(tmp) / "work" / "best"))
-        result = evaluate_scene(method, gt, reconstruction_scene(rec), report["call_s"],
-                                f"global_mapping call, {threads if threads > 0 else 'all'} threads")
+        result = evaluate_scene(method, gt, reconstruction_scene(rec), report["call_s"], mapper_time_note(threads))
         result.extra["process_wall_s"] = wall
         result.extra["num_models"] = report["num_models"]
         result.extra["num_points"] = rec.num_points3D()
@@ -404,6 +417,13 @@ def alternating_runs(commands: dict[str, Callable[[int], list[str]]], rounds: in
     return runs
 
 
+def _round_dir(work: Path, prefix: str, k: int) -> Path:
+    """``work/<prefix>_<k>`` for round k, the previous round's folder removed (a tool's output
+    folder must not exist yet, and the rounds need not pile up)."""
+    shutil.rmtree(work / f"{prefix}_{k - 1}", ignore_errors=True)
+    return work / f"{prefix}_{k}"
+
+
 def _timing_summary(rounds: int, reference: str, ours: list[float], theirs: list[float], note: str) -> dict:
     return {"rounds": rounds, "reference": reference, "reference_time": note, "rotonly_s": ours,
             "reference_s": theirs, "median_rotonly_s": float(np.median(ours)),
@@ -419,15 +439,10 @@ def openmvg_input_timing(project_dir: Path, openmvg_bin: Path, work: Path, round
     copy = work / "openmvg_project_timing"
     shutil.copytree(project_dir, copy, ignore=shutil.ignore_patterns("global", "eval"))
 
-    def openmvg_run(k: int) -> list[str]:
-        out = work / f"openmvg_timing_{k}"  # a fresh output folder per round
-        shutil.rmtree(work / f"openmvg_timing_{k - 1}", ignore_errors=True)
-        return openmvg_global_command(openmvg_bin, copy, out)
-
     runs = alternating_runs({
-        "rotonly": lambda k: rotonly_command() + ["-q", "run", str(copy / "sfm_data.json"), "-o",
-                                                  str(work / "rotonly_timing")],
-        "openmvg": openmvg_run}, rounds)
+        "rotonly": lambda k: rotonly_run_command(copy / "sfm_data.json", work / "rotonly_timing"),
+        "openmvg": lambda k: openmvg_global_command(openmvg_bin, copy, _round_dir(work, "openmvg_timing", k))},
+        rounds)
     return _timing_summary(rounds, "OpenMVG 2.1 global SfM", [t for t, _ in runs["rotonly"]],
                            [t for t, _ in runs["openmvg"]], f"process wall, -T {OPENMVG_THREADS}")
 
@@ -438,20 +453,17 @@ def database_timing(database: Path, work: Path, threads: int, rounds: int, seed:
     mapper's global_mapping call (the data README's measure, as in the single-run ratio) and
     against the mapper's whole process."""
     def mapper_run(k: int) -> list[str]:
-        folder = work / f"mapper_timing_{k}"
-        shutil.rmtree(work / f"mapper_timing_{k - 1}", ignore_errors=True)
+        folder = _round_dir(work, "mapper_timing", k)
         folder.mkdir()
         shutil.copyfile(database, folder / "database.db")  # Database.open rewrites the header
-        return [sys.executable, str(Path(__file__).resolve()), "--mapper-worker", str(folder / "database.db"),
-                str(folder / "work"), str(threads), str(seed)]
+        return mapper_worker_command(folder / "database.db", folder / "work", threads, seed)
 
     runs = alternating_runs({
-        "rotonly": lambda k: rotonly_command() + ["-q", "run", str(database), "-o", str(work / "rotonly_db_timing")],
+        "rotonly": lambda k: rotonly_run_command(database, work / "rotonly_db_timing"),
         "mapper": mapper_run}, rounds)
     ours = [t for t, _ in runs["rotonly"]]
     calls = [json.loads(out.strip().splitlines()[-1])["call_s"] for _, out in runs["mapper"]]
-    summary = _timing_summary(rounds, "pycolmap global mapper", ours, calls,
-                              f"global_mapping call, {threads if threads > 0 else 'all'} threads")
+    summary = _timing_summary(rounds, "pycolmap global mapper", ours, calls, mapper_time_note(threads))
     walls = [t for t, _ in runs["mapper"]]
     summary.update(reference_process_s=walls, ratio_to_process_medians=float(np.median(ours) / np.median(walls)))
     return summary
