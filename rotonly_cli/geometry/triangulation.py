@@ -64,24 +64,42 @@ class TriangulationResult:
     in_front: np.ndarray  # (N,) bool: positive depth in every camera
 
 
-def _segment_sum(values: np.ndarray, segment: np.ndarray, num_segments: int) -> np.ndarray:
-    """Sum rows of ``values`` (N_obs, ...) per segment id -> (num_segments, ...)."""
-    flat = values.reshape(values.shape[0], -1)
-    out = np.empty((num_segments, flat.shape[1]))
-    for c in range(flat.shape[1]):  # loop over ≤ 9 components, not over observations
-        out[:, c] = np.bincount(segment, weights=flat[:, c], minlength=num_segments)
-    return out.reshape((num_segments,) + values.shape[1:])
+def _segment_sums(components: np.ndarray, segment: np.ndarray, num_segments: int) -> np.ndarray:
+    """Per-segment sums of component-major values: (k, N_obs) -> (k, num_segments)."""
+    return np.stack([np.bincount(segment, weights=c, minlength=num_segments) for c in components])
 
 
-def _solve_3x3(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Batched solve; rows whose matrix is singular get NaN. Returns (x, ok)."""
-    det = np.linalg.det(A)
-    scale = np.einsum("nii->n", A) ** 3
+def _solve_symmetric_3x3(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batched solve of symmetric 3x3 systems by the adjugate (closed form, no per-matrix
+    LAPACK call). ``A`` is (6, N): the entries 00, 01, 02, 11, 12, 22; ``b`` is (3, N).
+    Rows whose matrix is singular relative to its size (|det| <= 1e-14 trace³) get NaN.
+    Returns (x (3, N), ok (N,))."""
+    a00, a01, a02, a11, a12, a22 = A
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    c22 = a00 * a11 - a01 * a01
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    scale = (a00 + a11 + a22) ** 3
     ok = np.isfinite(det) & (np.abs(det) > 1e-14 * np.maximum(np.abs(scale), 1e-300))
-    x = np.full(b.shape, np.nan)
-    if np.any(ok):
-        x[ok] = np.linalg.solve(A[ok], b[ok][..., None])[..., 0]
+    inv_det = np.where(ok, 1.0 / np.where(ok, det, 1.0), np.nan)
+    b0, b1, b2 = b
+    x = np.stack([(c00 * b0 + c01 * b1 + c02 * b2) * inv_det,
+                  (c01 * b0 + c11 * b1 + c12 * b2) * inv_det,
+                  (c02 * b0 + c12 * b1 + c22 * b2) * inv_det])
     return x, ok
+
+
+def _rotate(R: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Per-observation R @ v in component-major form: R (3, 3, N), v (3, N) -> (3, N)."""
+    return R[:, 0] * v[0] + R[:, 1] * v[1] + R[:, 2] * v[2]
+
+
+#: index pairs (a, b), a <= b, of the 6 entries of a symmetric 3x3 matrix, in the order
+#: _solve_symmetric_3x3 takes them
+_SYMMETRIC_ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
 def max_ray_angle_deg(world_rays: np.ndarray, offsets: np.ndarray, max_views: int = 64) -> np.ndarray:
@@ -141,57 +159,64 @@ def triangulate_tracks(R_cam_from_world: np.ndarray, centers: np.ndarray, obs_po
     offsets = np.zeros(num_points + 1, dtype=np.int64)
     np.cumsum(counts, out=offsets[1:])
 
-    R_obs = R[obs_view]
-    C_obs = C[obs_view]
-    x_h = np.concatenate([obs_xy, np.ones((obs_xy.shape[0], 1))], axis=1)
-    rays = np.einsum("nji,nj->ni", R_obs, x_h)  # R^T x : ray direction in world
-    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    # Component-major (3, N_obs) arrays: products of three-vectors written out per component
+    # run ~4x faster than einsum over (N_obs, 3, 3) stacks.
+    R_obs = np.ascontiguousarray(R.transpose(1, 2, 0))[:, :, obs_view]  # (3, 3, N_obs)
+    C_obs = np.ascontiguousarray(C.T)[:, obs_view]  # (3, N_obs)
+    x, y = obs_xy[:, 0], obs_xy[:, 1]
+    rays = R_obs[0] * x + R_obs[1] * y + R_obs[2]  # R^T (x, y, 1): ray direction in world
+    rays /= np.sqrt(rays[0] ** 2 + rays[1] ** 2 + rays[2] ** 2)
 
     # 1. linear LS: Σ (I - d dᵀ) X = Σ (I - d dᵀ) c
-    projector = np.eye(3)[None] - rays[:, :, None] * rays[:, None, :]
-    A = _segment_sum(projector, obs_point, num_points)
-    b = _segment_sum(np.einsum("nij,nj->ni", projector, C_obs), obs_point, num_points)
-    points, solvable = _solve_3x3(A, b)
+    ray_products = _segment_sums(np.stack([rays[a] * rays[b] for a, b in _SYMMETRIC_ENTRIES]), obs_point,
+                                 num_points)
+    A = -ray_products
+    A[[0, 3, 5]] += counts
+    ray_dot_center = rays[0] * C_obs[0] + rays[1] * C_obs[1] + rays[2] * C_obs[2]
+    b = _segment_sums(C_obs - rays * ray_dot_center, obs_point, num_points)
+    points, solvable = _solve_symmetric_3x3(A, b)  # (3, num_points)
     solvable &= counts >= 2
 
     # 2. Gauss-Newton (Levenberg damped per point) on normalized reprojection error
-    def residual_and_depth(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        p_cam = np.einsum("nij,nj->ni", R_obs, P[obs_point] - C_obs)
-        depth = p_cam[:, 2]
+    def residual_and_camera_point(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p_cam = _rotate(R_obs, P[:, obs_point] - C_obs)
+        depth = p_cam[2]
         safe = np.where(np.abs(depth) > 1e-300, depth, 1e-300)
-        return p_cam[:, :2] / safe[:, None] - obs_xy, p_cam, depth
+        return np.stack([p_cam[0] / safe - x, p_cam[1] / safe - y]), p_cam
 
     def point_cost(res: np.ndarray) -> np.ndarray:
-        return np.bincount(obs_point, weights=np.einsum("ij,ij->i", res, res), minlength=num_points)
+        return np.bincount(obs_point, weights=res[0] ** 2 + res[1] ** 2, minlength=num_points)
 
-    res, p_cam, depth = residual_and_depth(np.where(solvable[:, None], points, 0.0))
+    res, p_cam = residual_and_camera_point(np.where(solvable, points, 0.0))
     cost = point_cost(res)
     damping = np.full(num_points, 1e-6)
     for _ in range(options.num_refinement_iterations):
-        z = p_cam[:, 2]
+        z = p_cam[2]
         z = np.where(np.abs(z) > 1e-12, z, 1e-12)
-        d_proj = np.zeros((z.shape[0], 2, 3))  # d(p_xy/p_z)/d p_cam
-        d_proj[:, 0, 0] = 1.0 / z
-        d_proj[:, 1, 1] = 1.0 / z
-        d_proj[:, 0, 2] = -p_cam[:, 0] / z**2
-        d_proj[:, 1, 2] = -p_cam[:, 1] / z**2
-        J = d_proj @ R_obs  # (N_obs, 2, 3)
-        JtJ = _segment_sum(np.einsum("nki,nkj->nij", J, J), obs_point, num_points)
-        Jtr = _segment_sum(np.einsum("nki,nk->ni", J, res), obs_point, num_points)
-        JtJ += (damping * np.einsum("nii->n", JtJ) / 3.0)[:, None, None] * np.eye(3)
-        step, ok = _solve_3x3(JtJ, -Jtr)
+        # rows of J = d(p_xy / p_z)/d p_cam · R: J0 = R0 / z - p_x R2 / z², J1 likewise
+        inv_z = 1.0 / z
+        J0 = R_obs[0] * inv_z + R_obs[2] * (-p_cam[0] * inv_z ** 2)
+        J1 = R_obs[1] * inv_z + R_obs[2] * (-p_cam[1] * inv_z ** 2)
+        JtJ = _segment_sums(np.stack([J0[a] * J0[b] + J1[a] * J1[b] for a, b in _SYMMETRIC_ENTRIES]),
+                            obs_point, num_points)
+        Jtr = _segment_sums(J0 * res[0] + J1 * res[1], obs_point, num_points)
+        JtJ[[0, 3, 5]] += damping * (JtJ[0] + JtJ[3] + JtJ[5]) / 3.0
+        step, ok = _solve_symmetric_3x3(JtJ, -Jtr)
         ok &= solvable
-        trial = np.where(ok[:, None], points + np.nan_to_num(step), points)
-        new_res, new_p_cam, _ = residual_and_depth(np.where(solvable[:, None], trial, 0.0))
+        trial = np.where(ok, points + np.nan_to_num(step), points)
+        new_res, new_p_cam = residual_and_camera_point(np.where(solvable, trial, 0.0))
         new_cost = point_cost(new_res)
         better = ok & (new_cost <= cost)
-        points = np.where(better[:, None], trial, points)
+        points = np.where(better, trial, points)
         damping = np.where(better, damping * 0.1, damping * 10.0)
         cost = np.where(better, new_cost, cost)
         take_obs = better[obs_point]
-        res = np.where(take_obs[:, None], new_res, res)
-        p_cam = np.where(take_obs[:, None], new_p_cam, p_cam)
-    depth = p_cam[:, 2]
+        res = np.where(take_obs, new_res, res)
+        p_cam = np.where(take_obs, new_p_cam, p_cam)
+    depth = p_cam[2]
+    points = points.T
+    rays = np.ascontiguousarray(rays.T)
+    res = res.T
 
     # 3. tests
     error = np.linalg.norm(res, axis=1)
