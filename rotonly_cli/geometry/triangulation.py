@@ -102,6 +102,12 @@ def _rotate(R: np.ndarray, v: np.ndarray) -> np.ndarray:
 _SYMMETRIC_ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
+def _outer_entries(*vectors: np.ndarray) -> np.ndarray:
+    """The 6 entries (_SYMMETRIC_ENTRIES order) of Σ_v v vᵀ per observation, for
+    component-major vectors (3, N) -> (6, N)."""
+    return np.stack([sum(v[a] * v[b] for v in vectors) for a, b in _SYMMETRIC_ENTRIES])
+
+
 def max_ray_angle_deg(world_rays: np.ndarray, offsets: np.ndarray, max_views: int = 64) -> np.ndarray:
     """Per track the max angle (deg) between two unit rays; only the first ``max_views`` rays."""
     length = np.diff(offsets)
@@ -168,9 +174,7 @@ def triangulate_tracks(R_cam_from_world: np.ndarray, centers: np.ndarray, obs_po
     rays /= np.sqrt(rays[0] ** 2 + rays[1] ** 2 + rays[2] ** 2)
 
     # 1. linear LS: Σ (I - d dᵀ) X = Σ (I - d dᵀ) c
-    ray_products = _segment_sums(np.stack([rays[a] * rays[b] for a, b in _SYMMETRIC_ENTRIES]), obs_point,
-                                 num_points)
-    A = -ray_products
+    A = -_segment_sums(_outer_entries(rays), obs_point, num_points)
     A[[0, 3, 5]] += counts
     ray_dot_center = rays[0] * C_obs[0] + rays[1] * C_obs[1] + rays[2] * C_obs[2]
     b = _segment_sums(C_obs - rays * ray_dot_center, obs_point, num_points)
@@ -197,8 +201,7 @@ def triangulate_tracks(R_cam_from_world: np.ndarray, centers: np.ndarray, obs_po
         inv_z = 1.0 / z
         J0 = R_obs[0] * inv_z + R_obs[2] * (-p_cam[0] * inv_z ** 2)
         J1 = R_obs[1] * inv_z + R_obs[2] * (-p_cam[1] * inv_z ** 2)
-        JtJ = _segment_sums(np.stack([J0[a] * J0[b] + J1[a] * J1[b] for a, b in _SYMMETRIC_ENTRIES]),
-                            obs_point, num_points)
+        JtJ = _segment_sums(_outer_entries(J0, J1), obs_point, num_points)
         Jtr = _segment_sums(J0 * res[0] + J1 * res[1], obs_point, num_points)
         JtJ[[0, 3, 5]] += damping * (JtJ[0] + JtJ[3] + JtJ[5]) / 3.0
         step, ok = _solve_symmetric_3x3(JtJ, -Jtr)
