@@ -41,6 +41,51 @@ def test_constraint_is_the_paper_form():
     assert (votes > 0).all()
 
 
+
+def _reference_normal_matrix(R, obs_track, obs_view, obs_xy, num_views):
+    """LᵀL from L built row block by row block, track by track, with the formulas of the
+    module docstring (TPAMI eq. 29 base pair, B, C, D = −(B + C))."""
+    rows = []
+    x = np.c_[obs_xy, np.ones(len(obs_xy))]
+    for track in np.unique(obs_track):
+        obs = np.flatnonzero(obs_track == track)
+        best, base = -1.0, None
+        for position, a in enumerate(obs):
+            for b in obs[position + 1:]:
+                norm = np.linalg.norm(np.cross(R[obs_view[b]].T @ x[b], R[obs_view[a]].T @ x[a]))
+                if norm > best:
+                    best, base = norm, (a, b)
+        l, r = base
+        R_l, R_r = R[obs_view[l]], R[obs_view[r]]
+        R_lr = R_r @ R_l.T
+        theta = so3.hat(x[r]) @ R_lr @ x[l]
+        a_row = (so3.hat(R_lr @ x[l]) @ x[r]) @ so3.hat(x[r])
+        for i in obs:
+            if i == l:
+                continue
+            R_i = R[obs_view[i]]
+            B = np.outer(so3.hat(x[i]) @ R_i @ R_l.T @ x[l], a_row @ R_r)
+            C = (theta @ theta) * so3.hat(x[i]) @ R_i
+            row = np.zeros((3, 3 * num_views))
+            for view, block in ((obs_view[r], B), (obs_view[i], C), (obs_view[l], -(B + C))):
+                row[:, 3 * view:3 * view + 3] += block
+            rows.append(row)
+    L = np.concatenate(rows)
+    return L.T @ L
+
+
+@pytest.mark.parametrize("chunk_size", [50_000, 37])
+def test_normal_matrix_equals_explicit_LTL(chunk_size):
+    # the per-triple sums of the closed-form Gram blocks (BᵀB = ‖u‖² v vᵀ, BᵀC = v wᵀ,
+    # CᵀC = ‖θ‖⁴ (‖x‖² I − y yᵀ)) must give exactly LᵀL of the explicit L, also across chunks
+    scene = make_street_scene(6, 60, seed=4)
+    noisy = scene.obs_xy + np.random.default_rng(5).normal(scale=2e-3, size=scene.obs_xy.shape)
+    LTL, extras = ligt_normal_matrix(scene.R_cam_from_world, scene.obs_point, scene.obs_view, noisy, 6,
+                                     LiGTOptions(chunk_size=chunk_size))
+    expected = _reference_normal_matrix(scene.R_cam_from_world, scene.obs_point, scene.obs_view, noisy, 6)
+    assert np.abs(LTL.toarray() - expected).max() < 1e-12 * np.abs(expected).max()
+    assert extras["constraints_per_view"].sum() == 3 * (len(scene.obs_point) - len(np.unique(scene.obs_point)))
+
 def test_sparse_eigensolver_matches_dense():
     scene = make_street_scene(15, 400, seed=0)
     noisy = scene.obs_xy + np.random.default_rng(100).normal(scale=1e-3, size=scene.obs_xy.shape)

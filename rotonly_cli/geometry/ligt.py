@@ -13,10 +13,10 @@ Per track k with views V_k:
 * for every other view i ≠ l (i = r included): ``B t_r + C t_i + D t_l = 0`` with
   ``B = [x_i]_× R_li x_l a_lrᵀ R_r``, ``C = ‖θ_lr‖² [x_i]_× R_i``, ``D = −(B + C)``.
 
-``LᵀL`` (3n × 3n) is accumulated chunk by chunk: each chunk's rows of L (3×9 blocks
-``[B | C | D]``) are built directly in CSR form and ``L_cᵀ L_c`` is added (all of L is never
-held at once). Gauge: the fixed view's centre is 0 (its columns
-are dropped). Solution: eigenvector of the smallest eigenvalue (dense ``eigh`` for small
+``LᵀL`` (3n × 3n) is accumulated chunk by chunk from the constraints' 3 × 9 blocks
+``M = [B | C | D]``: each ``MᵀM`` is a few outer products of 3-vectors, summed per view triple
+(r, i, l) and then per 3 × 3 block of LᵀL (L itself is never formed). Gauge: the fixed view's
+centre is 0 (its columns are dropped). Solution: eigenvector of the smallest eigenvalue (dense ``eigh`` for small
 problems, shift-invert ``eigsh`` otherwise). Sign: chirality vote ``a_lrᵀ R_r (t_l − t_r) > 0``
 per track (TPAMI "Step 5", OpenMVG ``IdentifySign``).
 
@@ -51,7 +51,7 @@ class LiGTOptions:
     # algorithms.md §1.2). Measured: both agree to 1e-13; sparse is already as fast at
     # n = 100 views (0.3 s), dense eigh of 300 unknowns took 0.1-0.4 s on 2 cores.
     max_dense_unknowns: int = 150
-    # Constraints (3 rows each) assembled per chunk; bounds the memory of one L chunk.
+    # Constraints assembled per chunk; bounds the memory of one chunk's per-constraint terms.
     chunk_size: int = 50_000
     # Tracks longer than this select their base pair among their first views only
     # (the exhaustive pair scan costs Σ L²).
@@ -105,6 +105,58 @@ def _select_base_views(world_rays: np.ndarray, offsets: np.ndarray,
     return base_l, base_r, best_norm
 
 
+def _sum_by_key(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(sorted unique keys, the sum of ``values`` rows per key)."""
+    if not keys.size:
+        return keys, values
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    is_first = np.r_[True, sorted_keys[1:] != sorted_keys[:-1]]
+    group = np.empty(keys.size, dtype=np.int64)
+    group[order] = np.cumsum(is_first) - 1
+    num_groups = int(is_first.sum())
+    # one bincount per value component: much faster than reduceat over short segments
+    columns = np.ascontiguousarray(values.reshape(keys.size, -1).T)
+    sums = np.stack([np.bincount(group, weights=column, minlength=num_groups) for column in columns], axis=1)
+    return sorted_keys[is_first], sums.reshape(-1, *values.shape[1:])
+
+
+def _constraint_grams(x_i: np.ndarray, y_i: np.ndarray, R_i: np.ndarray, y_l: np.ndarray,
+                      sign_row: np.ndarray, theta_sq: np.ndarray, col_view: np.ndarray,
+                      num_views: int) -> tuple[np.ndarray, np.ndarray]:
+    """Σ M_kᵀ M_k of the constraints' 3 × 9 row blocks ``M_k = [B | C | D]``, summed over the
+    constraints that share a view triple (r, i, l): (unique triples (G, 3), (G, 3, 3, 3, 3)
+    Gram blocks [row block, column block, row, column]).
+
+    The blocks need no 3 × 9 product per constraint. ``B = u vᵀ`` is rank one
+    (``u = [x_i]_× R_i y_l`` with the base view's world ray ``y_l = R_lᵀ x_l``,
+    ``vᵀ = a_lrᵀ R_r``) and ``C = ‖θ_lr‖² [x_i]_× R_i``, so
+    ``BᵀB = ‖u‖² v vᵀ``, ``BᵀC = v wᵀ`` with ``wᵀ = uᵀ C = −‖θ_lr‖² (x_i × u)ᵀ R_i``, and
+    ``CᵀC = ‖θ_lr‖⁴ (‖x_i‖² I − y yᵀ)`` with the world ray ``y = R_iᵀ x_i``. These 27 numbers
+    are summed per triple first; ``D = −(B + C)`` gives the other blocks from the sums.
+    """
+    u = np.cross(x_i, np.einsum("nij,nj->ni", R_i, y_l))
+    v = sign_row
+    w = -theta_sq[:, None] * np.einsum("ni,nij->nj", np.cross(x_i, u), R_i)
+    theta_4 = theta_sq ** 2
+    num = x_i.shape[0]
+    terms = np.empty((num, 3, 3, 3))  # [BᵀB, BᵀC, CᵀC]
+    terms[:, 0] = (np.einsum("ni,ni->n", u, u)[:, None] * v)[:, :, None] * v[:, None, :]
+    terms[:, 1] = v[:, :, None] * w[:, None, :]
+    terms[:, 2] = -(theta_4[:, None] * y_i)[:, :, None] * y_i[:, None, :]
+    terms[:, 2, [0, 1, 2], [0, 1, 2]] += (theta_4 * np.einsum("ni,ni->n", x_i, x_i))[:, None]
+    triple, sums = _sum_by_key((col_view[:, 0] * num_views + col_view[:, 1]) * num_views + col_view[:, 2], terms)
+    views = np.stack([triple // (num_views * num_views), triple // num_views % num_views, triple % num_views],
+                     axis=1)
+    BB, BC, CC = np.moveaxis(sums, 1, 0)
+    CB = np.swapaxes(BC, 1, 2)
+    BD, CD, DD = -(BB + BC), -(CB + CC), BB + BC + CB + CC
+    gram = np.stack([np.stack([BB, BC, BD], axis=1),
+                     np.stack([CB, CC, CD], axis=1),
+                     np.stack([np.swapaxes(BD, 1, 2), np.swapaxes(CD, 1, 2), DD], axis=1)], axis=1)
+    return views, gram
+
+
 def ligt_normal_matrix(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_view: np.ndarray,
                        obs_xy: np.ndarray, num_views: int, options: LiGTOptions | None = None
                        ) -> tuple[sp.csr_matrix, dict[str, np.ndarray]]:
@@ -131,8 +183,8 @@ def ligt_normal_matrix(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_
     # per used track: a_lrᵀ R_r (row), ‖θ_lr‖²
     tl, tr = base_l[track_used], base_r[track_used]
     view_l, view_r = obs_view[tl], obs_view[tr]
-    R_l, R_r = R[view_l], R[view_r]
-    R_lr_x_l = np.einsum("nij,njk,nk->ni", R_r, np.transpose(R_l, (0, 2, 1)), x[tl])
+    R_r = R[view_r]
+    R_lr_x_l = np.einsum("nij,nj->ni", R_r, world_rays[tl])  # R_r R_lᵀ x_l
     theta = np.cross(x[tr], R_lr_x_l)  # [x_r]_× R_lr x_l
     a_row = np.einsum("ni,nij->nj", np.cross(R_lr_x_l, x[tr]), hat(x[tr]))  # a_lrᵀ
     sign_row = np.einsum("ni,nij->nj", a_row, R_r)  # a_lrᵀ R_r
@@ -148,32 +200,29 @@ def ligt_normal_matrix(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_
     constraint_track = obs_used[constraint_obs]
 
     num_cols = 3 * num_views
-    LTL = sp.csr_matrix((num_cols, num_cols))
     constraints_per_view = np.zeros(num_views, dtype=np.int64)
-    block_offsets = np.arange(3)
+    block_keys, block_sums = [np.zeros(0, dtype=np.int64)], [np.zeros((0, 3, 3))]
     for start in range(0, constraint_obs.size, options.chunk_size):
         obs_i = constraint_obs[start:start + options.chunk_size]
         trk = constraint_track[start:start + options.chunk_size]
-        view_i = obs_view[obs_i]
-        R_i = R[view_i]
-        # B = [x_i]_× R_i R_lᵀ x_l (a_lrᵀ R_r): rank one, outer product of two 3-vectors
-        x_l_in_i = np.einsum("nij,nkj,nk->ni", R_i, R_l[trk], x[tl[trk]])
-        B = np.cross(x[obs_i], x_l_in_i)[:, :, None] * sign_row[trk][:, None, :]
-        C = theta_sq[trk][:, None, None] * (hat(x[obs_i]) @ R_i)
-        D = -(B + C)
-        M = np.concatenate([B, C, D], axis=2)  # (K, 3, 9): columns of views r, i, l
-        col_view = np.stack([view_r[trk], view_i, view_l[trk]], axis=1)  # (K, 3)
-        col_index = (3 * col_view[:, :, None] + block_offsets).reshape(-1, 9)  # (K, 9)
-        # this chunk of L in CSR directly (9 entries per row, 3 rows per constraint); the
-        # product L_cᵀ L_c runs in scipy's C++ SpGEMM, which sums the i = r duplicates
-        num_rows = 3 * obs_i.size
-        L_chunk = sp.csr_matrix((M.ravel(), np.repeat(col_index, 3, axis=0).ravel(),
-                                 np.arange(0, 9 * num_rows + 1, 9)), shape=(num_rows, num_cols))
-        LTL = LTL + (L_chunk.T.tocsr() @ L_chunk)
+        col_view = np.stack([view_r[trk], obs_view[obs_i], view_l[trk]], axis=1)  # (K, 3): r, i, l
+        views, gram = _constraint_grams(x[obs_i], world_rays[obs_i], R[obs_view[obs_i]], world_rays[tl[trk]],
+                                        sign_row[trk], theta_sq[trk], col_view, num_views)
+        # block (A, B) of a triple's Gram goes to the 3 × 3 block (views[A], views[B]) of LᵀL;
+        # summed per block here (i = r and triples sharing views) and over the chunks below
+        keys, sums = _sum_by_key((views[:, :, None] * num_views + views[:, None, :]).ravel(),
+                                 gram.reshape(-1, 3, 3))
+        block_keys.append(keys)
+        block_sums.append(sums)
         constraints_per_view += np.bincount(col_view.ravel(), minlength=num_views)
+    keys, sums = _sum_by_key(np.concatenate(block_keys), np.concatenate(block_sums))
+    # keys are sorted: block rows ascending, columns ascending within a row (BSR order)
+    indptr = np.zeros(num_views + 1, dtype=np.int64)
+    np.cumsum(np.bincount(keys // num_views, minlength=num_views), out=indptr[1:])
+    LTL = sp.bsr_matrix((sums, keys % num_views, indptr), shape=(num_cols, num_cols)).tocsr()
     extras = {"sign_l": view_l, "sign_r": view_r, "sign_row": sign_row,
               "constraints_per_view": constraints_per_view}
-    return LTL.tocsr(), extras
+    return LTL, extras
 
 
 def _smallest_eigenvector(matrix: sp.csr_matrix, options: LiGTOptions) -> tuple[np.ndarray, np.ndarray]:
