@@ -34,7 +34,7 @@ from scipy.sparse.linalg import eigsh
 
 from rotonly_cli.errors import AlgorithmError, InputError
 from rotonly_cli.geometry.so3 import hat
-from rotonly_cli.geometry.tracks import pairs_within_tracks
+from rotonly_cli.geometry.tracks import pairs_within_tracks, segment_sums
 
 __all__ = ["LiGTOptions", "LiGTResult", "ligt_translations", "ligt_normal_matrix"]
 
@@ -116,9 +116,8 @@ def _sum_by_key(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.nd
     group[order] = np.cumsum(is_first) - 1
     num_groups = int(is_first.sum())
     # one bincount per value component: much faster than reduceat over short segments
-    columns = np.ascontiguousarray(values.reshape(keys.size, -1).T)
-    sums = np.stack([np.bincount(group, weights=column, minlength=num_groups) for column in columns], axis=1)
-    return sorted_keys[is_first], sums.reshape(-1, *values.shape[1:])
+    sums = segment_sums(np.ascontiguousarray(values.reshape(keys.size, -1).T), group, num_groups)
+    return sorted_keys[is_first], sums.T.reshape(-1, *values.shape[1:])
 
 
 def _constraint_grams(x_i: np.ndarray, y_i: np.ndarray, R_i: np.ndarray, y_l: np.ndarray,

@@ -19,7 +19,8 @@ import numpy as np
 
 from rotonly_cli.errors import InputError
 
-__all__ = ["Tracks", "build_tracks", "tracks_from_arrays", "gather_observations", "pairs_within_tracks"]
+__all__ = ["Tracks", "build_tracks", "tracks_from_arrays", "gather_observations", "pairs_within_tracks",
+           "segment_sums"]
 
 
 @dataclass(frozen=True)
@@ -156,3 +157,9 @@ def pairs_within_tracks(offsets: np.ndarray, max_pairs: int | None = None) -> tu
     np.cumsum(num_partners, out=first[1:])
     b = a + 1 + (np.arange(total) - np.repeat(first[:-1], num_partners))
     return a, b
+
+
+def segment_sums(components: np.ndarray, segment: np.ndarray, num_segments: int) -> np.ndarray:
+    """Per-segment sums of component-major values, (k, N) -> (k, num_segments): one
+    ``bincount`` per component (k is small), none over the N observations or matches."""
+    return np.stack([np.bincount(segment, weights=c, minlength=num_segments) for c in components])

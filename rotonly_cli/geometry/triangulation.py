@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rotonly_cli.errors import InputError
-from rotonly_cli.geometry.tracks import pairs_within_tracks
+from rotonly_cli.geometry.tracks import pairs_within_tracks, segment_sums
 
 __all__ = ["TriangulationOptions", "TriangulationResult", "triangulate_tracks", "max_ray_angle_deg"]
 
@@ -62,11 +62,6 @@ class TriangulationResult:
     mean_reprojection_error: np.ndarray  # (N,) normalized units
     max_parallax_deg: np.ndarray  # (N,) max angle between two rays of the track
     in_front: np.ndarray  # (N,) bool: positive depth in every camera
-
-
-def _segment_sums(components: np.ndarray, segment: np.ndarray, num_segments: int) -> np.ndarray:
-    """Per-segment sums of component-major values: (k, N_obs) -> (k, num_segments)."""
-    return np.stack([np.bincount(segment, weights=c, minlength=num_segments) for c in components])
 
 
 def _solve_symmetric_3x3(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -174,10 +169,10 @@ def triangulate_tracks(R_cam_from_world: np.ndarray, centers: np.ndarray, obs_po
     rays /= np.sqrt(rays[0] ** 2 + rays[1] ** 2 + rays[2] ** 2)
 
     # 1. linear LS: Σ (I - d dᵀ) X = Σ (I - d dᵀ) c
-    A = -_segment_sums(_outer_entries(rays), obs_point, num_points)
+    A = -segment_sums(_outer_entries(rays), obs_point, num_points)
     A[[0, 3, 5]] += counts
     ray_dot_center = rays[0] * C_obs[0] + rays[1] * C_obs[1] + rays[2] * C_obs[2]
-    b = _segment_sums(C_obs - rays * ray_dot_center, obs_point, num_points)
+    b = segment_sums(C_obs - rays * ray_dot_center, obs_point, num_points)
     points, solvable = _solve_symmetric_3x3(A, b)  # (3, num_points)
     solvable &= counts >= 2
 
@@ -201,8 +196,8 @@ def triangulate_tracks(R_cam_from_world: np.ndarray, centers: np.ndarray, obs_po
         inv_z = 1.0 / z
         J0 = R_obs[0] * inv_z + R_obs[2] * (-p_cam[0] * inv_z ** 2)
         J1 = R_obs[1] * inv_z + R_obs[2] * (-p_cam[1] * inv_z ** 2)
-        JtJ = _segment_sums(_outer_entries(J0, J1), obs_point, num_points)
-        Jtr = _segment_sums(J0 * res[0] + J1 * res[1], obs_point, num_points)
+        JtJ = segment_sums(_outer_entries(J0, J1), obs_point, num_points)
+        Jtr = segment_sums(J0 * res[0] + J1 * res[1], obs_point, num_points)
         JtJ[[0, 3, 5]] += damping * (JtJ[0] + JtJ[3] + JtJ[5]) / 3.0
         step, ok = _solve_symmetric_3x3(JtJ, -Jtr)
         ok &= solvable
