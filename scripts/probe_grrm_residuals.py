@@ -44,9 +44,8 @@ def main(argv: list[str] | None = None) -> int:
 
     logging.basicConfig(level=logging.WARNING)  # the stages log at INFO; this prints a table
 
-    from rotonly_cli.geometry import so3
+    from rotonly_cli.bench.strecha import gt_poses_for, gt_track_residuals
     from rotonly_cli.geometry.alignment import rotation_errors_after_alignment
-    from rotonly_cli.geometry.triangulation import TriangulationOptions, triangulate_tracks
     from rotonly_cli.io.strecha import read_ground_truth
     from rotonly_cli.pipeline import STAGE_FUNCTIONS, Run, RunOptions, load_stage
     from rotonly_cli.stages.common import view_index
@@ -57,7 +56,6 @@ def main(argv: list[str] | None = None) -> int:
     if not input_path.is_file():
         parser.error(f"--root/--scene: no {input_path}")
     gt = read_ground_truth(scene_dir)
-    gt_by_name = {Path(gt.views[v].name).name: pose for v, pose in gt.poses.items()}
 
     options = RunOptions(progress=False)
     run = load_stage(input_path, options)
@@ -67,19 +65,15 @@ def main(argv: list[str] | None = None) -> int:
     graph, scene = run.graph, run.scene
     index = view_index(graph)
     view_ids = graph.view_ids()
-    names = [Path(scene.views[v].name).name for v in view_ids]
-    R_gt = np.stack([so3.project_to_so3(gt_by_name[n].R_cam_from_world) for n in names])
-    C_gt = np.stack([gt_by_name[n].center for n in names])
+    R_gt, C_gt = gt_poses_for(gt, scene, view_ids)
 
     def errors_deg(R: np.ndarray) -> np.ndarray:
         return rotation_errors_after_alignment(R, R_gt)[0]
 
-    # observations of rotonly's tracks, grouped by point
-    observations = run.structure.observations
-    obs_point = np.repeat(np.arange(len(observations)), [len(o) for o in observations])
-    flat = np.array([vk for o in observations for vk in o], dtype=np.int64).reshape(-1, 2)
-    obs_view = np.searchsorted(view_ids, flat[:, 0])  # row of the view (view_ids are sorted)
-    obs_kp = flat[:, 1]
+    # observations of rotonly's tracks, grouped by point, and their GT reprojections
+    tracks = gt_track_residuals(run.structure, view_ids, scene.normalized, R_gt, C_gt)
+    obs_point, obs_view, obs_kp = tracks["point"], tracks["view_row"], tracks["keypoint"]
+    obs_xy, clean = tracks["observed"], tracks["projected"]
     in_view = [np.flatnonzero(obs_view == r) for r in range(len(view_ids))]
     # point of every keypoint (-1: in no track); keep the matches inside one track
     point_of = [np.full(len(scene.normalized[v]), -1) for v in view_ids]
@@ -91,13 +85,6 @@ def main(argv: list[str] | None = None) -> int:
             b = point_of[index[edge.j]][edge.matches[:, 1]]
             edge.matches = edge.matches[(a == b) & (a >= 0)]
 
-    obs_xy = np.empty((len(obs_kp), 2))
-    for r, rows in enumerate(in_view):
-        obs_xy[rows] = scene.normalized[view_ids[r]][obs_kp[rows]]
-    loose = TriangulationOptions(max_reprojection_error=1.0, min_parallax_deg=0.0)
-    X = triangulate_tracks(R_gt, C_gt, obs_point, obs_view, obs_xy, options=loose).points_in_world
-    cam = np.einsum("nij,nj->ni", R_gt[obs_view], X[obs_point] - C_gt[obs_view])
-    clean = cam[:, :2] / cam[:, 2:3]
     focal = np.array([focal_length(scene.intrinsics[scene.views[v].intrinsics_id]) for v in view_ids])[obs_view]
     residual = obs_xy - clean  # normalized units
     rms_px = float(np.sqrt(((residual * focal[:, None]) ** 2).sum(1).mean()))
@@ -121,8 +108,8 @@ def main(argv: list[str] | None = None) -> int:
         "... shuffled within each track": clean + residual[permuted_within(obs_point)],
     }
     kept = sum(e.num_inliers for e in loaded.edges if e.active)
-    print(f"{args.scene}, {args.input} input: {len(X)} tracks, {len(obs_xy)} observations, {kept} matches "
-          f"inside tracks; GT residual RMS {rms_px:.3f} px; rotonly run: "
+    print(f"{args.scene}, {args.input} input: {len(run.structure.observations)} tracks, {len(obs_xy)} observations, "
+          f"{kept} matches inside tracks; GT residual RMS {rms_px:.3f} px; rotonly run: "
           f"{errors_deg(run.rotations).mean():.4f} deg")
     print("| keypoints | L1-IRLS start (deg) | GRRM (deg) | GRRM per camera (deg) |")
     print("|---|---|---|---|")
