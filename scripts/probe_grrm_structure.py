@@ -1,9 +1,9 @@
 #!/usr/bin/env python
 """Probe: does GRRM's error on a Strecha input come from one edge, from the matches it leaves
-out, or from the keypoints' scale?
+out, from the keypoints' scale, or from the per-edge translations?
 
 Runs rotonly's chain in-process on one Strecha scene (database or OpenMVG input) up to the
-averaged rotations (load, identify, refine, average), then prints three tables:
+averaged rotations (load, identify, refine, average), then prints four tables:
 
 * ``edges``: per REGULAR edge that enters GRRM, its TRRM and its GRRM relative-rotation
   error against the GT (deg), and GRRM's mean error with that edge left out;
@@ -15,7 +15,11 @@ averaged rotations (load, identify, refine, average), then prints three tables:
   that share at least 30 tracks but have no edge;
 * ``scale`` (OpenMVG input): the keypoints' residuals against the GT (tracks triangulated with
   the GT cameras) by SIFT scale (the third column of the ``.feat`` files): mean offset and RMS
-  in pixels. A scale-dependent offset would be a detector bias.
+  in pixels. A scale-dependent offset would be a detector bias;
+* ``translations``: GRRM's per-edge t_ij (Pˢ's null vector at GRRM's rotations) against the
+  GT direction R_j (c_i - c_j), and GRRM from the same start with every t_ij held fixed: at
+  the GT directions (an oracle: how much of the rotation error the translations carry), and
+  at the directions of LiGT's centres from GRRM's rotations, re-computed for three rounds.
 
     python scripts/probe_grrm_structure.py --root ../shared/data/strecha --scene Herz-Jesus-P8 --input openmvg
 """
@@ -30,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 SCALE_BINS = (0.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 7.0, 10.0, np.inf)
+TABLES = ("edges", "tracks", "scale", "translations")
 
 
 def completed_graph(graph, edges: list[int], new_edge_min: int | None = None, quantile: float | None = None,
@@ -90,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--root", type=Path, required=True, help="folder of Strecha scenes (data/strecha layout)")
     parser.add_argument("--scene", default="Herz-Jesus-P8")
     parser.add_argument("--input", choices=("openmvg", "database"), default="openmvg")
-    parser.add_argument("--tables", nargs="+", choices=("edges", "tracks", "scale"), default=["edges", "tracks", "scale"])
+    parser.add_argument("--tables", nargs="+", choices=TABLES, default=list(TABLES))
     args = parser.parse_args(argv)
     import logging
 
@@ -102,7 +107,10 @@ def main(argv: list[str] | None = None) -> int:
     from rotonly_cli.io.strecha import read_ground_truth
     from rotonly_cli.pipeline import STAGE_FUNCTIONS, RunOptions, load_stage
     from rotonly_cli.stages.load import focal_length
+    from rotonly_cli.geometry import kernels
+    from rotonly_cli.stages.common import edge_batch
     from rotonly_cli.stages.optimize import optimize_graph, regular_edges
+    from rotonly_cli.stages.translate import translate_graph
 
     scene_dir = args.root / args.scene
     input_path = scene_dir / ("openmvg/sfm_data.json" if args.input == "openmvg" else "database.db")
@@ -118,8 +126,16 @@ def main(argv: list[str] | None = None) -> int:
     R_gt, C_gt = gt_poses_for(gt, scene, view_ids)
     start = run.rotations.copy()
 
-    def grrm(g) -> np.ndarray:
-        return optimize_graph(g, scene.normalized, start)[0]
+    def grrm(g, translations: dict | None = None, R_start: np.ndarray = start) -> np.ndarray:
+        return optimize_graph(g, scene.normalized, R_start, translations=translations)[0]
+
+    def directions(R: np.ndarray, C: np.ndarray, ks: list[int]) -> dict[int, np.ndarray]:
+        # t_ij = R_j (c_i - c_j): camera j's axes, x_j ~ R_ij x_i + t_ij
+        return {k: R[row[graph.edges[k].j]] @ (C[row[graph.edges[k].i]] - C[row[graph.edges[k].j]]) for k in ks}
+
+    def line(label: str, R: np.ndarray, extra: str = "") -> str:
+        e = errors(R)
+        return f"| {label} | {extra} | {e.mean():.4f} | {' '.join(f'{x:.3f}' for x in e)} |"
 
     def errors(R: np.ndarray) -> np.ndarray:
         return rotation_errors_after_alignment(R, R_gt)[0]
@@ -164,6 +180,30 @@ def main(argv: list[str] | None = None) -> int:
             e = errors(grrm(completed))
             total = loaded + added + sum(m for _, _, m in new_edges)
             print(f"| {label} | {total} | {e.mean():.4f} | {' '.join(f'{x:.3f}' for x in e)} |", flush=True)
+        print()
+    if "translations" in args.tables:
+        t_gt = directions(R_gt, C_gt, edges)
+        batch = edge_batch(graph, scene.normalized, edges)
+        views = np.array([[row[graph.edges[k].i], row[graph.edges[k].j]] for k in edges])
+        t_ps = kernels.trrm_normal_equations(R_grrm[views[:, 1]] @ np.swapaxes(R_grrm[views[:, 0]], 1, 2), batch,
+                                             with_jacobian=False).t
+        truth = np.stack([t_gt[k] / np.linalg.norm(t_gt[k]) for k in edges])
+        angle = np.degrees(np.arccos(np.clip(np.einsum("ek,ek->e", t_ps, truth), -1.0, 1.0)))
+        print("| per-edge t_ij in GRRM | t_ij error against the GT direction (deg): mean / median / max | GRRM (deg) "
+              "| GRRM per camera (deg) |")
+        print("|---|---|---|---|")
+        print(line("Pˢ null vector (the paper)", R_grrm, f"{angle.mean():.3f} / {np.median(angle):.3f} / {angle.max():.3f}"))
+        print(line("held at the GT direction", grrm(graph, t_gt), "0"), flush=True)
+        R = R_grrm
+        for round_ in range(1, 4):
+            C, _ = translate_graph(graph, scene.normalized, R)
+            t_ligt = directions(R, C, edges)
+            # LiGT's centres are in GRRM's world frame: compare directions in camera axes
+            ligt = np.stack([t_ligt[k] / np.linalg.norm(t_ligt[k]) for k in edges])
+            angle = np.degrees(np.arccos(np.clip(np.einsum("ek,ek->e", ligt, truth), -1.0, 1.0)))
+            R = grrm(graph, t_ligt, R)
+            print(line(f"held at LiGT's directions from the rotations before, round {round_}", R,
+                       f"{angle.mean():.3f} / {np.median(angle):.3f} / {angle.max():.3f}"), flush=True)
         print()
     if "scale" in args.tables and args.input == "openmvg":
         for stage in ("optimize", "translate", "triangulate"):

@@ -412,9 +412,9 @@ def test_epipolar_angles_zero_on_exact_matches_and_sine_of_the_offset():
 
 
 def test_probe_grrm_structure_on_fixture(tmp_path, capsys):
-    """The three tables on the Herz-Jesu fixture's OpenMVG project: one row per GRRM edge with
-    finite errors, the completion rows add matches, the scale rows cover the observations, and
-    the input is untouched."""
+    """The four tables on the Herz-Jesu fixture's OpenMVG project: one row per GRRM edge with
+    finite errors, the completion rows add matches, the translation rows, the scale rows cover
+    the observations, and the input is untouched."""
     (tmp_path / "root").mkdir()
     (tmp_path / "root" / "Herz-Jesus-P8").symlink_to(FIXTURES / "herzjesu_p8")
     before = _digest(FIXTURES / "herzjesu_p8" / "openmvg" / "matches.e.bin")
@@ -424,7 +424,7 @@ def test_probe_grrm_structure_on_fixture(tmp_path, capsys):
     out = capsys.readouterr().out
     tables = [[line.strip("| ").split(" | ") for line in block.splitlines() if line.startswith("| ")
                and not line.startswith("|---")][1:] for block in out.split("\n\n")[1:]]
-    edges, tracks, scale = [t for t in tables if t]
+    edges, tracks, translations, scale = [t for t in tables if t]
     assert len(edges) >= 10 and all(len(row) == 5 for row in edges)
     # relative errors: TRRM up to ~1 deg on the 45-match edge 0-7, GRRM's below 0.1
     assert all(0.0 <= float(row[2]) < 5.0 and 0.0 <= float(row[3]) < 0.1 and 0.005 < float(row[4]) < 0.05
@@ -433,6 +433,13 @@ def test_probe_grrm_structure_on_fixture(tmp_path, capsys):
     assert tracks[0][0] == "as loaded" and len(tracks) == 4
     assert all(int(row[1]) > loaded for row in tracks[1:])
     assert all(0.001 < float(row[2]) < 0.2 for row in tracks)
+    # per-edge translations: the paper's Pˢ, the GT oracle, three LiGT rounds; the oracle's
+    # t error is 0 and the Pˢ / LiGT directions are within a degree of the GT
+    assert [row[0].split(",")[0] for row in translations] == [
+        "Pˢ null vector (the paper)", "held at the GT direction"] + ["held at LiGT's directions from the rotations before"] * 3
+    assert translations[1][1] == "0"
+    assert all(0.0 < float(row[1].split(" / ")[0]) < 1.0 for row in translations if row[1] != "0")
+    assert all(0.001 < float(row[2]) < 0.2 for row in translations)
     # the fixture's .feat files come from the database's keypoints (scale column 1): one bin
     assert scale and sum(int(row[1]) for row in scale) > 15000
     assert all(0.05 < float(row[4]) < 2.0 and abs(float(row[2])) < 0.05 for row in scale)

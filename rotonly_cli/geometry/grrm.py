@@ -170,10 +170,12 @@ class _Problem:
     """
 
     def __init__(self, n: int, edge_views: np.ndarray, batch: tv.EdgeBatch, obs_ids: np.ndarray,
-                 residual_form: str = "bearing"):
+                 residual_form: str = "bearing", translations: np.ndarray | None = None):
         from rotonly_cli.geometry.tracks import pairs_within_tracks
 
         self.n = n
+        #: (E, 3) per-edge t_ij held fixed, or None: t_ij(R_ij) = null vector of Pˢ (the paper)
+        self.translations = translations
         self.image_plane = residual_form == "image"
         self.E = batch.num_edges
         self.edge_views = edge_views
@@ -231,7 +233,8 @@ class _Problem:
         table = self._table
         width = 16 if with_jacobian else 4
         for e0, e1, m0, m1, cnt, starts, xi, xj, wk in kernels._chunks(self.batch, kernels.CHUNK_MATCHES):
-            terms = kernels._trrm_chunk(R_ij[e0:e1], cnt, starts, xi, xj, with_jacobian, wk)
+            terms = kernels._trrm_chunk(R_ij[e0:e1], cnt, starts, xi, xj, with_jacobian, wk,
+                                        None if self.translations is None else self.translations[e0:e1])
             Rm = [np.repeat(R_ij[e0:e1].reshape(-1, 9)[:, k], cnt) for k in range(9)]  # Rm[3b + a] = R_ij[b, a]
             r = terms["r"]  # 6 arrays: r_i in camera-j axes, then r_j
             side_i = np.empty((width, m1 - m0))
@@ -543,6 +546,18 @@ def validate_inputs(R_cam_from_world, edge_views, batch: tv.EdgeBatch, obs_ids) 
     return R, edge_views.astype(np.int64), obs_ids.astype(np.int64)
 
 
+def _validate_translations(translations, num_edges: int) -> np.ndarray | None:
+    if translations is None:
+        return None
+    t = np.asarray(translations, dtype=float)
+    if t.shape != (num_edges, 3):
+        raise ValueError(f"translations: expected shape ({num_edges}, 3), got {t.shape}")
+    norm = np.linalg.norm(t, axis=1)
+    if not np.all(np.isfinite(norm) & (norm > 0)):
+        raise ValueError("translations: every edge needs a finite, non-zero t_ij")
+    return t / norm[:, None]
+
+
 def _chain(R: np.ndarray, edge_views: np.ndarray, n: int) -> sp.csr_matrix:
     """C (3E x 3n): δ_e = δ_j - R_ij δ_i for left perturbations of both cameras."""
     R_ij = R[edge_views[:, 1]] @ np.swapaxes(R[edge_views[:, 0]], 1, 2)
@@ -628,14 +643,26 @@ def epipolar_phase(R: np.ndarray, edge_views: np.ndarray, batch: tv.EdgeBatch, f
 
 
 def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch, obs_ids, fixed_view: int = 0,
-                              options: GRRMOptions = GRRMOptions()) -> GRRMResult:
-    """Alg. 4: minimise Σ_ik ρ(‖V_ik‖²) (eq:GRRMerror) over the rotations, one view fixed."""
+                              options: GRRMOptions = GRRMOptions(),
+                              translations: np.ndarray | None = None) -> GRRMResult:
+    """Alg. 4: minimise Σ_ik ρ(‖V_ik‖²) (eq:GRRMerror) over the rotations, one view fixed.
+
+    ``translations`` (E, 3): each edge's t_ij (camera j, x_j ~ R_ij x_i + t_ij) held fixed
+    instead of the paper's t_ij(R_ij), the null vector of Pˢ (a diagnostic: with the true
+    directions it shows how much of the rotation error the per-edge translations carry;
+    scripts/probe_grrm_structure.py). The λ_min phase and the translation weights, which only
+    serve Pˢ, are then skipped."""
     options.validate()
     R, edge_views, obs_ids = validate_inputs(R_cam_from_world, edge_views, batch, obs_ids)
     n = R.shape[0]
     if not 0 <= fixed_view < n:
         raise ValueError(f"fixed_view: must be in [0, {n})")
-    problem = _Problem(n, edge_views, batch, obs_ids, options.residual)
+    translations = _validate_translations(translations, batch.num_edges)
+    if translations is not None:
+        from dataclasses import replace
+
+        options = replace(options, epipolar_max_iterations=0, robust_translation=False)
+    problem = _Problem(n, edge_views, batch, obs_ids, options.residual, translations)
     free = np.ones(3 * n, dtype=bool)
     free[3 * fixed_view:3 * fixed_view + 3] = False
     R_input = R
@@ -764,13 +791,14 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
 
 
 def grrm_residuals(R_cam_from_world, edge_views, batch: tv.EdgeBatch, obs_ids, with_jacobian: bool = False,
-                   residual: str = "bearing"):
+                   residual: str = "bearing", translations: np.ndarray | None = None):
     """V_ik (G, 3) of eq:GRRMRes2 for every observation (order: sorted unique ids; ``residual``
-    as GRRMOptions.residual) and,
+    as GRRMOptions.residual; ``translations`` as in optimize_global_rotations) and,
     optionally, the explicit sparse Jacobian J = J_e C (3G x 3n, left perturbations of the
     cameras) — for tests and small problems; the optimiser never forms it."""
     R, edge_views, obs_ids = validate_inputs(R_cam_from_world, edge_views, batch, obs_ids)
-    problem = _Problem(R.shape[0], edge_views, batch, obs_ids, residual)
+    problem = _Problem(R.shape[0], edge_views, batch, obs_ids, residual,
+                       _validate_translations(translations, batch.num_edges))
     V, _, B = problem.evaluate(R, with_jacobian)
     if not with_jacobian:
         return V, None

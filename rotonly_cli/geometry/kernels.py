@@ -127,22 +127,31 @@ def _accumulate(J_cols, r, starts, E):
 
 
 def _trrm_chunk(Rg: np.ndarray, cnt: np.ndarray, starts: np.ndarray, xi, xj, with_jacobian: bool,
-                wk: np.ndarray | None = None) -> dict:
+                wk: np.ndarray | None = None, t_fixed: np.ndarray | None = None) -> dict:
     """TRRM terms of one edge group, per match: residual rows r (6 arrays: r_i in camera-j
     axes, then r_j), ‖θ‖, validity weight, t per edge and, with the Jacobian, the three
-    forward-mode columns J_cols[c] (6 arrays) and d‖θ‖/dδ_c, for R_ij <- exp([δ]x) R_ij."""
+    forward-mode columns J_cols[c] (6 arrays) and d‖θ‖/dδ_c, for R_ij <- exp([δ]x) R_ij.
+
+    ``t_fixed`` (edges, 3): each edge's t_ij (camera j) held as given (unit length, sign
+    included; dt/dδ = 0) instead of Pˢ's null vector: the residual of eq:PA3bearing at a known
+    translation (a diagnostic of how much of GRRM's error the per-edge translations carry)."""
     u = _rotate(Rg, cnt, xi)
     theta = _cross(u, xj)
-    P = _ps_from(theta, starts, wk)
-    lam, t = tv.smallest_eigenpair(P)
+    if t_fixed is None:
+        P = _ps_from(theta, starts, wk)
+        lam, t = tv.smallest_eigenpair(P)
+    else:
+        t = np.asarray(t_fixed, dtype=float) / np.linalg.norm(t_fixed, axis=1, keepdims=True)
     t_m = tuple(_rep(t[:, k], cnt) for k in range(3))
     xj_x_t = _cross(xj, t_m)
     u_x_t = _cross(u, t_m)
-    # chirality sign (twoview._chirality_sign_from)
-    depth_i = _dot(theta, xj_x_t)
-    depth_j = _dot(theta, u_x_t)
-    vote = _seg(((depth_i > 0) & (depth_j > 0)).astype(np.int64) - ((depth_i < 0) & (depth_j < 0)), starts)
-    sign = np.where(vote < 0, -1.0, 1.0)
+    # chirality sign (twoview._chirality_sign_from); a given t keeps its own
+    sign = np.ones(len(t))
+    if t_fixed is None:
+        depth_i = _dot(theta, xj_x_t)
+        depth_j = _dot(theta, u_x_t)
+        vote = _seg(((depth_i > 0) & (depth_j > 0)).astype(np.int64) - ((depth_i < 0) & (depth_j < 0)), starts)
+        sign = np.where(vote < 0, -1.0, 1.0)
     if np.any(sign < 0):
         t = t * sign[:, None]
         sgn_m = _rep(sign, cnt)
@@ -173,7 +182,10 @@ def _trrm_chunk(Rg: np.ndarray, cnt: np.ndarray, starts: np.ndarray, xi, xj, wit
     xj_dot_u = _dot(xj, u)
     u_dot_t = _dot(u, t_m)
     theta_dot_t = _dot(theta, t_m)
-    T = -_pinv_shifted(P, lam, t) @ _dPt(theta, theta_dot_t, u, xj, xj_dot_u, u_dot_t, t_m, starts, wk)
+    if t_fixed is None:
+        T = -_pinv_shifted(P, lam, t) @ _dPt(theta, theta_dot_t, u, xj, xj_dot_u, u_dot_t, t_m, starts, wk)
+    else:
+        T = np.zeros((len(t), 3, 3))
     inv_aj = np.where(a_j > 0, 1.0 / np.where(a_j > 0, a_j, 1.0), 0.0)
     inv_ai = np.where(a_i > 0, 1.0 / np.where(a_i > 0, a_i, 1.0), 0.0)
     inv_b = np.where(b > 0, 1.0 / np.where(b > 0, b, 1.0), 0.0)

@@ -27,8 +27,10 @@ def regular_edges(graph: ViewGraph) -> list[int]:
 
 
 def optimize_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_world: np.ndarray,
-                   options=None) -> tuple[np.ndarray, dict]:
-    """GRRM-refined copy of ``R_cam_from_world`` (sorted-view-id rows); report with costs."""
+                   options=None, translations: dict[int, np.ndarray] | None = None) -> tuple[np.ndarray, dict]:
+    """GRRM-refined copy of ``R_cam_from_world`` (sorted-view-id rows); report with costs.
+    ``translations``: t_ij per graph edge index, held fixed in GRRM (a diagnostic, see
+    grrm.optimize_global_rotations); every edge GRRM takes must have one."""
     start = time.perf_counter()
     R_out = np.array(R_cam_from_world, dtype=float, copy=True)
     try:
@@ -60,7 +62,9 @@ def optimize_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_fr
     R0 = np.stack([R_out[index[v]] for v in views])
     try:
         with np.errstate(all="ignore"):
-            result = optimize_global_rotations(R0, edge_views, batch, obs_ids, fixed_view=0, options=options)
+            result = optimize_global_rotations(
+                R0, edge_views, batch, obs_ids, fixed_view=0, options=options,
+                translations=None if translations is None else np.stack([translations[k] for k in edges]))
     except ValueError as exc:
         raise AlgorithmError(f"GRRM failed: {exc}") from exc
     from rotonly_cli.geometry import so3
