@@ -18,8 +18,10 @@ averaged rotations (load, identify, refine, average), then prints four tables:
   in pixels. A scale-dependent offset would be a detector bias;
 * ``translations``: GRRM's per-edge t_ij (Pˢ's null vector at GRRM's rotations) against the
   GT direction R_j (c_i - c_j), and GRRM from the same start with every t_ij held fixed: at
-  the GT directions (an oracle: how much of the rotation error the translations carry), and
-  at the directions of LiGT's centres from GRRM's rotations, re-computed for three rounds.
+  the GT directions (an oracle: how much of the rotation error the translations carry), at
+  the directions of LiGT's centres from GRRM's rotations, and at the directions of centres
+  averaged from Pˢ's own directions (:func:`average_directions`), each re-computed for three
+  rounds.
 
     python scripts/probe_grrm_structure.py --root ../shared/data/strecha --scene Herz-Jesus-P8 --input openmvg
 """
@@ -88,6 +90,32 @@ def epipolar_angles(edge, normalized: dict, matches: np.ndarray) -> np.ndarray:
     normal = np.cross(edge.t_dir, bearings(edge.i, matches[:, 0]) @ edge.R_j_from_i.T)
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     return np.abs(np.einsum("nk,nk->n", normal, bearings(edge.j, matches[:, 1])))
+
+
+def average_directions(n: int, edge_views: np.ndarray, d_world: np.ndarray, rounds: int = 10) -> np.ndarray:
+    """Centres (n, 3) whose baselines c_i - c_j follow the unit directions ``d_world`` (E, 3):
+    min Σ_e w_e ‖[d_e]x (c_i - c_j)‖² with c_0 = 0 and ‖c‖ = 1 (smallest singular vector),
+    reweighted by w_e = 1 / ‖c_i - c_j‖² so that the cross product measures an angle
+    (Govindu's iterative linear translation averaging); dense, for scenes of a few views."""
+    from rotonly_cli.geometry import so3
+
+    hat = so3.hat(d_world)  # (E, 3, 3)
+    E = len(edge_views)
+    rows = np.arange(3 * E).reshape(E, 3)
+    weights = np.ones(E)
+    C = np.zeros((n, 3))
+    for _ in range(rounds):
+        A = np.zeros((3 * E, 3 * n))
+        root = np.sqrt(weights)[:, None, None] * hat
+        for side, sign in ((0, 1.0), (1, -1.0)):
+            cols = 3 * edge_views[:, side][:, None] + np.arange(3)
+            A[rows[:, :, None], cols[:, None, :]] += sign * root
+        C = np.concatenate([np.zeros(3), np.linalg.svd(A[:, 3:], full_matrices=False)[2][-1]]).reshape(n, 3)
+        baseline = C[edge_views[:, 0]] - C[edge_views[:, 1]]
+        if np.einsum("ek,ek->", baseline, d_world) < 0:
+            C, baseline = -C, -baseline
+        weights = 1.0 / np.maximum(np.einsum("ek,ek->e", baseline, baseline), 1e-18)
+    return C
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -194,16 +222,25 @@ def main(argv: list[str] | None = None) -> int:
         print("|---|---|---|---|")
         print(line("Pˢ null vector (the paper)", R_grrm, f"{angle.mean():.3f} / {np.median(angle):.3f} / {angle.max():.3f}"))
         print(line("held at the GT direction", grrm(graph, t_gt), "0"), flush=True)
-        R = R_grrm
-        for round_ in range(1, 4):
-            C, _ = translate_graph(graph, scene.normalized, R)
-            t_ligt = directions(R, C, edges)
-            # LiGT's centres are in GRRM's world frame: compare directions in camera axes
-            ligt = np.stack([t_ligt[k] / np.linalg.norm(t_ligt[k]) for k in edges])
-            angle = np.degrees(np.arccos(np.clip(np.einsum("ek,ek->e", ligt, truth), -1.0, 1.0)))
-            R = grrm(graph, t_ligt, R)
-            print(line(f"held at LiGT's directions from the rotations before, round {round_}", R,
-                       f"{angle.mean():.3f} / {np.median(angle):.3f} / {angle.max():.3f}"), flush=True)
+        def ligt_centres(R: np.ndarray) -> np.ndarray:
+            return translate_graph(graph, scene.normalized, R)[0]
+
+        def averaged_centres(R: np.ndarray) -> np.ndarray:
+            t = kernels.trrm_normal_equations(R[views[:, 1]] @ np.swapaxes(R[views[:, 0]], 1, 2), batch,
+                                              with_jacobian=False).t
+            return average_directions(len(view_ids), views, np.einsum("eba,eb->ea", R[views[:, 1]], t))
+
+        for label, centres in (("LiGT's directions", ligt_centres),
+                               ("directions of centres averaged from Pˢ's", averaged_centres)):
+            R = R_grrm
+            for round_ in range(1, 4):
+                held = directions(R, centres(R), edges)
+                # the centres are in GRRM's world frame: compare directions in camera axes
+                unit = np.stack([held[k] / np.linalg.norm(held[k]) for k in edges])
+                angle = np.degrees(np.arccos(np.clip(np.einsum("ek,ek->e", unit, truth), -1.0, 1.0)))
+                R = grrm(graph, held, R)
+                print(line(f"held at {label} from the rotations before, round {round_}", R,
+                           f"{angle.mean():.3f} / {np.median(angle):.3f} / {angle.max():.3f}"), flush=True)
         print()
     if "scale" in args.tables and args.input == "openmvg":
         for stage in ("optimize", "translate", "triangulate"):

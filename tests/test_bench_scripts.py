@@ -386,6 +386,21 @@ def test_completed_graph_adds_the_matches_tracks_imply():
     assert probe_structure.completed_graph(graph, [0, 1, 2, 3], new_edge_min=2)[2] == []
 
 
+def test_average_directions_recovers_centres_from_exact_directions():
+    """Exact baseline directions of a random 6-view graph give the centres up to translation
+    and positive scale; the sign follows the directions."""
+    rng = np.random.default_rng(7)
+    C = rng.normal(size=(6, 3))
+    views = np.array([(i, j) for i in range(6) for j in range(i + 1, 6) if (i + j) % 4])
+    d = C[views[:, 0]] - C[views[:, 1]]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    est = probe_structure.average_directions(6, views, d)
+    fit = (est - est[0]) / np.linalg.norm(est - est[0]) - (C - C[0]) / np.linalg.norm(C - C[0])
+    assert np.abs(fit).max() < 1e-10
+    flipped = probe_structure.average_directions(6, views, -d)
+    assert np.abs(flipped + est).max() < 1e-10
+
+
 def test_epipolar_angles_zero_on_exact_matches_and_sine_of_the_offset():
     rng = np.random.default_rng(5)
     R = so3.random_rotations(1, rng)[0]
@@ -433,10 +448,12 @@ def test_probe_grrm_structure_on_fixture(tmp_path, capsys):
     assert tracks[0][0] == "as loaded" and len(tracks) == 4
     assert all(int(row[1]) > loaded for row in tracks[1:])
     assert all(0.001 < float(row[2]) < 0.2 for row in tracks)
-    # per-edge translations: the paper's Pˢ, the GT oracle, three LiGT rounds; the oracle's
-    # t error is 0 and the Pˢ / LiGT directions are within a degree of the GT
+    # per-edge translations: the paper's Pˢ, the GT oracle, three LiGT rounds, three rounds of
+    # averaged centres; the oracle's t error is 0, the others within a degree of the GT
     assert [row[0].split(",")[0] for row in translations] == [
-        "Pˢ null vector (the paper)", "held at the GT direction"] + ["held at LiGT's directions from the rotations before"] * 3
+        "Pˢ null vector (the paper)", "held at the GT direction"] + [
+        "held at LiGT's directions from the rotations before"] * 3 + [
+        "held at directions of centres averaged from Pˢ's from the rotations before"] * 3
     assert translations[1][1] == "0"
     assert all(0.0 < float(row[1].split(" / ")[0]) < 1.0 for row in translations if row[1] != "0")
     assert all(0.001 < float(row[2]) < 0.2 for row in translations)
