@@ -162,8 +162,12 @@ def main(argv: list[str] | None = None) -> int:
         return {k: R[row[graph.edges[k].j]] @ (C[row[graph.edges[k].i]] - C[row[graph.edges[k].j]]) for k in ks}
 
     def line(label: str, R: np.ndarray, extra: str = "") -> str:
+        """A table row: label, one extra cell, GRRM's mean and per-camera errors."""
         e = errors(R)
         return f"| {label} | {extra} | {e.mean():.4f} | {' '.join(f'{x:.3f}' for x in e)} |"
+
+    def angles_deg(unit_a: np.ndarray, unit_b: np.ndarray) -> np.ndarray:
+        return np.degrees(np.arccos(np.clip(np.einsum("ek,ek->e", unit_a, unit_b), -1.0, 1.0)))
 
     def errors(R: np.ndarray) -> np.ndarray:
         return rotation_errors_after_alignment(R, R_gt)[0]
@@ -196,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
         print("| matches of the GRRM edges | matches | GRRM (deg) | GRRM per camera (deg) |")
         print("|---|---|---|---|")
         loaded = sum(graph.edges[k].num_inliers for k in edges)
-        print(f"| as loaded | {loaded} | {base.mean():.4f} | {' '.join(f'{e:.3f}' for e in base)} |")
+        print(line("as loaded", R_grrm, str(loaded)))
         variants = {"completed from the tracks": {},
                     "completed, added matches within the edge's 90 % epipolar quantile":
                         {"quantile": 0.9, "normalized": scene.normalized},
@@ -205,9 +209,8 @@ def main(argv: list[str] | None = None) -> int:
             completed, added, new_edges = completed_graph(graph, edges, **kwargs)
             if new_edges:
                 label += " " + ", ".join(f"{i}-{j}" for i, j, _ in new_edges)
-            e = errors(grrm(completed))
             total = loaded + added + sum(m for _, _, m in new_edges)
-            print(f"| {label} | {total} | {e.mean():.4f} | {' '.join(f'{x:.3f}' for x in e)} |", flush=True)
+            print(line(label, grrm(completed), str(total)), flush=True)
         print()
     if "translations" in args.tables:
         t_gt = directions(R_gt, C_gt, edges)
@@ -216,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
         t_ps = kernels.trrm_normal_equations(R_grrm[views[:, 1]] @ np.swapaxes(R_grrm[views[:, 0]], 1, 2), batch,
                                              with_jacobian=False).t
         truth = np.stack([t_gt[k] / np.linalg.norm(t_gt[k]) for k in edges])
-        angle = np.degrees(np.arccos(np.clip(np.einsum("ek,ek->e", t_ps, truth), -1.0, 1.0)))
+        angle = angles_deg(t_ps, truth)
         print("| per-edge t_ij in GRRM | t_ij error against the GT direction (deg): mean / median / max | GRRM (deg) "
               "| GRRM per camera (deg) |")
         print("|---|---|---|---|")
@@ -237,7 +240,7 @@ def main(argv: list[str] | None = None) -> int:
                 held = directions(R, centres(R), edges)
                 # the centres are in GRRM's world frame: compare directions in camera axes
                 unit = np.stack([held[k] / np.linalg.norm(held[k]) for k in edges])
-                angle = np.degrees(np.arccos(np.clip(np.einsum("ek,ek->e", unit, truth), -1.0, 1.0)))
+                angle = angles_deg(unit, truth)
                 R = grrm(graph, held, R)
                 print(line(f"held at {label} from the rotations before, round {round_}", R,
                            f"{angle.mean():.3f} / {np.median(angle):.3f} / {angle.max():.3f}"), flush=True)

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.linalg
@@ -659,8 +659,6 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
         raise ValueError(f"fixed_view: must be in [0, {n})")
     translations = _validate_translations(translations, batch.num_edges)
     if translations is not None:
-        from dataclasses import replace
-
         options = replace(options, epipolar_max_iterations=0, robust_translation=False)
     problem = _Problem(n, edge_views, batch, obs_ids, options.residual, translations)
     free = np.ones(3 * n, dtype=bool)
