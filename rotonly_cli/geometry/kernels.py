@@ -141,7 +141,7 @@ def _trrm_chunk(Rg: np.ndarray, cnt: np.ndarray, starts: np.ndarray, xi, xj, wit
         P = _ps_from(theta, starts, wk)
         lam, t = tv.smallest_eigenpair(P)
     else:
-        t = np.asarray(t_fixed, dtype=float) / np.linalg.norm(t_fixed, axis=1, keepdims=True)
+        t = np.asarray(t_fixed, dtype=float)  # unit already (grrm._validate_translations)
     t_m = tuple(_rep(t[:, k], cnt) for k in range(3))
     xj_x_t = _cross(xj, t_m)
     u_x_t = _cross(u, t_m)
