@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.errors import AlgorithmError, InputError, RotonlyError
-from rotonly_cli.io.atomic import check_replaceable, make_staging_dir, ordinary_permissions, replace_dir
+from rotonly_cli.io.atomic import check_replaceable, make_staging_dir, replace_dir
 from rotonly_cli.geometry.scene import IdentificationOptions
 from rotonly_cli.geometry.trrm import TRRMOptions
 from rotonly_cli.io.types import Pose, SfMScene, Structure
@@ -190,7 +190,6 @@ def write_outputs(out_dir: Path, run: Run) -> SfMScene:
     openmvg_scene = renumber_views_by_name(colmap_to_openmvg(scene)) if run.input_kind == "colmap-db" else scene
     openmvg.write_sfm_data(out_dir / "sfm_data.json", openmvg_scene)
     colmap.write_model(out_dir / "sparse", scene, binary=True)
-    ordinary_permissions(out_dir / "sparse")  # write_model stages in a 0700 mkdtemp folder
     return scene
 
 

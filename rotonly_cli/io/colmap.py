@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.errors import InputError
+from rotonly_cli.io import atomic
 from rotonly_cli.io.types import Intrinsics, PairMatches, Pose, SfMScene, Structure, View
 
 PathLike = str | os.PathLike
@@ -334,13 +335,6 @@ def _id_offset(ids) -> int:
     return 1 - min(ids) if ids and min(ids) < 1 else 0
 
 
-def _temporary_sibling(target: Path, suffix: str = "") -> Path:
-    handle, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix, dir=target.parent)
-    os.close(handle)
-    os.unlink(name)
-    return Path(name)
-
-
 def write_database(path: PathLike, scene: SfMScene) -> None:
     """SfMScene -> new COLMAP database at ``path`` (replaced atomically).
 
@@ -353,8 +347,7 @@ def write_database(path: PathLike, scene: SfMScene) -> None:
     path = Path(path)
     view_offset = _id_offset(scene.views)
     camera_offset = _id_offset(scene.intrinsics)
-    staging = _temporary_sibling(path, ".db")
-    try:
+    with atomic.file_path(path, ".db", create=False, sidecars=("-journal", "-wal", "-shm")) as staging:
         database = pycolmap.Database.open(str(staging))
         try:
             _fill_database(pycolmap, database, scene, view_offset, camera_offset)
@@ -367,11 +360,6 @@ def write_database(path: PathLike, scene: SfMScene) -> None:
             connection.execute("PRAGMA journal_mode=DELETE")
         finally:
             connection.close()
-        os.replace(staging, path)
-    finally:
-        for leftover in (staging, Path(f"{staging}-journal"), Path(f"{staging}-wal"),
-                         Path(f"{staging}-shm")):
-            leftover.unlink(missing_ok=True)
 
 
 def _default_camera(pycolmap, view: View, camera_id: int):
@@ -631,25 +619,13 @@ def write_model(out_dir: PathLike, scene: SfMScene, binary: bool = True) -> None
     receives the files one rename each."""
     pycolmap = _pycolmap()
     out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError("exists and is not a directory", path=str(out_dir))
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
-    try:
+    with atomic.filling_dir(out_dir) as staging:
         with tempfile.TemporaryDirectory(prefix=f".{out_dir.name}.points.", dir=out_dir.parent) as workdir:
             reconstruction = _model_reconstruction(pycolmap, scene, Path(workdir))
         if binary:
             reconstruction.write_binary(str(staging))
         else:
             reconstruction.write_text(str(staging))
-        if not out_dir.exists():
-            os.replace(staging, out_dir)
-            return
-        for staged in sorted(staging.iterdir()):
-            os.replace(staged, out_dir / staged.name)
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging, ignore_errors=True)
 
 
 def is_model_dir(path: PathLike) -> bool:

@@ -13,9 +13,7 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import struct
-import tempfile
 import warnings
 from dataclasses import dataclass
 from collections.abc import Iterable, Mapping
@@ -25,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from rotonly_cli.errors import InputError
+from rotonly_cli.io import atomic
 from rotonly_cli.io.types import Intrinsics, PairMatches, Pose, SfMScene, Structure, View
 
 PathLike = str | os.PathLike
@@ -812,27 +811,6 @@ def sfm_data_document(scene: SfMScene, include_structure: bool = True) -> dict:
     }
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def _atomic_write_bytes(path: PathLike, payload: bytes | list[bytes]) -> None:
-    """Write next to the target and rename: no partially written outputs."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(handle, "wb") as stream:
-            stream.writelines([payload] if isinstance(payload, bytes) else payload)
-        os.chmod(temporary, 0o666 & ~_umask())  # mkstemp makes 0600; give normal permissions
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
-
-
 def _sfm_data_chunks(scene: SfMScene, include_structure: bool) -> list[bytes]:
     """sfm_data.json in consecutive pieces: the structure array (most of the file) is
     built apart and not copied into the small document."""
@@ -853,7 +831,7 @@ def sfm_data_bytes(scene: SfMScene, include_structure: bool = True) -> bytes:
 
 def write_sfm_data(path: PathLike, scene: SfMScene, include_structure: bool = True) -> None:
     """Write ``scene`` as an OpenMVG 2.1-loadable ``sfm_data.json`` (atomically)."""
-    _atomic_write_bytes(path, _sfm_data_chunks(scene, include_structure))
+    atomic.write_bytes(path, _sfm_data_chunks(scene, include_structure))
 
 
 # ============================================================================ .feat files
@@ -945,7 +923,7 @@ def write_features(path: PathLike, pixels: np.ndarray,
                 col[mask] = ((fmt + "\n") * values.shape[0] % tuple(values.tolist())).splitlines()
         columns.append(col)
     text = "".join(f"{a} {b} {c} {d}\n" for a, b, c, d in zip(*columns))
-    _atomic_write_bytes(path, text.encode("ascii"))
+    atomic.write_bytes(path, text.encode("ascii"))
 
 
 # ============================================================================ matches
@@ -1071,7 +1049,7 @@ def matches_bytes(matches: Mapping[tuple[int, int], Any], binary: bool) -> bytes
 
 def write_matches(path: PathLike, matches: Mapping[tuple[int, int], Any]) -> None:
     """Write {(i, j): (m, 2)} (or PairMatches values) as ``.bin`` (cereal) or text."""
-    _atomic_write_bytes(path, matches_bytes(matches, binary=str(path).endswith(".bin")))
+    atomic.write_bytes(path, matches_bytes(matches, binary=str(path).endswith(".bin")))
 
 
 def read_pairs(path: PathLike, num_views: int | None = None) -> list[tuple[int, int]]:
@@ -1102,7 +1080,7 @@ def read_pairs(path: PathLike, num_views: int | None = None) -> list[tuple[int, 
 def write_pairs(path: PathLike, pairs: Iterable[tuple[int, int]]) -> None:
     """Text ``I J`` lines, sorted (what OpenMVG's savePairs writes, even for ``pairs.bin``)."""
     ordered = sorted({(min(int(i), int(j)), max(int(i), int(j))) for i, j in pairs})
-    _atomic_write_bytes(path, "".join(f"{i} {j}\n" for i, j in ordered).encode("ascii"))
+    atomic.write_bytes(path, "".join(f"{i} {j}\n" for i, j in ordered).encode("ascii"))
 
 
 # ============================================================================ projects
@@ -1203,28 +1181,16 @@ def write_project(out_dir: PathLike, scene: SfMScene, include_structure: bool = 
             raise InputError(f"views {stems[stem]} and {view_id} share the feature file "
                              f"{stem}.feat", field="views")
         stems[stem] = view_id
-    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
-    try:
-        os.chmod(staging, 0o777 & ~_umask())  # mkdtemp makes 0700
+    with atomic.filling_dir(out_dir) as staging:
         write_sfm_data(staging / "sfm_data.json", scene, include_structure)
         for stem, view_id in stems.items():
             write_features(staging / f"{stem}.feat",
                            scene.keypoints.get(view_id, np.zeros((0, 2))))
         describer = json.dumps(_IMAGE_DESCRIBER_JSON, indent=4).encode("utf-8")
-        _atomic_write_bytes(staging / "image_describer.json", describer)
+        atomic.write_bytes(staging / "image_describer.json", describer)
         verified = {key: pair for key, pair in scene.pairs.items() if pair.verified}
         unverified = {key: pair for key, pair in scene.pairs.items() if not pair.verified}
         if verified or not unverified:
             write_matches(staging / "matches.e.bin", verified)
         if unverified:
             write_matches(staging / "matches.putative.bin", unverified)
-        if not out_dir.exists():
-            os.replace(staging, out_dir)
-            return
-        if not out_dir.is_dir():
-            raise InputError("exists and is not a directory", path=str(out_dir))
-        for staged in sorted(staging.iterdir()):
-            os.replace(staged, out_dir / staged.name)
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging, ignore_errors=True)

@@ -15,12 +15,11 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
+from rotonly_cli.io import atomic
 from rotonly_cli.io.types import View
 
 ACTIVE = "active"
@@ -154,23 +153,6 @@ def view_graph_document(graph: ViewGraph) -> dict:
     }
 
 
-def atomic_write_text(path: str | os.PathLike, text: str) -> None:
-    """Write ``text`` to a temporary sibling and rename it over ``path``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, name = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(handle, "w") as stream:
-            stream.write(text)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(name, 0o666 & ~umask)
-        os.replace(name, path)
-    except BaseException:
-        Path(name).unlink(missing_ok=True)
-        raise
-
-
 def write_view_graph_json(path: str | os.PathLike, graph: ViewGraph) -> None:
     """Per-edge diagnostics as JSON (sorted keys, fixed edge order: deterministic bytes)."""
-    atomic_write_text(path, json.dumps(view_graph_document(graph), indent=1, sort_keys=True) + "\n")
+    atomic.write_text(path, json.dumps(view_graph_document(graph), indent=1, sort_keys=True) + "\n")

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from rotonly_cli.errors import InputError
+from rotonly_cli.io import atomic
 from rotonly_cli.io.types import View
 from rotonly_cli.io.viewgraph import Edge, ViewGraph
 
@@ -65,18 +65,8 @@ def save_state(out_dir: str | os.PathLike, state: WorkspaceState) -> Path:
         "rotations": (np.full((n, 3, 3), np.nan) if state.rotations is None else state.rotations),
         "centers": (np.full((n, 3), np.nan) if state.centers is None else state.centers),
     }
-    out_dir.mkdir(parents=True, exist_ok=True)
-    handle, name = tempfile.mkstemp(prefix=f".{STATE_FILE}.", suffix=".npz", dir=out_dir)
-    os.close(handle)
-    try:
-        np.savez(name, **arrays)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(name, 0o666 & ~umask)  # mkstemp makes 0600; the state is an ordinary file
-        os.replace(name, out_dir / STATE_FILE)
-    except BaseException:
-        Path(name).unlink(missing_ok=True)
-        raise
+    with atomic.file_path(out_dir / STATE_FILE, suffix=".npz") as temporary:
+        np.savez(temporary, **arrays)
     return out_dir / STATE_FILE
 
 

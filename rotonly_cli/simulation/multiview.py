@@ -294,16 +294,14 @@ def save_multiview(out_dir, problem: MultiViewProblem, formats: tuple[str, ...] 
     points), and ``simulation.json`` (set-up parameters and the corrupted pairs).
     """
     import json
-    import shutil
-    import tempfile
     from pathlib import Path
+
+    from rotonly_cli.io import atomic
 
     out_dir = Path(out_dir)
     if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
         raise InputError("exists and is not an empty folder", path=out_dir, field="-o")
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
-    try:
+    with atomic.staging_dir(out_dir) as tmp:
         if "colmap" in formats:
             _writer("colmap", "write_database")(tmp / "database.db", problem.scene)
         if "openmvg" in formats:
@@ -315,10 +313,4 @@ def save_multiview(out_dir, problem: MultiViewProblem, formats: tuple[str, ...] 
                     corrupted_pairs=[list(map(int, key)) for key in problem.corrupted_pairs],
                     **{k: (v if not isinstance(v, tuple) else list(v)) for k, v in problem.parameters.items()})
         (tmp / "simulation.json").write_text(json.dumps(info, indent=2))
-        if out_dir.exists():
-            out_dir.rmdir()
-        tmp.rename(out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out_dir

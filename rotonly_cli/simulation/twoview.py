@@ -32,13 +32,13 @@ i.e. a half field of view of atan(480/800) ≈ 31° at 960×960.
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from rotonly_cli.errors import AlgorithmError, InputError
+from rotonly_cli.io import atomic
 
 SCENES: tuple[str, ...] = ("standard", "planar", "holoplane", "rankregular_line", "pure_rotation")
 NOISE_MODELS: tuple[str, ...] = ("uniform", "gaussian", "opengv")
@@ -267,14 +267,8 @@ def save_twoview(path: str | os.PathLike, problem: TwoViewProblem) -> Path:
     )
     for key, value in problem.extra.items():
         arrays[f"extra_{key}"] = np.asarray(value)
-    fd, tmp = tempfile.mkstemp(suffix=".npz", dir=path.parent, prefix=f".{path.stem}.")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic.file_path(path, ".npz") as temporary:
+        np.savez(temporary, **arrays)
     return path
 
 

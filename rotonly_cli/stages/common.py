@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.geometry import twoview as tv
-from rotonly_cli.io.viewgraph import ViewGraph, atomic_write_text
+from rotonly_cli.io import atomic
+from rotonly_cli.io.viewgraph import ViewGraph
 
 
 def edge_batch(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: list[int]) -> tv.EdgeBatch:
@@ -47,5 +48,5 @@ def _clean(value):
 def write_report(out_dir: str | os.PathLike, stage: str, report: dict) -> Path:
     """``out_dir/reports/<stage>.json`` (sorted keys)."""
     path = Path(out_dir) / "reports" / f"{stage}.json"
-    atomic_write_text(path, json.dumps(_clean(report), indent=1, sort_keys=True) + "\n")
+    atomic.write_text(path, json.dumps(_clean(report), indent=1, sort_keys=True) + "\n")
     return path
