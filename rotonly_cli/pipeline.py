@@ -30,11 +30,11 @@ from rotonly_cli.errors import AlgorithmError, InputError, RotonlyError
 from rotonly_cli.io.atomic import check_replaceable, make_staging_dir, replace_dir
 from rotonly_cli.geometry.scene import IdentificationOptions
 from rotonly_cli.geometry.trrm import TRRMOptions
-from rotonly_cli.io.types import Pose, SfMScene, Structure
-from rotonly_cli.io.viewgraph import ViewGraph, largest_component, write_view_graph_json
-from rotonly_cli.io.workspace import STATE_FILE, WorkspaceState, load_state, save_state
+from rotonly_cli.scene.types import Pose, SfMScene, Structure
+from rotonly_cli.scene.view_graph import ViewGraph, largest_component
+from rotonly_cli.io.workspace import (STATE_FILE, WorkspaceState, load_state, save_state, write_report,
+                                      write_view_graph_json)
 from rotonly_cli.stages.average import AverageOptions
-from rotonly_cli.stages.common import write_report
 from rotonly_cli.stages.load import LoadOptions
 
 logger = logging.getLogger(__name__)

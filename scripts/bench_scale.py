@@ -119,7 +119,7 @@ def simulate_to(out_dir: Path, num_views: int, num_points: int, setup: str, wind
 def rotation_errors(names: list[str], R_est: np.ndarray, gt: dict) -> dict:
     """Mean / median rotation error (deg) of the registered rows against gt.npz (evaluation.quality)."""
     from rotonly_cli.evaluation.quality import evaluate
-    from rotonly_cli.io.types import Pose, SfMScene, View
+    from rotonly_cli.scene.types import Pose, SfMScene, View
 
     gt_names = [str(n) for n in gt["names"]]
     gt_scene, estimate = SfMScene(source="simulation-gt"), SfMScene(source="bench")

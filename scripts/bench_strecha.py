@@ -62,7 +62,7 @@ import numpy as np
 from rotonly_cli.bench.common import code_version
 from rotonly_cli.evaluation.quality import evaluate
 from rotonly_cli.io import openmvg, strecha
-from rotonly_cli.io.types import Pose, SfMScene, View
+from rotonly_cli.scene.types import Pose, SfMScene, View
 
 #: OpenMVG 2.1 global SfM wall time on this machine type (data/strecha/README.md, "What the
 #: references reach"); the stored result is evaluated, the tool is not re-run.
@@ -199,7 +199,7 @@ def run_rotonly_stages(label: str, input_path: Path, gt: SfMScene) -> tuple[list
     rotation averaging on the same active edges after TRRM."""
     from rotonly_cli.pipeline import (RunOptions, average_stage, identify_stage, load_stage, optimize_stage,
                                       refine_stage)
-    from rotonly_cli.stages.common import view_index
+    from rotonly_cli.scene.view_graph import view_index
 
     times: dict[str, float] = {}
     start = time.perf_counter()

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.io.colmap import read_database, write_database
-from rotonly_cli.io.types import PairMatches, SfMScene
+from rotonly_cli.scene.types import PairMatches, SfMScene
 from rotonly_cli.stages.convert import convert
 
 SCENES = {"Herz-Jesus-P8": "herzjesu_p8", "fountain-P11": "fountain_p11"}

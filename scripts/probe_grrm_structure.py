@@ -48,7 +48,7 @@ def completed_graph(graph, edges: list[int], new_edge_min: int | None = None, qu
     share at least this many tracks (pose: none yet, GRRM takes it from the rotations).
     Returns (graph, matches added to existing edges, new edges)."""
     from rotonly_cli.geometry.tracks import build_tracks, pairs_within_tracks
-    from rotonly_cli.io.viewgraph import Edge
+    from rotonly_cli.scene.view_graph import Edge
 
     out = copy.deepcopy(graph)
     chosen = [out.edges[k] for k in edges]
@@ -136,8 +136,9 @@ def main(argv: list[str] | None = None) -> int:
     from rotonly_cli.pipeline import STAGE_FUNCTIONS, RunOptions, load_stage
     from rotonly_cli.stages.load import focal_length
     from rotonly_cli.geometry import kernels
-    from rotonly_cli.stages.common import edge_batch
-    from rotonly_cli.stages.optimize import optimize_graph, regular_edges
+    from rotonly_cli.scene.view_graph import edge_batch
+    from rotonly_cli.scene.view_graph import regular_edges
+    from rotonly_cli.stages.optimize import optimize_graph
     from rotonly_cli.stages.translate import translate_graph
 
     scene_dir = args.root / args.scene

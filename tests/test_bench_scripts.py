@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from rotonly_cli.geometry import so3
-from rotonly_cli.io.types import Pose, SfMScene, View
+from rotonly_cli.scene.types import Pose, SfMScene, View
 
 ROOT = Path(__file__).resolve().parents[1]
 FIXTURES = ROOT / "data_fixtures"
@@ -357,7 +357,7 @@ def test_global_mapper_runs_as_a_process_and_both_times_are_kept(tmp_path):
 # ============================================================================ probe_grrm_structure
 
 def _edge(i: int, j: int, matches) -> "Edge":
-    from rotonly_cli.io.viewgraph import Edge
+    from rotonly_cli.scene.view_graph import Edge
 
     edge = Edge(i=i, j=j, R_j_from_i=np.eye(3), t_dir=np.array([1.0, 0.0, 0.0]),
                 matches=np.array(matches, dtype=np.int64).reshape(-1, 2))
@@ -369,7 +369,7 @@ def test_completed_graph_adds_the_matches_tracks_imply():
     """Track a: 0:5 - 1:7 - 2:9 matched only along 0-1 and 1-2; edge 0-2 lacks (5, 9) and gets
     it; track b (0:1 - 1:2 - 3:4) implies pairs 0-3 and 1-3, which have no edge: new edges only
     when asked for and with enough tracks; an inconsistent track adds nothing."""
-    from rotonly_cli.io.viewgraph import ViewGraph
+    from rotonly_cli.scene.view_graph import ViewGraph
 
     graph = ViewGraph(views={v: None for v in range(4)},
                       edges=[_edge(0, 1, [[5, 7], [1, 2], [3, 3]]), _edge(1, 2, [[7, 9], [3, 4]]),

@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from rotonly_cli.cli import main
 from rotonly_cli.io import colmap, openmvg
-from rotonly_cli.io.types import Intrinsics, PairMatches, Pose, SfMScene, View
+from rotonly_cli.scene.types import Intrinsics, PairMatches, Pose, SfMScene, View
 
 FIXTURES = Path(__file__).resolve().parents[1] / "data_fixtures"
 HJ = FIXTURES / "herzjesu_p8"

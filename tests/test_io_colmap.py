@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from rotonly_cli.errors import InputError
 from rotonly_cli.io import colmap, openmvg
 from rotonly_cli.io.strecha import read_strecha_dir
-from rotonly_cli.io.types import Intrinsics, PairMatches, Pose, SfMScene, Structure, View
+from rotonly_cli.scene.types import Intrinsics, PairMatches, Pose, SfMScene, Structure, View
 
 FIXTURES = Path(__file__).resolve().parents[1] / "data_fixtures"
 HJ = FIXTURES / "herzjesu_p8"

@@ -11,7 +11,7 @@ import pytest
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.io import colmap
-from rotonly_cli.io.types import Intrinsics, Pose, SfMScene, Structure, View
+from rotonly_cli.scene.types import Intrinsics, Pose, SfMScene, Structure, View
 
 
 def _reference_model(scene: SfMScene, out_dir: Path, binary: bool) -> None:

@@ -12,7 +12,7 @@ import pytest
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.io import openmvg
-from rotonly_cli.io.types import Intrinsics, PairMatches, Pose, SfMScene, Structure, View
+from rotonly_cli.scene.types import Intrinsics, PairMatches, Pose, SfMScene, Structure, View
 
 FIXTURES = Path(__file__).resolve().parent.parent / "data_fixtures" / "openmvg_real"
 CUT_PROJECT = FIXTURES / "cut_project"

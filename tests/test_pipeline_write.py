@@ -10,7 +10,7 @@ import pytest
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.io import openmvg
-from rotonly_cli.io.types import Intrinsics, Pose, SfMScene, Structure, View
+from rotonly_cli.scene.types import Intrinsics, Pose, SfMScene, Structure, View
 from rotonly_cli.stages.convert import colmap_to_openmvg, renumber_views_by_name
 
 

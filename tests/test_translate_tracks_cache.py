@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from rotonly_cli.geometry.tracks import build_tracks
-from rotonly_cli.io.types import View
-from rotonly_cli.io.viewgraph import Edge, ViewGraph
+from rotonly_cli.scene.types import View
+from rotonly_cli.scene.view_graph import Edge, ViewGraph
 from rotonly_cli.stages import translate
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from rotonly_cli.io.types import SfMScene, View
+from rotonly_cli.scene.types import SfMScene, View
 from rotonly_cli.stages.triangulate import GREY, keypoint_colors, point_colors
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import click
 
 from rotonly_cli.errors import AlgorithmError, InputError
-from rotonly_cli.io.types import SfMScene
+from rotonly_cli.scene.types import SfMScene
 
 logger = logging.getLogger(__name__)
 

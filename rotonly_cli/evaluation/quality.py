@@ -22,7 +22,7 @@ import numpy as np
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.geometry import alignment, so3
-from rotonly_cli.io.types import SfMScene
+from rotonly_cli.scene.types import SfMScene
 
 MEDIAN_CONVENTION = "upper median: element n//2 of the sorted values (OpenMVG minMaxMeanMedian, formats.md §3.7)"
 

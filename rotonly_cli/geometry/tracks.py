@@ -82,7 +82,7 @@ def build_tracks(pair_keys: Sequence[tuple[int, int]], pair_matches: Sequence[np
         Components that contain two keypoints of one view are dropped
         (counted in ``num_inconsistent``).
     """
-    from scipy.sparse import coo_matrix  # lazily, like io.viewgraph
+    from scipy.sparse import coo_matrix  # lazily, like scene.view_graph
     from scipy.sparse.csgraph import connected_components
 
     if len(pair_keys) != len(pair_matches):

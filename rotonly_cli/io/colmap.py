@@ -35,7 +35,7 @@ import numpy as np
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.io import atomic
-from rotonly_cli.io.types import Intrinsics, PairMatches, Pose, SfMScene, Structure, View
+from rotonly_cli.scene.types import Intrinsics, PairMatches, Pose, SfMScene, Structure, View
 
 PathLike = str | os.PathLike
 logger = logging.getLogger(__name__)

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.errors import InputError
-from rotonly_cli.io.types import Intrinsics, Pose, SfMScene, View
+from rotonly_cli.scene.types import Intrinsics, Pose, SfMScene, View
 
 PathLike = str | os.PathLike
 PIXEL_OFFSET = 0.5  # COLMAP pixel = Strecha/OpenMVG pixel + 0.5

@@ -1,4 +1,5 @@
-"""The ``OUT/`` workspace state shared by ``rotonly run`` and the stage subcommands.
+"""The ``OUT/`` workspace files shared by ``rotonly run`` and the stage subcommands:
+``state.npz``, ``view_graph.json`` and ``reports/<stage>.json`` (formats: docs/formats.md §7).
 
 ``OUT/state.npz`` holds what a later stage needs and cannot cheaply recompute: the input it
 came from (re-read for keypoints, intrinsics and images), the view graph (every edge's pose,
@@ -17,8 +18,8 @@ import numpy as np
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.io import atomic
-from rotonly_cli.io.types import View
-from rotonly_cli.io.viewgraph import Edge, ViewGraph
+from rotonly_cli.scene.types import View
+from rotonly_cli.scene.view_graph import Edge, ViewGraph
 
 STATE_FILE = "state.npz"
 _EDGE_FIELDS = ("pose_source", "config", "scene_kind", "detection_value", "pure_rotation_ratio", "status",
@@ -106,3 +107,41 @@ def load_state(out_dir: str | os.PathLike) -> WorkspaceState:
                           None if np.all(np.isnan(rotations)) else rotations,
                           None if np.all(np.isnan(centers)) else centers, list(meta["stages"]),
                           dict(meta["options"]))
+
+
+def view_graph_document(graph: ViewGraph) -> dict:
+    return {
+        "views": [{"id": int(v), "name": graph.views[v].name} for v in graph.view_ids()],
+        "unregistered_views": [int(v) for v in graph.unregistered_views],
+        "counts": graph.counts(),
+        "edges": [edge.diagnostics() for edge in graph.edges],
+    }
+
+
+def write_view_graph_json(path: str | os.PathLike, graph: ViewGraph) -> None:
+    """Per-edge diagnostics as JSON (sorted keys, fixed edge order: deterministic bytes)."""
+    atomic.write_text(path, json.dumps(view_graph_document(graph), indent=1, sort_keys=True) + "\n")
+
+
+def _clean(value):
+    """JSON-safe copy: NaN/inf -> None, numpy scalars -> Python."""
+    if isinstance(value, dict):
+        return {str(k): _clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_clean(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _clean(value.tolist())
+    if isinstance(value, (np.floating, float)):
+        return float(value) if np.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return value
+
+
+def write_report(out_dir: str | os.PathLike, stage: str, report: dict) -> Path:
+    """``out_dir/reports/<stage>.json`` (sorted keys)."""
+    path = Path(out_dir) / "reports" / f"{stage}.json"
+    atomic.write_text(path, json.dumps(_clean(report), indent=1, sort_keys=True) + "\n")
+    return path

@@ -16,8 +16,7 @@ import numpy as np
 
 from rotonly_cli.errors import AlgorithmError
 from rotonly_cli.geometry.averaging import AveragingOptions, average_rotations
-from rotonly_cli.io.viewgraph import ViewGraph, largest_component
-from rotonly_cli.stages.common import view_index
+from rotonly_cli.scene.view_graph import ViewGraph, largest_component, view_index
 
 logger = logging.getLogger(__name__)
 OUTLIER_REASON = "rotation averaging outlier"

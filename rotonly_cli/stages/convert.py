@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.errors import InputError
-from rotonly_cli.io.types import SfMScene, Structure, View
+from rotonly_cli.scene.types import SfMScene, Structure, View
 
 logger = logging.getLogger(__name__)
 PathLike = str | os.PathLike

@@ -14,33 +14,11 @@ from functools import partial
 
 import numpy as np
 
-from rotonly_cli.geometry.scene import IdentificationOptions, SceneKind, identify
-from rotonly_cli.io.viewgraph import ViewGraph, largest_component
+from rotonly_cli.geometry.scene import IdentificationOptions, identify
+from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, filter_rotation_singular, kind_counts
 from rotonly_cli.parallel import map_edges, plan
-from rotonly_cli.stages.common import edge_batch
 
 logger = logging.getLogger(__name__)
-
-SINGULAR_REASON = "rotation singular (Holoplane / RankRegular-line)"
-
-
-def apply_kind_filter(graph: ViewGraph) -> int:
-    """Filter ROTATION_SINGULAR edges and re-check the largest component; returns the count."""
-    count = 0
-    for k in graph.active_edges():
-        if graph.edges[k].scene_kind == SceneKind.ROTATION_SINGULAR.value:
-            graph.edges[k].filter(SINGULAR_REASON)
-            count += 1
-    largest_component(graph)
-    return count
-
-
-def kind_counts(graph: ViewGraph, edges: list[int]) -> dict:
-    counts = {kind.value: 0 for kind in SceneKind}
-    for k in edges:
-        counts[graph.edges[k].scene_kind] = counts.get(graph.edges[k].scene_kind, 0) + 1
-    return counts
-
 
 def identify_edges(graph: ViewGraph, normalized: dict[int, np.ndarray],
                    options: IdentificationOptions = IdentificationOptions(), jobs: int = 1) -> dict:
@@ -62,7 +40,7 @@ def identify_edges(graph: ViewGraph, normalized: dict[int, np.ndarray],
             edge.detection_value = float(result.detection_value[row])
             edge.pure_rotation_ratio = float(result.pure_rotation_ratio[row])
     counts = kind_counts(graph, edges)
-    num_singular = apply_kind_filter(graph)
+    num_singular = filter_rotation_singular(graph)
     logger.info("identify: %d edges: %s; %d rotation-singular filtered", len(edges), counts, num_singular)
     return {"num_edges": len(edges), "kinds": counts, "num_filtered_rotation_singular": num_singular,
             "num_active_edges": len(graph.active_edges()), "unregistered_views": list(graph.unregistered_views),

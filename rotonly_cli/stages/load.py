@@ -21,8 +21,8 @@ import numpy as np
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.geometry.twoview import MIN_MATCHES
-from rotonly_cli.io.types import Intrinsics, SfMScene
-from rotonly_cli.io.viewgraph import Edge, ViewGraph, largest_component
+from rotonly_cli.scene.types import Intrinsics, SfMScene
+from rotonly_cli.scene.view_graph import Edge, ViewGraph, largest_component
 
 logger = logging.getLogger(__name__)
 

@@ -15,15 +15,9 @@ import time
 import numpy as np
 
 from rotonly_cli.errors import AlgorithmError
-from rotonly_cli.geometry.scene import SceneKind
-from rotonly_cli.io.viewgraph import ViewGraph, components
-from rotonly_cli.stages.common import edge_batch, view_index
+from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, largest_component_of, regular_edges, view_index
 
 logger = logging.getLogger(__name__)
-
-
-def regular_edges(graph: ViewGraph) -> list[int]:
-    return [k for k in graph.active_edges() if graph.edges[k].scene_kind == SceneKind.REGULAR.value]
 
 
 def optimize_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_world: np.ndarray,
@@ -44,13 +38,11 @@ def optimize_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_fr
     edges = [k for k in regular_edges(graph) if graph.edges[k].i in registered and graph.edges[k].j in registered]
     if not edges:
         return R_out, {"skipped": "no REGULAR edge", "time_s": time.perf_counter() - start}
-    # largest component of the REGULAR edges (ties: the one with the smallest view id)
+    # the largest component of the REGULAR edges
     touched = sorted({v for k in edges for v in (graph.edges[k].i, graph.edges[k].j)})
-    label = components(touched, [(graph.edges[k].i, graph.edges[k].j) for k in edges])
-    sizes = np.bincount(np.array([label[v] for v in touched]))
-    best = int(np.argmax(sizes))  # argmax: first maximum = component of the smallest view id
-    views = [v for v in touched if label[v] == best]
-    edges = [k for k in edges if label[graph.edges[k].i] == best]
+    views = largest_component_of(touched, [(graph.edges[k].i, graph.edges[k].j) for k in edges])
+    in_component = set(views)
+    edges = [k for k in edges if graph.edges[k].i in in_component]
     local = {v: r for r, v in enumerate(views)}
     edge_views = np.array([[local[graph.edges[k].i], local[graph.edges[k].j]] for k in edges], dtype=np.int64)
     sizes_kp = np.array([len(normalized[v]) for v in views], dtype=np.int64)

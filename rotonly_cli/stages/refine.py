@@ -1,7 +1,7 @@
 """Stage `refine`: TRRM (paper Alg. 2) on every active edge at once (lock-step batched LM).
 
 ``trrm.refine`` also re-identifies each edge at its refined rotation (PR/B/I is decided
-there), so the kind filter of ``stages.identify`` is applied again afterwards.
+there), so the kind filter (``scene.view_graph.filter_rotation_singular``) is applied again afterwards.
 """
 
 from __future__ import annotations
@@ -15,10 +15,8 @@ import numpy as np
 from rotonly_cli.geometry import so3
 from rotonly_cli.geometry.scene import IdentificationOptions
 from rotonly_cli.geometry.trrm import TRRMOptions, refine
-from rotonly_cli.io.viewgraph import ViewGraph
+from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, filter_rotation_singular, kind_counts
 from rotonly_cli.parallel import map_edges, plan
-from rotonly_cli.stages.common import edge_batch
-from rotonly_cli.stages.identify import apply_kind_filter, kind_counts
 
 logger = logging.getLogger(__name__)
 
@@ -58,7 +56,7 @@ def refine_edges(graph: ViewGraph, normalized: dict[int, np.ndarray], options: T
                                     "max": float(change.max())},
         })
     report["kinds"] = kind_counts(graph, edges)
-    report["num_filtered_rotation_singular"] = apply_kind_filter(graph)
+    report["num_filtered_rotation_singular"] = filter_rotation_singular(graph)
     report["num_active_edges"] = len(graph.active_edges())
     report["unregistered_views"] = list(graph.unregistered_views)
     report["time_s"] = time.perf_counter() - start

@@ -12,9 +12,7 @@ import numpy as np
 from rotonly_cli.errors import AlgorithmError
 from rotonly_cli.geometry.ligt import LiGTOptions, ligt_translations
 from rotonly_cli.geometry.tracks import build_tracks, gather_observations
-from rotonly_cli.io.viewgraph import ViewGraph
-from rotonly_cli.stages.common import view_index
-from rotonly_cli.stages.optimize import regular_edges
+from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, regular_edges, view_index
 
 logger = logging.getLogger(__name__)
 
@@ -40,7 +38,6 @@ def inlier_matches(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: l
                    R_cam_from_world: np.ndarray, min_match_weight: float = MIN_MATCH_WEIGHT) -> list[np.ndarray]:
     """The matches of ``edges`` without gross outliers at the global rotations."""
     from rotonly_cli.geometry.trrm import TRRMOptions, robust_match_weights
-    from rotonly_cli.stages.common import edge_batch
 
     matches = [graph.edges[k].matches for k in edges]
     if min_match_weight <= 0 or not edges:

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.geometry.triangulation import TriangulationOptions, triangulate_tracks
-from rotonly_cli.io.types import SfMScene, Structure
-from rotonly_cli.io.viewgraph import ViewGraph
+from rotonly_cli.scene.types import SfMScene, Structure
+from rotonly_cli.scene.view_graph import ViewGraph
 from rotonly_cli.stages.convert import observation_lists
 from rotonly_cli.stages.translate import graph_tracks
 

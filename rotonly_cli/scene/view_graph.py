@@ -1,4 +1,5 @@
-"""View graph of a reconstruction: views, edges with relative poses and per-edge diagnostics.
+"""View graph of a reconstruction: views, edges with relative poses and per-edge diagnostics,
+and the graph queries and filters the stages share.
 
 Data model of architecture.md "Data model". An edge (i, j) holds view ids with i < j,
 ``R_j_from_i`` / unit ``t_dir`` (= t_ij / ‖t_ij‖, COLMAP ``cam2_from_cam1`` with image1 = i)
@@ -6,24 +7,29 @@ and its inlier matches ``matches[:, 0]`` in view i, ``matches[:, 1]`` in view j.
 
 Filters never delete: they set ``status = "filtered"`` with a ``reason`` (first reason wins),
 and :func:`largest_component` is re-checked after each filter (architecture.md).
-``view_graph.json`` holds every edge's diagnostics, in edge order, with sorted keys, so two
-identical runs write identical bytes.
 """
 
 from __future__ import annotations
 
-import json
 import math
-import os
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from rotonly_cli.io import atomic
-from rotonly_cli.io.types import View
+from rotonly_cli.compat import StrEnum
+from rotonly_cli.geometry import twoview as tv
+from rotonly_cli.geometry.scene import SceneKind
+from rotonly_cli.scene.types import View
 
-ACTIVE = "active"
-FILTERED = "filtered"
+
+class EdgeStatus(StrEnum):
+    ACTIVE = "active"  #: used by the next stage
+    FILTERED = "filtered"  #: left out, with a reason (never deleted)
+
+
+ACTIVE = EdgeStatus.ACTIVE
+FILTERED = EdgeStatus.FILTERED
+SINGULAR_REASON = "rotation singular (Holoplane / RankRegular-line)"
 
 
 @dataclass
@@ -38,7 +44,7 @@ class Edge:
     scene_kind: str | None = None  # SceneKind value after identification
     detection_value: float = math.nan  # v_rs (paper §"Scene Identification")
     pure_rotation_ratio: float = math.nan  # ρ = f_pure / f_TRRM
-    status: str = ACTIVE
+    status: EdgeStatus = ACTIVE
     reason: str = ""
     residual_deg: float = math.nan  # angle of R_jᵀ R_ij R_i after rotation averaging
     trrm_initial_cost: float = math.nan
@@ -117,6 +123,21 @@ def components(view_ids: list[int], edges: list[tuple[int, int]]) -> dict[int, i
     return {v: int(label[k]) for v, k in index.items()}
 
 
+def largest_component_of(view_ids: list[int], edges: list[tuple[int, int]]) -> list[int]:
+    """Sorted view ids of the largest connected component of ``edges`` (views of
+    ``view_ids`` without an edge do not count); ties: the component holding the smallest
+    view id; [] without edges."""
+    label = components(view_ids, edges)
+    touched = {v for edge in edges for v in edge}
+    sizes: dict[int, int] = {}
+    for v in touched:
+        sizes[label[v]] = sizes.get(label[v], 0) + 1
+    if not sizes:
+        return []
+    best = min(sizes, key=lambda c: (-sizes[c], min(v for v in touched if label[v] == c)))
+    return sorted(v for v in touched if label[v] == best)
+
+
 def largest_component(graph: ViewGraph, reason: str = "outside largest component") -> list[int]:
     """Keep the largest connected component of the active edges.
 
@@ -126,33 +147,49 @@ def largest_component(graph: ViewGraph, reason: str = "outside largest component
     """
     view_ids = graph.view_ids()
     active = graph.active_edges()
-    label = components(view_ids, [(graph.edges[k].i, graph.edges[k].j) for k in active])
-    touched = {v for k in active for v in (graph.edges[k].i, graph.edges[k].j)}
-    sizes: dict[int, int] = {}
-    for v in touched:
-        sizes[label[v]] = sizes.get(label[v], 0) + 1
-    if not sizes:
-        graph.unregistered_views = view_ids
-        return []
-    best = min(sizes, key=lambda c: (-sizes[c], min(v for v in touched if label[v] == c)))
-    keep = sorted(v for v in touched if label[v] == best)
-    for k in active:
-        if label[graph.edges[k].i] != best:
-            graph.edges[k].filter(reason)
+    keep = largest_component_of(view_ids, [(graph.edges[k].i, graph.edges[k].j) for k in active])
     kept = set(keep)
+    for k in active:
+        if graph.edges[k].i not in kept:
+            graph.edges[k].filter(reason)
     graph.unregistered_views = [v for v in view_ids if v not in kept]
     return keep
 
 
-def view_graph_document(graph: ViewGraph) -> dict:
-    return {
-        "views": [{"id": int(v), "name": graph.views[v].name} for v in graph.view_ids()],
-        "unregistered_views": [int(v) for v in graph.unregistered_views],
-        "counts": graph.counts(),
-        "edges": [edge.diagnostics() for edge in graph.edges],
-    }
+def regular_edges(graph: ViewGraph) -> list[int]:
+    """Active REGULAR edges: the ones whose matches constrain a translation."""
+    return [k for k in graph.active_edges() if graph.edges[k].scene_kind == SceneKind.REGULAR.value]
 
 
-def write_view_graph_json(path: str | os.PathLike, graph: ViewGraph) -> None:
-    """Per-edge diagnostics as JSON (sorted keys, fixed edge order: deterministic bytes)."""
-    atomic.write_text(path, json.dumps(view_graph_document(graph), indent=1, sort_keys=True) + "\n")
+def filter_rotation_singular(graph: ViewGraph) -> int:
+    """Filter ROTATION_SINGULAR edges and re-check the largest component; returns the count."""
+    count = 0
+    for k in graph.active_edges():
+        if graph.edges[k].scene_kind == SceneKind.ROTATION_SINGULAR.value:
+            graph.edges[k].filter(SINGULAR_REASON)
+            count += 1
+    largest_component(graph)
+    return count
+
+
+def kind_counts(graph: ViewGraph, edges: list[int]) -> dict:
+    """Number of ``edges`` of each scene kind."""
+    counts = {kind.value: 0 for kind in SceneKind}
+    for k in edges:
+        counts[graph.edges[k].scene_kind] = counts.get(graph.edges[k].scene_kind, 0) + 1
+    return counts
+
+
+def view_index(graph: ViewGraph) -> dict[int, int]:
+    """view id -> row of the (n, ...) rotation / centre arrays (sorted view ids)."""
+    return {v: k for k, v in enumerate(graph.view_ids())}
+
+
+def edge_batch(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: list[int]) -> tv.EdgeBatch:
+    """EdgeBatch (z = 1 normalized coordinates) of the matches of ``edges``, in that order."""
+    if not edges:
+        return tv.EdgeBatch(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(1, dtype=np.int64))
+    x_i = np.concatenate([normalized[graph.edges[k].i][graph.edges[k].matches[:, 0]] for k in edges])
+    x_j = np.concatenate([normalized[graph.edges[k].j][graph.edges[k].matches[:, 1]] for k in edges])
+    counts = np.array([graph.edges[k].num_inliers for k in edges], dtype=np.int64)
+    return tv.pack_flat(x_i, x_j, np.concatenate([[0], np.cumsum(counts)]))
