@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.errors import AlgorithmError, InputError, RotonlyError
+from rotonly_cli.io.detect import InputKind
 from rotonly_cli.io.atomic import check_replaceable, make_staging_dir, replace_dir
 from rotonly_cli.geometry.scene import IdentificationOptions
 from rotonly_cli.geometry.trrm import TRRMOptions
@@ -62,7 +63,7 @@ class Run:
     """Everything the stages produce, in memory."""
 
     input_path: str
-    input_kind: str
+    input_kind: InputKind
     scene: SfMScene
     graph: ViewGraph
     options: RunOptions
@@ -142,7 +143,7 @@ def image_root(run: Run) -> Path | None:
     if run.options.image_path:
         return Path(run.options.image_path)
     input_path = Path(run.input_path)
-    if run.input_kind == "colmap-db":
+    if run.input_kind == InputKind.COLMAP_DB:
         candidate = input_path.parent / "images"
         return candidate if candidate.is_dir() else None
     if not run.scene.root_path:
@@ -187,7 +188,7 @@ def write_outputs(out_dir: Path, run: Run) -> SfMScene:
         raise AlgorithmError("no view received a pose (rotation and centre)")
     # COLMAP input: OpenMVG ids in file-name order (what OpenMVG's own tools, evalQuality
     # included, expect); the COLMAP model keeps the database's ids
-    openmvg_scene = renumber_views_by_name(colmap_to_openmvg(scene)) if run.input_kind == "colmap-db" else scene
+    openmvg_scene = renumber_views_by_name(colmap_to_openmvg(scene)) if run.input_kind == InputKind.COLMAP_DB else scene
     openmvg.write_sfm_data(out_dir / "sfm_data.json", openmvg_scene)
     colmap.write_model(out_dir / "sparse", scene, binary=True)
     return scene
@@ -207,20 +208,9 @@ def write_workspace(out_dir: Path, run: Run, stages_done: list[str]) -> None:
 
 def load_ground_truth(path: str | Path) -> SfMScene:
     """GT for --gt: a Strecha folder, an OpenMVG sfm_data.json or a COLMAP model."""
-    from rotonly_cli.io import colmap, openmvg, strecha
+    from rotonly_cli.io.detect import read_scene
 
-    path = Path(path)
-    if not path.exists():
-        raise InputError("does not exist", path=str(path), field="--gt")
-    if path.is_file():
-        return openmvg.read_sfm_data(path)
-    if (path / strecha.GT_SUBDIR).is_dir() or any(path.glob("*.camera")):
-        return strecha.read_ground_truth(path)
-    if colmap.is_model_dir(path):
-        return colmap.read_model(path)
-    if (path / "sfm_data.json").is_file():
-        return openmvg.read_sfm_data(path / "sfm_data.json")
-    raise InputError("neither a Strecha folder, an sfm_data.json nor a COLMAP model", path=str(path), field="--gt")
+    return read_scene(path, field="--gt")
 
 
 def ground_truth_for(options: RunOptions, stages: tuple[str, ...] | list[str]) -> SfMScene | None:

@@ -35,7 +35,7 @@ matches.e.bin, global/sfm_data.json}; data/strecha/README.md), in the same run:
   tracks (not a method of rotonly: it shows how far GRRM's optimum is from BA's).
 
 One evaluator for all: ``rotonly_cli.evaluation.quality.evaluate`` against
-``rotonly_cli.io.strecha.read_ground_truth(scene)``: rotation error (geodesic after the best
+``rotonly_cli.io.detect.read_ground_truth(scene)``: rotation error (geodesic after the best
 global rotation, the README's metric; mean and OpenMVG's upper median), position error after the
 similarity on centres (GT units; "–" for rotation-only estimates), number registered, time.
 Writes RESULTS_DIR/results.json and RESULTS_DIR/table.md atomically; never writes into ROOT
@@ -61,7 +61,7 @@ import numpy as np
 
 from rotonly_cli.bench.common import code_version
 from rotonly_cli.evaluation.quality import evaluate
-from rotonly_cli.io import openmvg, strecha
+from rotonly_cli.io import detect, openmvg
 from rotonly_cli.scene.types import Pose, SfMScene, View
 
 #: OpenMVG 2.1 global SfM wall time on this machine type (data/strecha/README.md, "What the
@@ -523,7 +523,7 @@ def check_openmvg_bin(openmvg_bin: Path) -> str | None:
 def bench_scene(scene_dir: Path, work: Path, log_dir: Path, threads: int, skip_mapper: bool,
                 openmvg_bin: Path | None = None, timing_rounds: int = 1) -> list[MethodResult]:
     name = scene_dir.name
-    gt = strecha.read_ground_truth(scene_dir)
+    gt = detect.read_ground_truth(scene_dir)
     database = scene_dir / "database.db"
     project = scene_dir / "openmvg" / "sfm_data.json"
     results: list[MethodResult] = []
@@ -698,14 +698,14 @@ def main(argv: list[str] | None = None) -> int:
     results_dir = args.output.resolve()
     if results_dir.is_relative_to(root):
         parser.error("the results folder must not lie inside ROOT (inputs are never modified)")
-    scene_dirs = sorted(p for p in root.iterdir() if p.is_dir() and (p / strecha.GT_SUBDIR).is_dir())
+    scene_dirs = sorted(p for p in root.iterdir() if p.is_dir() and (p / detect.GT_SUBDIR).is_dir())
     if args.scenes:
         scene_dirs = [p for p in scene_dirs if p.name in args.scenes]
         unknown = set(args.scenes) - {p.name for p in scene_dirs}
         if unknown:
             parser.error(f"unknown scenes: {', '.join(sorted(unknown))}")
     if not scene_dirs:
-        parser.error(f"no scene folder with {strecha.GT_SUBDIR}/ under {root}")
+        parser.error(f"no scene folder with {detect.GT_SUBDIR}/ under {root}")
     openmvg_bin = args.openmvg_bin.resolve() if args.openmvg_bin is not None else None
     if openmvg_bin is not None and check_openmvg_bin(openmvg_bin):
         parser.error(f"--openmvg-bin: {check_openmvg_bin(openmvg_bin)}")

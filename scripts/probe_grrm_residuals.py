@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from rotonly_cli.bench.strecha import gt_poses_for, gt_track_residuals
     from rotonly_cli.geometry.alignment import rotation_errors_after_alignment
-    from rotonly_cli.io.strecha import read_ground_truth
+    from rotonly_cli.io.detect import read_ground_truth
     from rotonly_cli.pipeline import STAGE_FUNCTIONS, Run, RunOptions, load_stage
     from rotonly_cli.scene.view_graph import view_index
     from rotonly_cli.stages.load import focal_length

@@ -233,10 +233,10 @@ def test_openmvg_global_rerun_is_timed_converted_and_evaluated(tmp_path: Path):
     process wall time and its own "Total Sfm took" line are kept, its result is evaluated."""
     from dataclasses import replace
 
-    from rotonly_cli.io import openmvg, strecha
+    from rotonly_cli.io import detect, openmvg
 
     scene_dir = FIXTURES / "herzjesu_p8"
-    gt = strecha.read_ground_truth(scene_dir)
+    gt = detect.read_ground_truth(scene_dir)
     result_scene = replace(gt, intrinsics={k: replace(v, model="pinhole", params=v.params[[0, 2, 3]])
                                            for k, v in gt.intrinsics.items()})
     openmvg.write_sfm_data(tmp_path / "result.json", result_scene)
@@ -339,10 +339,10 @@ def test_global_mapper_runs_as_a_process_and_both_times_are_kept(tmp_path):
     """The pycolmap global mapper reference runs in a child process: its call time is time_s
     (the data README's measure), its whole process wall time is extra, and ratio_lines
     reports rotonly's wall time over both."""
-    from rotonly_cli.io import strecha
+    from rotonly_cli.io import detect
 
     scene_dir = FIXTURES / "herzjesu_p8"
-    gt = strecha.read_ground_truth(scene_dir)
+    gt = detect.read_ground_truth(scene_dir)
     before = _digest(scene_dir / "database.db")
     mapper = bench_strecha.run_global_mapper(scene_dir / "database.db", gt, threads=2)
     assert _digest(scene_dir / "database.db") == before

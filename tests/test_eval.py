@@ -69,7 +69,7 @@ def _read_sfm_data(path: Path) -> SfMScene:
 def _read_strecha(scene_dir: Path) -> SfMScene:
     """The project's Strecha reader when it is there (io/strecha.py), else the minimal parser."""
     try:
-        from rotonly_cli.io.strecha import read_ground_truth
+        from rotonly_cli.io.detect import read_ground_truth
     except ImportError:
         return _read_strecha_minimal(scene_dir)
     return read_ground_truth(scene_dir)
@@ -308,12 +308,12 @@ def minimal_readers(monkeypatch):
     """Route the CLI's lazy reader look-up to this file's minimal parsers (format detection,
     exit codes and output handling are what these CLI tests check; the real readers have their
     own tests and the end-to-end test below)."""
-    from rotonly_cli.cli import eval as eval_cli
+    from rotonly_cli.io import detect
 
-    readers = {("strecha", "read_ground_truth"): lambda p: _read_strecha_minimal(
+    readers = {("strecha", "read_strecha_dir"): lambda p: _read_strecha_minimal(
                    Path(p) if (Path(p) / "gt_dense_cameras").is_dir() else Path(p).parent),
                ("openmvg", "read_sfm_data"): lambda p: _read_sfm_data_minimal(Path(p))}
-    monkeypatch.setattr(eval_cli, "_reader", lambda module, name: readers[(module, name)])
+    monkeypatch.setattr(detect, "_reader", lambda module, name: readers[(module, name)])
 
 
 def test_cli_writes_report_and_prints_table(tmp_path, capsys, minimal_readers):

@@ -10,7 +10,8 @@ import pytest
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.io import colmap, openmvg
-from rotonly_cli.io.strecha import read_camera_file, read_ground_truth, read_strecha_dir
+from rotonly_cli.io.detect import read_ground_truth
+from rotonly_cli.io.strecha import read_camera_file, read_strecha_dir
 
 FIXTURES = Path(__file__).resolve().parents[1] / "data_fixtures"
 HJ = FIXTURES / "herzjesu_p8"

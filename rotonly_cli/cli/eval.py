@@ -8,51 +8,16 @@ from pathlib import Path
 
 import click
 
-from rotonly_cli.errors import AlgorithmError, InputError
 from rotonly_cli.scene.types import SfMScene
 
 logger = logging.getLogger(__name__)
 
 
-def _is_colmap_model(directory: Path) -> bool:
-    return any((directory / f"cameras.{ext}").is_file() and (directory / f"images.{ext}").is_file()
-               for ext in ("bin", "txt"))
-
-
-def _reader(module: str, name: str):
-    """Readers are imported lazily: the CLI loads fast and only needs the format it reads."""
-    import importlib
-
-    try:
-        return getattr(importlib.import_module(f"rotonly_cli.io.{module}"), name)
-    except (ModuleNotFoundError, AttributeError) as exc:
-        raise AlgorithmError(f"reader rotonly_cli.io.{module}.{name} is not available: {exc}") from exc
-
-
 def load_scene(path: str | Path, role: str) -> SfMScene:
-    """Read GT or estimate: a Strecha folder (GT only), an OpenMVG sfm_data file or a COLMAP model.
+    """Read GT or estimate (``role`` "gt" or "estimate"; a Strecha folder is GT only)."""
+    from rotonly_cli.io.detect import read_scene
 
-    ``role`` is "gt" or "estimate" (a Strecha folder is accepted as GT only).
-    """
-    path = Path(path)
-    option = "--gt" if role == "gt" else "ESTIMATE"
-    if not path.exists():
-        raise InputError("does not exist", path=str(path), field=option)
-    if path.is_file():
-        if path.suffix.lower() != ".json":
-            raise InputError("expected an OpenMVG sfm_data .json file or a folder", path=str(path), field=option)
-        return _reader("openmvg", "read_sfm_data")(str(path))
-    if role == "gt" and ((path / "gt_dense_cameras").is_dir() or any(path.glob("*.camera"))):
-        return _reader("strecha", "read_ground_truth")(str(path))
-    if _is_colmap_model(path):
-        return _reader("colmap", "read_model")(str(path))
-    if (path / "sfm_data.json").is_file():  # a `rotonly run` output folder
-        return _reader("openmvg", "read_sfm_data")(str(path / "sfm_data.json"))
-    if (path / "sparse").is_dir() and _is_colmap_model(path / "sparse"):
-        return _reader("colmap", "read_model")(str(path / "sparse"))
-    expected = "gt_dense_cameras/, *.camera, " if role == "gt" else ""
-    raise InputError(f"folder holds none of {expected}sfm_data.json, a COLMAP model (cameras/images .bin|.txt)",
-                     path=str(path), field=option)
+    return read_scene(path, field="--gt" if role == "gt" else "ESTIMATE", ground_truth=role == "gt")
 
 
 @click.command("eval")

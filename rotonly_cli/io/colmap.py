@@ -35,12 +35,12 @@ import numpy as np
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.io import atomic
+from rotonly_cli.io.detect import is_colmap_model, is_sqlite
 from rotonly_cli.scene.types import Intrinsics, PairMatches, Pose, SfMScene, Structure, View
 
 PathLike = str | os.PathLike
 logger = logging.getLogger(__name__)
 
-SQLITE_MAGIC = b"SQLite format 3\x00"
 # Tables read_database needs (formats.md §4.1).
 REQUIRED_TABLES = ("cameras", "images", "keypoints", "two_view_geometries")
 # OpenMVG PairMatches.config -> COLMAP TwoViewGeometry config name (formats.md §4.5). A
@@ -48,7 +48,6 @@ REQUIRED_TABLES = ("cameras", "images", "keypoints", "two_view_geometries")
 _CONFIG_FROM_OPENMVG = {"E": "CALIBRATED", "F": "UNCALIBRATED", "H": "PLANAR", None: "CALIBRATED"}
 # Verified-and-rejected configurations: not a usable pair.
 _REJECTED_CONFIGS = ("UNDEFINED", "DEGENERATE", "WATERMARK")
-MODEL_FILE_STEMS = ("cameras", "images", "points3D")
 
 
 def _pycolmap():
@@ -201,12 +200,7 @@ def check_database(path: PathLike) -> Path:
         raise InputError("no such file", path=str(path))
     if not path.is_file():
         raise InputError("is not a file (expected a COLMAP database)", path=str(path))
-    try:
-        with open(path, "rb") as stream:
-            header = stream.read(len(SQLITE_MAGIC))
-    except OSError as exc:
-        raise InputError(f"cannot read: {exc.strerror}", path=str(path)) from None
-    if header != SQLITE_MAGIC:
+    if not is_sqlite(path):
         raise InputError("not an SQLite file (expected a COLMAP database)", path=str(path))
     try:
         # immutable=1: no locks and no -wal/-shm sidecars next to the input (pycolmap
@@ -628,14 +622,6 @@ def write_model(out_dir: PathLike, scene: SfMScene, binary: bool = True) -> None
             reconstruction.write_text(str(staging))
 
 
-def is_model_dir(path: PathLike) -> bool:
-    """True if ``path`` holds cameras/images/points3D as .bin or .txt."""
-    path = Path(path)
-    return path.is_dir() and any(
-        all((path / f"{stem}{ext}").is_file() for stem in MODEL_FILE_STEMS)
-        for ext in (".bin", ".txt"))
-
-
 def read_model(path: PathLike) -> SfMScene:
     """COLMAP sparse model folder -> SfMScene with cameras, (registered) views, poses,
     keypoints = the images' points2D, normalized, and structure with tracks and colours."""
@@ -643,7 +629,7 @@ def read_model(path: PathLike) -> SfMScene:
     path = Path(path)
     if not path.exists():
         raise InputError("no such folder", path=str(path))
-    if not is_model_dir(path):
+    if not is_colmap_model(path):
         raise InputError("not a COLMAP model (needs cameras, images, points3D .bin or .txt)",
                          path=str(path))
     try:

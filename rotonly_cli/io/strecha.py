@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.errors import InputError
+from rotonly_cli.io.detect import GT_SUBDIR
 from rotonly_cli.scene.types import Intrinsics, Pose, SfMScene, View
 
 PathLike = str | os.PathLike
 PIXEL_OFFSET = 0.5  # COLMAP pixel = Strecha/OpenMVG pixel + 0.5
-GT_SUBDIR = "gt_dense_cameras"
 
 
 def read_camera_file(path: PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int] | None]:
@@ -81,25 +81,3 @@ def read_strecha_dir(path: PathLike) -> SfMScene:
                                     height=height)
         scene.poses[view_id] = Pose(R_cam_from_world=R_cam_to_world.T.copy(), center=center)
     return scene
-
-
-def read_ground_truth(path: PathLike) -> SfMScene:
-    """Ground truth from a Strecha folder (or its ``gt_dense_cameras``), an OpenMVG
-    ``sfm_data.json`` or a COLMAP model folder."""
-    path = Path(path)
-    if not path.exists():
-        raise InputError("no such file or folder", path=str(path))
-    if path.is_file():
-        if path.suffix.lower() == ".json":
-            from rotonly_cli.io.openmvg import read_sfm_data  # lazy: optional dependency
-
-            return read_sfm_data(path)
-        raise InputError("ground truth must be a Strecha folder, an sfm_data.json or a COLMAP "
-                         "model folder", path=str(path))
-    from rotonly_cli.io.colmap import is_model_dir, read_model
-
-    if is_model_dir(path):
-        return read_model(path)
-    if (path / "sparse").is_dir() and is_model_dir(path / "sparse"):
-        return read_model(path / "sparse")
-    return read_strecha_dir(path)

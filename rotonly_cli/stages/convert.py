@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.errors import InputError
+from rotonly_cli.io.detect import InputKind, detect_input
 from rotonly_cli.scene.types import SfMScene, Structure, View
 
 logger = logging.getLogger(__name__)
@@ -111,32 +112,6 @@ def renumber_views_by_name(scene: SfMScene) -> SfMScene:
                    pairs={})
 
 
-def detect_input(path: Path) -> str:
-    """"colmap-db", "openmvg" (an sfm_data.json) or "colmap-model"; InputError otherwise."""
-    from rotonly_cli.io.colmap import SQLITE_MAGIC, is_model_dir
-
-    if not path.exists():
-        raise InputError("no such file or folder", path=str(path))
-    if path.is_dir():
-        if is_model_dir(path):
-            return "colmap-model"
-        if (path / "sfm_data.json").is_file():
-            return "openmvg"
-        raise InputError("folder is neither a COLMAP model (cameras/images/points3D .bin|.txt) "
-                         "nor an OpenMVG project (sfm_data.json)", path=str(path))
-    try:
-        with open(path, "rb") as stream:
-            header = stream.read(len(SQLITE_MAGIC))
-    except OSError as exc:
-        raise InputError(f"cannot read: {exc.strerror}", path=str(path)) from None
-    if header == SQLITE_MAGIC:
-        return "colmap-db"
-    if path.suffix.lower() == ".json":
-        return "openmvg"
-    raise InputError("not an SQLite file (COLMAP database) nor an OpenMVG sfm_data .json",
-                     path=str(path))
-
-
 def _output_kind(path: Path) -> str:
     suffix = path.suffix.lower()
     return {".db": "colmap-db", ".json": "sfm_data"}.get(suffix, "folder")
@@ -157,13 +132,13 @@ def convert(input_path: PathLike, output_path: PathLike, matches_dir: PathLike |
     if output_kind == "folder" and output_path.exists() and not output_path.is_dir():
         raise InputError("exists and is not a folder", path=str(output_path))
 
-    if input_kind == "openmvg":
+    if input_kind == InputKind.OPENMVG:
         sfm_data = input_path / "sfm_data.json" if input_path.is_dir() else input_path
         if output_kind == "colmap-db":
             scene = openmvg.read_project(sfm_data, matches_dir)
         else:
             scene = openmvg.read_sfm_data(sfm_data)
-    elif input_kind == "colmap-db":
+    elif input_kind == InputKind.COLMAP_DB:
         scene = colmap.read_database(input_path)
     else:
         scene = colmap.read_model(input_path)
@@ -173,8 +148,8 @@ def convert(input_path: PathLike, output_path: PathLike, matches_dir: PathLike |
             colmap.write_database(output_path, scene)
         elif output_kind == "sfm_data":
             openmvg.write_sfm_data(output_path, colmap_to_openmvg(scene)
-                                   if input_kind != "openmvg" else scene)
-        elif input_kind == "openmvg":
+                                   if input_kind != InputKind.OPENMVG else scene)
+        elif input_kind == InputKind.OPENMVG:
             if not scene.poses:
                 raise InputError("no poses (extrinsics) to write as a COLMAP model",
                                  path=str(input_path), field="extrinsics")

@@ -21,6 +21,7 @@ import numpy as np
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.geometry.twoview import MIN_MATCHES
+from rotonly_cli.io.detect import InputKind, detect_input
 from rotonly_cli.scene.types import Intrinsics, SfMScene
 from rotonly_cli.scene.view_graph import Edge, ViewGraph, largest_component
 
@@ -67,13 +68,12 @@ class LoadOptions:
 def read_input(input_path: str | Path, matches_dir: str | Path | None = None) -> tuple[SfMScene, str]:
     """(scene, kind) for a COLMAP database or an OpenMVG sfm_data.json (+ features, matches)."""
     from rotonly_cli.io import colmap, openmvg
-    from rotonly_cli.stages.convert import detect_input
 
     input_path = Path(input_path)
     kind = detect_input(input_path)
-    if kind == "colmap-db":
+    if kind == InputKind.COLMAP_DB:
         return colmap.read_database(input_path), kind
-    if kind == "openmvg":
+    if kind == InputKind.OPENMVG:
         sfm_data = input_path / "sfm_data.json" if input_path.is_dir() else input_path
         scene = openmvg.read_project(sfm_data, matches_dir)
         if not scene.pairs:

@@ -1,0 +1,102 @@
+"""Every format sniff: what a path holds, recognised by content (SQLite magic, COLMAP model
+files, ``sfm_data.json``, Strecha ``.camera`` files), and the one reader of ground truths and
+estimates built on it (``rotonly eval``, ``rotonly run --gt``, the benchmarks)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from rotonly_cli.compat import StrEnum
+from rotonly_cli.errors import InputError
+from rotonly_cli.scene.types import SfMScene
+
+PathLike = str | os.PathLike
+SQLITE_MAGIC = b"SQLite format 3\x00"
+MODEL_FILE_STEMS = ("cameras", "images", "points3D")
+GT_SUBDIR = "gt_dense_cameras"
+
+
+class InputKind(StrEnum):
+    COLMAP_DB = "colmap-db"  #: a COLMAP database (SQLite)
+    OPENMVG = "openmvg"  #: an OpenMVG sfm_data.json (or a folder holding one)
+    COLMAP_MODEL = "colmap-model"  #: a COLMAP sparse model folder
+
+
+def is_sqlite(path: PathLike) -> bool:
+    """True if the file starts with SQLite's magic; InputError if it cannot be read."""
+    try:
+        with open(path, "rb") as stream:
+            return stream.read(len(SQLITE_MAGIC)) == SQLITE_MAGIC
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc.strerror}", path=str(path)) from None
+
+
+def is_colmap_model(path: PathLike) -> bool:
+    """True if ``path`` holds cameras/images/points3D as .bin or .txt."""
+    path = Path(path)
+    return path.is_dir() and any(
+        all((path / f"{stem}{ext}").is_file() for stem in MODEL_FILE_STEMS)
+        for ext in (".bin", ".txt"))
+
+
+def is_strecha_folder(path: PathLike) -> bool:
+    """A Strecha scene folder (with ``gt_dense_cameras/``) or that folder itself."""
+    path = Path(path)
+    return (path / GT_SUBDIR).is_dir() or any(path.glob("*.camera"))
+
+
+def detect_input(path: Path) -> InputKind:
+    """The kind of a `rotonly run` / `rotonly convert` input; InputError otherwise."""
+    if not path.exists():
+        raise InputError("no such file or folder", path=str(path))
+    if path.is_dir():
+        if is_colmap_model(path):
+            return InputKind.COLMAP_MODEL
+        if (path / "sfm_data.json").is_file():
+            return InputKind.OPENMVG
+        raise InputError("folder is neither a COLMAP model (cameras/images/points3D .bin|.txt) "
+                         "nor an OpenMVG project (sfm_data.json)", path=str(path))
+    if is_sqlite(path):
+        return InputKind.COLMAP_DB
+    if path.suffix.lower() == ".json":
+        return InputKind.OPENMVG
+    raise InputError("not an SQLite file (COLMAP database) nor an OpenMVG sfm_data .json",
+                     path=str(path))
+
+
+def _reader(module: str, name: str):
+    """Readers are imported lazily: the CLI loads fast and only needs the format it reads."""
+    import importlib
+
+    return getattr(importlib.import_module(f"rotonly_cli.io.{module}"), name)
+
+
+def read_scene(path: PathLike, field: str | None = None, ground_truth: bool = True) -> SfMScene:
+    """A ground truth or an estimate: an OpenMVG sfm_data .json file, a Strecha folder (its
+    ``gt_dense_cameras/`` or the folder holding it; ground truth only), a COLMAP model, or a
+    folder holding ``sfm_data.json`` or a COLMAP model in ``sparse/`` (a `rotonly run` OUT).
+    ``field`` names the option in error messages."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError("no such file or folder", path=str(path), field=field)
+    if path.is_file():
+        if path.suffix.lower() != ".json":
+            raise InputError("expected an OpenMVG sfm_data .json file or a folder", path=str(path), field=field)
+        return _reader("openmvg", "read_sfm_data")(str(path))
+    if ground_truth and is_strecha_folder(path):
+        return _reader("strecha", "read_strecha_dir")(str(path))
+    if is_colmap_model(path):
+        return _reader("colmap", "read_model")(str(path))
+    if (path / "sfm_data.json").is_file():
+        return _reader("openmvg", "read_sfm_data")(str(path / "sfm_data.json"))
+    if is_colmap_model(path / "sparse"):
+        return _reader("colmap", "read_model")(str(path / "sparse"))
+    expected = f"{GT_SUBDIR}/, *.camera, " if ground_truth else ""
+    raise InputError(f"folder holds none of {expected}sfm_data.json, a COLMAP model (cameras/images .bin|.txt)",
+                     path=str(path), field=field)
+
+
+def read_ground_truth(path: PathLike) -> SfMScene:
+    """:func:`read_scene` of a ground truth."""
+    return read_scene(path, ground_truth=True)
