@@ -31,7 +31,8 @@ from rotonly_cli.io.detect import InputKind
 from rotonly_cli.io.atomic import check_replaceable, make_staging_dir, replace_dir
 from rotonly_cli.geometry.scene import IdentificationOptions
 from rotonly_cli.geometry.trrm import TRRMOptions
-from rotonly_cli.scene.types import Pose, SfMScene, Structure
+from rotonly_cli.scene.tracks import TrackCache
+from rotonly_cli.scene.types import SfMScene, Structure
 from rotonly_cli.scene.view_graph import ViewGraph, largest_component
 from rotonly_cli.io.workspace import (STATE_FILE, WorkspaceState, load_state, save_state, write_report,
                                       write_view_graph_json)
@@ -73,6 +74,8 @@ class Run:
     reports: dict = field(default_factory=dict)
     #: keypoint colours being decoded on a thread since loading (stages.triangulate)
     keypoint_rgb: Future | None = None
+    #: tracks built by translate and reused by triangulate (scene/tracks)
+    tracks: TrackCache = field(default_factory=TrackCache)
 
 
 # ============================================================================ stages in memory
@@ -134,7 +137,8 @@ def optimize_stage(run: Run) -> None:
 def translate_stage(run: Run) -> None:
     from rotonly_cli.stages.translate import translate_graph
 
-    run.centers, run.reports["translate"] = translate_graph(run.graph, run.scene.normalized, run.rotations)
+    run.centers, run.reports["translate"] = translate_graph(run.graph, run.scene.normalized, run.rotations,
+                                                            track_cache=run.tracks)
 
 
 def image_root(run: Run) -> Path | None:
@@ -157,7 +161,8 @@ def triangulate_stage(run: Run) -> None:
     from rotonly_cli.stages.triangulate import triangulate_graph
 
     run.structure, run.reports["triangulate"] = triangulate_graph(run.graph, run.scene, run.rotations, run.centers,
-                                                                  image_root(run), keypoint_rgb=run.keypoint_rgb)
+                                                                  image_root(run), keypoint_rgb=run.keypoint_rgb,
+                                                                  track_cache=run.tracks)
 
 
 STAGE_FUNCTIONS = {"identify": identify_stage, "refine": refine_stage, "average": average_stage,
@@ -168,29 +173,17 @@ STAGE_FUNCTIONS = {"identify": identify_stage, "refine": refine_stage, "average"
 
 def output_scene(run: Run) -> SfMScene:
     """The input scene with the estimated poses (views with rotation and centre) and points."""
-    poses = {}
-    if run.rotations is not None and run.centers is not None:
-        for row, view_id in enumerate(run.graph.view_ids()):
-            if np.all(np.isfinite(run.rotations[row])) and np.all(np.isfinite(run.centers[row])):
-                poses[view_id] = Pose(run.rotations[row].copy(), run.centers[row].copy())
-    root = image_root(run)
-    return replace(run.scene, poses=poses, structure=run.structure, pairs={},
-                   root_path=str(root) if root is not None else run.scene.root_path)
+    from rotonly_cli.stages.export import posed_scene
+
+    return posed_scene(run.scene, run.graph.view_ids(), run.rotations, run.centers, run.structure, image_root(run))
 
 
 def write_outputs(out_dir: Path, run: Run) -> SfMScene:
     """OUT/sfm_data.json (OpenMVG) and OUT/sparse/ (COLMAP binary model)."""
-    from rotonly_cli.io import colmap, openmvg
-    from rotonly_cli.stages.convert import colmap_to_openmvg, renumber_views_by_name
+    from rotonly_cli.stages import export
 
     scene = output_scene(run)
-    if not scene.poses:
-        raise AlgorithmError("no view received a pose (rotation and centre)")
-    # COLMAP input: OpenMVG ids in file-name order (what OpenMVG's own tools, evalQuality
-    # included, expect); the COLMAP model keeps the database's ids
-    openmvg_scene = renumber_views_by_name(colmap_to_openmvg(scene)) if run.input_kind == InputKind.COLMAP_DB else scene
-    openmvg.write_sfm_data(out_dir / "sfm_data.json", openmvg_scene)
-    colmap.write_model(out_dir / "sparse", scene, binary=True)
+    export.write_outputs(out_dir, scene, run.input_kind)
     return scene
 
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from rotonly_cli.io.colmap import read_database, write_database
 from rotonly_cli.scene.types import PairMatches, SfMScene
-from rotonly_cli.stages.convert import convert
+from rotonly_cli.convert import convert
 
 SCENES = {"Herz-Jesus-P8": "herzjesu_p8", "fountain-P11": "fountain_p11"}
 MAX_FIXTURE_BYTES = 3 * 1024 * 1024

@@ -11,7 +11,8 @@ import pytest
 from rotonly_cli.errors import InputError
 from rotonly_cli.io import openmvg
 from rotonly_cli.scene.types import Intrinsics, Pose, SfMScene, Structure, View
-from rotonly_cli.stages.convert import colmap_to_openmvg, renumber_views_by_name
+from rotonly_cli.io.colmap import colmap_to_openmvg
+from rotonly_cli.scene.ids import renumber_views_by_name
 
 
 def _openmvg_ids_scene(scene: SfMScene) -> SfMScene:

@@ -1,4 +1,5 @@
-"""graph_tracks reuses the tracks of its previous call only for the same pairs and matches."""
+"""graph_tracks with a TrackCache reuses the tracks of its previous call only for the same pairs and
+matches; without one it always builds."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import numpy as np
 from rotonly_cli.geometry.tracks import build_tracks
 from rotonly_cli.scene.types import View
 from rotonly_cli.scene.view_graph import Edge, ViewGraph
-from rotonly_cli.stages import translate
+from rotonly_cli.scene.tracks import TrackCache, graph_tracks
 
 
 def _graph(rng: np.random.Generator) -> tuple[ViewGraph, dict[int, np.ndarray]]:
@@ -21,24 +22,32 @@ def _graph(rng: np.random.Generator) -> tuple[ViewGraph, dict[int, np.ndarray]]:
 
 def test_graph_tracks_reuses_only_identical_inputs():
     graph, normalized = _graph(np.random.default_rng(0))
-    translate._LAST_TRACKS.clear()
-    tracks, obs_xy = translate.graph_tracks(graph, normalized, [0, 1, 2])
+    cache = TrackCache()
+    tracks, obs_xy = graph_tracks(graph, normalized, [0, 1, 2], cache=cache)
     expected = build_tracks([(0, 1), (0, 2), (1, 2)], [edge.matches for edge in graph.edges])
     np.testing.assert_array_equal(tracks.track_id, expected.track_id)
     np.testing.assert_array_equal(tracks.feature, expected.feature)
     assert tracks.num_tracks > 5
-    again, obs_again = translate.graph_tracks(graph, normalized, [0, 1, 2])
+    again, obs_again = graph_tracks(graph, normalized, [0, 1, 2], cache=cache)
     assert again is tracks  # same pairs and matches: reused
     np.testing.assert_array_equal(obs_again, obs_xy)
 
     graph.edges[1].matches = graph.edges[1].matches[:-3]  # other matches: rebuilt
-    changed, _ = translate.graph_tracks(graph, normalized, [0, 1, 2])
+    changed, _ = graph_tracks(graph, normalized, [0, 1, 2], cache=cache)
     assert changed is not tracks
     rebuilt = build_tracks([(0, 1), (0, 2), (1, 2)], [edge.matches for edge in graph.edges])
     np.testing.assert_array_equal(changed.track_id, rebuilt.track_id)
     np.testing.assert_array_equal(changed.view, rebuilt.view)
-    fewer_edges, _ = translate.graph_tracks(graph, normalized, [0, 2])  # other pairs: rebuilt
+    fewer_edges, _ = graph_tracks(graph, normalized, [0, 2], cache=cache)  # other pairs: rebuilt
     expected = build_tracks([(0, 1), (1, 2)], [graph.edges[0].matches, graph.edges[2].matches])
     assert fewer_edges is not changed and fewer_edges.num_observations == expected.num_observations
     np.testing.assert_array_equal(fewer_edges.feature, expected.feature)
     assert expected.num_observations != changed.num_observations
+
+
+def test_graph_tracks_without_a_cache_builds_every_time():
+    graph, normalized = _graph(np.random.default_rng(1))
+    first, _ = graph_tracks(graph, normalized, [0, 1, 2])
+    second, _ = graph_tracks(graph, normalized, [0, 1, 2])
+    assert second is not first
+    np.testing.assert_array_equal(second.track_id, first.track_id)

@@ -34,6 +34,6 @@ def command(input_path: Path, output_path: Path, matches_dir: Path | None, text:
     keypoints re-rendered, so normalized coordinates are unchanged. Outputs are written
     atomically; inputs are never modified.
     """
-    from rotonly_cli.stages.convert import convert
+    from rotonly_cli.convert import convert
 
     click.echo(convert(input_path, output_path, matches_dir=matches_dir, text=text), err=True)

@@ -36,6 +36,7 @@ import numpy as np
 from rotonly_cli.errors import InputError
 from rotonly_cli.io import atomic
 from rotonly_cli.io.detect import is_colmap_model, is_sqlite
+from rotonly_cli.scene.ids import shift_ids
 from rotonly_cli.scene.types import Intrinsics, PairMatches, Pose, SfMScene, Structure, View
 
 PathLike = str | os.PathLike
@@ -179,6 +180,19 @@ def to_openmvg_scene(scene: SfMScene) -> SfMScene:
     return replace(scene, intrinsics=intrinsics, keypoints=keypoints, structure=structure,
                    views=dict(scene.views), poses=dict(scene.poses),
                    normalized=dict(scene.normalized), pairs=dict(scene.pairs))
+
+
+def colmap_to_openmvg(scene: SfMScene) -> SfMScene:
+    """COLMAP-read scene -> scene for the OpenMVG writers: 0-based ids (scene/ids), OpenMVG
+    camera models (:func:`to_openmvg_scene`)."""
+
+    def down(ids) -> int:
+        ids = list(ids)
+        return -1 if ids and min(ids) >= 1 else 0
+
+    point_ids = [] if scene.structure is None else np.asarray(scene.structure.point_ids).tolist()
+    shifted = shift_ids(scene, down(scene.views), down(scene.intrinsics), down(point_ids))
+    return to_openmvg_scene(shifted)
 
 
 def normalize_keypoints(camera, keypoints: np.ndarray) -> np.ndarray:

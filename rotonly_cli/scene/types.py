@@ -86,7 +86,7 @@ class Structure:
     observation_pixels: list[np.ndarray] | None = None
     # Optional ``observations`` again as flat arrays (track_lengths (N,), view_feature (M, 2)
     # int64, as flat_observations returns them), set by producers that hold the tracks as
-    # arrays (triangulation, stages.convert): the writers then skip the M Python tuples.
+    # arrays (triangulation, scene.ids): the writers then skip the M Python tuples.
     # Whoever replaces ``observations`` must replace (or clear) it too.
     observation_arrays: tuple[np.ndarray, np.ndarray] | None = None
 

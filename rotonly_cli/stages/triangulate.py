@@ -15,8 +15,8 @@ import numpy as np
 from rotonly_cli.geometry.triangulation import TriangulationOptions, triangulate_tracks
 from rotonly_cli.scene.types import SfMScene, Structure
 from rotonly_cli.scene.view_graph import ViewGraph
-from rotonly_cli.stages.convert import observation_lists
-from rotonly_cli.stages.translate import graph_tracks
+from rotonly_cli.scene.ids import observation_lists
+from rotonly_cli.scene.tracks import TrackCache, graph_tracks
 
 logger = logging.getLogger(__name__)
 GREY = 128
@@ -115,11 +115,13 @@ def start_keypoint_colors(scene: SfMScene, image_root: str | Path | None) -> Fut
 def triangulate_graph(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.ndarray, centers: np.ndarray,
                       image_root: str | Path | None = None,
                       options: TriangulationOptions | None = None,
-                      keypoint_rgb: Future | dict[int, np.ndarray | None] | None = None) -> tuple[Structure, dict]:
+                      keypoint_rgb: Future | dict[int, np.ndarray | None] | None = None,
+                      track_cache: TrackCache | None = None) -> tuple[Structure, dict]:
     """Structure (valid points only, observations as (view id, keypoint)) and report.
 
     ``keypoint_rgb``: keypoint colours already being computed (:func:`start_keypoint_colors`)
-    or computed; without them the images are decoded here, beside the triangulation."""
+    or computed; without them the images are decoded here, beside the triangulation.
+    ``track_cache``: the run's, shared with translate (scene/tracks)."""
     start = time.perf_counter()
     view_ids = graph.view_ids()
     row_of = {v: r for r, v in enumerate(view_ids)}
@@ -136,7 +138,7 @@ def triangulate_graph(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.nd
         colors_future = keypoint_rgb
         if colors_future is None and image_root is not None:
             colors_future = pool.submit(keypoint_colors, scene, image_root, edge_views, 1)
-        tracks, obs_xy = graph_tracks(graph, scene.normalized, edges, R)
+        tracks, obs_xy = graph_tracks(graph, scene.normalized, edges, R, cache=track_cache)
         C = np.where(posed[:, None], centers, 0.0)
         result = triangulate_tracks(R, C, tracks.track_id, tracks.view, obs_xy, tracks.num_tracks, options)
         valid = result.valid

@@ -1,29 +1,18 @@
-"""`rotonly convert`: COLMAP database/model <-> OpenMVG project/sfm_data.json.
+"""View, intrinsic and landmark ids between COLMAP's and OpenMVG's conventions.
 
-Formats are recognised by content (SQLite magic, COLMAP model files, ``sfm_data.json``)
-and the output by its name: ``*.db`` -> COLMAP database, ``*.json`` -> OpenMVG sfm_data,
-anything else -> a folder (OpenMVG project for COLMAP input, COLMAP model for OpenMVG input).
-
-Ids: COLMAP ids start at 1, OpenMVG's at 0 (SfMInit_ImageListing). COLMAP -> OpenMVG shifts
+COLMAP ids start at 1, OpenMVG's at 0 (SfMInit_ImageListing). COLMAP -> OpenMVG shifts
 view, intrinsic and landmark ids by -1; the COLMAP writers shift 0-based ids by +1, so a
 round trip restores them. Pair orientation is unchanged (the shift is monotone).
 """
 
 from __future__ import annotations
 
-import logging
-import os
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 
 from rotonly_cli.errors import InputError
-from rotonly_cli.io.detect import InputKind, detect_input
 from rotonly_cli.scene.types import SfMScene, Structure, View
-
-logger = logging.getLogger(__name__)
-PathLike = str | os.PathLike
 
 
 def shift_ids(scene: SfMScene, view_shift: int, intrinsic_shift: int, point_shift: int = 0) -> SfMScene:
@@ -40,7 +29,7 @@ def shift_ids(scene: SfMScene, view_shift: int, intrinsic_shift: int, point_shif
              for (i, j), pair in scene.pairs.items()}
     structure = scene.structure
     if structure is not None:
-        structure = _remap_observation_views(
+        structure = remap_observation_views(
             replace(structure, point_ids=np.asarray(structure.point_ids, dtype=np.int64) + point_shift),
             lambda view_ids: view_ids + view_shift)
     return replace(
@@ -50,7 +39,7 @@ def shift_ids(scene: SfMScene, view_shift: int, intrinsic_shift: int, point_shif
         normalized={view_id + view_shift: x for view_id, x in scene.normalized.items()})
 
 
-def _remap_observation_views(structure: Structure, new_view_ids) -> Structure:
+def remap_observation_views(structure: Structure, new_view_ids) -> Structure:
     """A copy of ``structure`` whose observations' view ids are ``new_view_ids(old)`` (an
     array function), remapped on the flat observation arrays rather than per landmark
     (which the copy keeps as ``observation_arrays`` for the writers)."""
@@ -67,20 +56,6 @@ def observation_lists(track_lengths: np.ndarray, view_feature: np.ndarray) -> li
     pairs = list(zip(view_feature[:, 0].tolist(), view_feature[:, 1].tolist()))
     ends = np.cumsum(track_lengths).tolist()
     return [pairs[start:end] for start, end in zip([0] + ends[:-1], ends)]
-
-
-def colmap_to_openmvg(scene: SfMScene) -> SfMScene:
-    """COLMAP-read scene -> scene for the OpenMVG writers: 0-based ids, OpenMVG camera models
-    (``io.colmap.to_openmvg_scene``)."""
-    from rotonly_cli.io.colmap import to_openmvg_scene
-
-    def down(ids) -> int:
-        ids = list(ids)
-        return -1 if ids and min(ids) >= 1 else 0
-
-    point_ids = [] if scene.structure is None else np.asarray(scene.structure.point_ids).tolist()
-    shifted = shift_ids(scene, down(scene.views), down(scene.intrinsics), down(point_ids))
-    return to_openmvg_scene(shifted)
 
 
 def renumber_views_by_name(scene: SfMScene) -> SfMScene:
@@ -104,65 +79,9 @@ def renumber_views_by_name(scene: SfMScene) -> SfMScene:
                 raise InputError("observation of an unknown view", field="structure.observations")
             return sorter[position]
 
-        structure = _remap_observation_views(structure, renumber)
+        structure = remap_observation_views(structure, renumber)
     return replace(scene, views=views, structure=structure,
                    poses={new_id[v]: p for v, p in scene.poses.items()},
                    keypoints={new_id[v]: k for v, k in scene.keypoints.items()},
                    normalized={new_id[v]: x for v, x in scene.normalized.items()},
                    pairs={})
-
-
-def _output_kind(path: Path) -> str:
-    suffix = path.suffix.lower()
-    return {".db": "colmap-db", ".json": "sfm_data"}.get(suffix, "folder")
-
-
-def convert(input_path: PathLike, output_path: PathLike, matches_dir: PathLike | None = None,
-            text: bool = False) -> str:
-    """Convert ``input_path`` to ``output_path``; returns a one-line summary."""
-    from rotonly_cli.io import colmap, openmvg
-
-    input_path, output_path = Path(input_path), Path(output_path)
-    input_kind = detect_input(input_path)
-    output_kind = _output_kind(output_path)
-    if output_path.exists() and output_path.resolve() == input_path.resolve():
-        raise InputError("output would overwrite the input", path=str(output_path))
-    if output_kind != "folder" and output_path.is_dir():
-        raise InputError("is a folder, expected a file name", path=str(output_path))
-    if output_kind == "folder" and output_path.exists() and not output_path.is_dir():
-        raise InputError("exists and is not a folder", path=str(output_path))
-
-    if input_kind == InputKind.OPENMVG:
-        sfm_data = input_path / "sfm_data.json" if input_path.is_dir() else input_path
-        if output_kind == "colmap-db":
-            scene = openmvg.read_project(sfm_data, matches_dir)
-        else:
-            scene = openmvg.read_sfm_data(sfm_data)
-    elif input_kind == InputKind.COLMAP_DB:
-        scene = colmap.read_database(input_path)
-    else:
-        scene = colmap.read_model(input_path)
-
-    def write() -> None:
-        if output_kind == "colmap-db":
-            colmap.write_database(output_path, scene)
-        elif output_kind == "sfm_data":
-            openmvg.write_sfm_data(output_path, colmap_to_openmvg(scene)
-                                   if input_kind != InputKind.OPENMVG else scene)
-        elif input_kind == InputKind.OPENMVG:
-            if not scene.poses:
-                raise InputError("no poses (extrinsics) to write as a COLMAP model",
-                                 path=str(input_path), field="extrinsics")
-            colmap.write_model(output_path, scene, binary=not text)
-        else:
-            openmvg.write_project(output_path, colmap_to_openmvg(scene))
-
-    try:
-        output_path.parent.mkdir(parents=True, exist_ok=True)
-        write()
-    except OSError as exc:
-        raise InputError(f"cannot write: {exc.strerror or exc}", path=str(output_path)) from None
-    num_verified = sum(1 for pair in scene.pairs.values() if pair.verified)
-    return (f"{input_kind} {input_path} -> {output_kind} {output_path}: {len(scene.views)} views, "
-            f"{len(scene.poses)} poses, {num_verified} verified / {len(scene.pairs)} pairs, "
-            f"{0 if scene.structure is None else len(scene.structure.points)} points")

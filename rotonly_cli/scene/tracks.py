@@ -1,0 +1,76 @@
+"""Tracks of a view graph's matches, shared by the stages of one run.
+
+translate (LiGT) and triangulate ask for the tracks of the same edges at the same global
+rotations (unless PURE_ROTATION edges differ between them): a :class:`TrackCache`, owned by
+the run (``pipeline.Run.tracks``), builds them once. Without a cache every call builds afresh.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rotonly_cli.geometry.tracks import Tracks, build_tracks, gather_observations
+from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, view_index
+
+#: matches whose robust TRRM weight 1/(1 + s/c²) at the global rotations is below this
+#: (residual > √3 c ≈ 7.7 robust sigmas, c = 3 x 1.4826 x the edge's median) are wrong
+#: correspondences; LiGT and triangulation have no robust loss of their own, so they are
+#: left out of the tracks (docs/tuning.md)
+MIN_MATCH_WEIGHT = 0.25
+
+
+class TrackCache:
+    """Per-edge keep masks at the last global rotations and the last tracks built, keyed by
+    what they depend on (edges, matches, rotations), so a hit returns the same arrays."""
+
+    def __init__(self) -> None:
+        self.keep: dict[tuple, np.ndarray] = {}
+        self.last: tuple[tuple, Tracks] | None = None
+
+
+def inlier_matches(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: list[int],
+                   R_cam_from_world: np.ndarray, min_match_weight: float = MIN_MATCH_WEIGHT,
+                   cache: TrackCache | None = None) -> list[np.ndarray]:
+    """The matches of ``edges`` without gross outliers at the global rotations."""
+    from rotonly_cli.geometry.trrm import TRRMOptions, robust_match_weights
+
+    matches = [graph.edges[k].matches for k in edges]
+    if min_match_weight <= 0 or not edges:
+        return matches
+    kept = (cache or TrackCache()).keep
+    index = view_index(graph)
+    R_ij = {k: R_cam_from_world[index[graph.edges[k].j]] @ R_cam_from_world[index[graph.edges[k].i]].T
+            for k in edges}
+    key = {k: (graph.edges[k].i, graph.edges[k].j, hash(graph.edges[k].matches.tobytes()), R_ij[k].tobytes(),
+               min_match_weight) for k in edges}
+    missing = [k for k in edges if key[k] not in kept]
+    if missing:
+        batch = edge_batch(graph, normalized, missing)
+        R = np.stack([R_ij[k] for k in missing])
+        with np.errstate(all="ignore"):
+            w = robust_match_weights(R, batch, None, TRRMOptions())
+            w = robust_match_weights(R, batch, w, TRRMOptions())
+        for row, k in enumerate(missing):
+            keep = w[batch.offsets[row]:batch.offsets[row + 1]] >= min_match_weight
+            kept[key[k]] = keep if keep.sum() >= 6 else np.ones_like(keep)
+    return [m[kept[key[k]]] for k, m in zip(edges, matches)]
+
+
+def graph_tracks(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: list[int],
+                 R_cam_from_world: np.ndarray | None = None, cache: TrackCache | None = None):
+    """(Tracks in sorted-view-id row space, (N_obs, 2) normalized observations) of ``edges``;
+    with the global rotations, gross outlier matches are left out (MIN_MATCH_WEIGHT)."""
+    index = view_index(graph)
+    matches = [graph.edges[k].matches for k in edges] if R_cam_from_world is None else \
+        inlier_matches(graph, normalized, edges, R_cam_from_world, cache=cache)
+    pair_keys = [(index[graph.edges[k].i], index[graph.edges[k].j]) for k in edges]
+    key = (len(index), tuple(pair_keys), tuple(hash(m.tobytes()) for m in matches),
+           tuple(m.shape[0] for m in matches))
+    if cache is not None and cache.last is not None and cache.last[0] == key:
+        tracks = cache.last[1]
+    else:
+        tracks = build_tracks(pair_keys, matches)
+        if cache is not None:
+            cache.last = (key, tracks)
+    per_view = [normalized.get(v, np.zeros((0, 2))) for v in graph.view_ids()]
+    return tracks, gather_observations(tracks, per_view)
