@@ -14,13 +14,10 @@ renames it at the end, so a failed run leaves no partial OUT.
 
 from __future__ import annotations
 
-import gc
 import logging
 import shutil
 import time
-from collections.abc import Iterator
 from concurrent.futures import Future
-from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -28,6 +25,7 @@ import numpy as np
 
 from rotonly_cli.errors import AlgorithmError, InputError, RotonlyError
 from rotonly_cli.io.detect import InputKind
+from rotonly_cli.runtime.startup import collector_paused
 from rotonly_cli.io.atomic import check_replaceable, make_staging_dir, replace_dir
 from rotonly_cli.geometry.scene import IdentificationOptions
 from rotonly_cli.geometry.trrm import TRRMOptions
@@ -56,7 +54,7 @@ class RunOptions:
     average: AverageOptions = AverageOptions()
     grrm: bool = True  # False: keep the averaged rotations (ablation)
     progress: bool = False
-    jobs: int = 1  # processes for identification + TRRM (rotonly_cli.parallel; same numbers for any value)
+    jobs: int = 1  # processes for identification + TRRM (rotonly_cli.runtime.parallel; same numbers for any value)
 
 
 @dataclass
@@ -258,25 +256,6 @@ class _RunLog:
         self.root.removeHandler(self.handler)
         self.root.setLevel(self.previous_level)
         self.handler.close()
-
-
-@contextmanager
-def collector_paused() -> Iterator[None]:
-    """CPython's cyclic garbage collector off for the block (restored after).
-
-    A run allocates ~10⁵ small containers per 10⁴ points (tuples, lists, dicts); every
-    700 of them trigger a collection, and the older generations re-scan all live objects,
-    the imported numpy/scipy/pycolmap modules included: 0.07-0.15 s of a Herz-Jesus-P8 run
-    (measured with gc.callbacks). The stages build no reference cycles per point or per
-    iteration, so reference counting alone frees what they drop; the few cycles left
-    (thread pools, loggers) are collected once the collector is back on."""
-    enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if enabled:
-            gc.enable()
 
 
 def _as_algorithm_error(exc: ValueError) -> RotonlyError:

@@ -23,7 +23,7 @@ import numpy as np
 from rotonly_cli.geometry import twoview as _tv
 from rotonly_cli.geometry.scene import IdentificationOptions, SceneKind, identify
 from rotonly_cli.geometry.trrm import TRRMOptions, refine
-from rotonly_cli.parallel import map_edges, plan
+from rotonly_cli.runtime.parallel import map_edges, plan
 
 __all__ = [
     "SceneKind", "SceneIdentification", "TwoViewRefinement", "BatchRefinement", "IdentificationOptions",
@@ -122,7 +122,7 @@ def _quiet():
 def identify_scenes(R_j_from_i, xs_i: Sequence, xs_j: Sequence,
                     options: IdentificationOptions = IdentificationOptions(), jobs: int = 1) -> list[SceneIdentification]:
     """Identify many edges at once (batched), each at the rotation given for it. ``jobs`` > 1
-    splits the edges over that many forked processes (rotonly_cli.parallel: Linux, large
+    splits the edges over that many forked processes (rotonly_cli.runtime.parallel: Linux, large
     batches; same numbers).
 
     ROTATION_SINGULAR does not depend on the rotation; the PR/B/I ratio does (geometry/scene.py):
@@ -152,7 +152,7 @@ def refine_rotations(R_j_from_i, xs_i: Sequence, xs_j: Sequence, options: TRRMOp
                      identification_options: IdentificationOptions = IdentificationOptions(),
                      jobs: int = 1) -> BatchRefinement:
     """TRRM (Alg. 2) on many edges at once, in lock-step. ``jobs`` > 1 splits the edges over
-    that many forked processes (rotonly_cli.parallel: Linux, large batches; same numbers)."""
+    that many forked processes (rotonly_cli.runtime.parallel: Linux, large batches; same numbers)."""
     R, batch = _prepare(R_j_from_i, xs_i, xs_j)
     ranges = plan(batch, _jobs(jobs))
     with _quiet(), warnings.catch_warnings():

@@ -258,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
         measure(Path(args._measure[0]), Path(args._measure[1]), args.jobs or 1)
         return 0
 
-    from rotonly_cli.cli.run import usable_cpus
+    from rotonly_cli.runtime.parallel import usable_cpus
 
     jobs = usable_cpus() if args.jobs is None else args.jobs
     results = []

@@ -7,7 +7,7 @@ noise (magnitude U(0, 1) px, focal 800, 960×960). The start is the true rotatio
 Each mode runs ``--repeat`` (3) times and the best wall time is reported (the machine is
 shared); the first batched run, which also pays for fresh memory, is printed beside it.
 The batched API runs in one process and with ``jobs=--jobs`` (default: the usable CPUs;
-edges split over forked processes, rotonly_cli.parallel); the loop calls the one-edge API.
+edges split over forked processes, rotonly_cli.runtime.parallel); the loop calls the one-edge API.
 
     python scripts/bench_throughput.py            # 1000 x 1000, best of 3
     python scripts/bench_throughput.py --edges 200 --repeat 1
@@ -39,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
                         "(default: the usable CPUs)")
     args = parser.parse_args(argv)
     from rotonly_cli import twoview
-    from rotonly_cli.cli.run import usable_cpus
+    from rotonly_cli.runtime.parallel import usable_cpus
 
     jobs = usable_cpus() if args.jobs is None else args.jobs
 

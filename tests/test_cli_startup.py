@@ -10,7 +10,7 @@ import pytest
 
 PROBE = textwrap.dedent("""
     import sys
-    from rotonly_cli.cli.startup import defer_unused_numpy_submodules, DEFERRED_NUMPY_SUBMODULES
+    from rotonly_cli.runtime.startup import defer_unused_numpy_submodules, DEFERRED_NUMPY_SUBMODULES
     deferred = defer_unused_numpy_submodules()
     import numpy as np
     import scipy.linalg, scipy.sparse.csgraph, scipy.sparse.linalg, scipy.spatial.transform
@@ -37,7 +37,7 @@ def test_defer_skips_submodules_already_imported_and_unknown_names():
     import numpy
     import numpy.testing  # imported for real here
 
-    from rotonly_cli.cli.startup import defer_unused_numpy_submodules
+    from rotonly_cli.runtime.startup import defer_unused_numpy_submodules
 
     assert defer_unused_numpy_submodules(("testing", "no_such_submodule")) == []
     assert type(sys.modules["numpy.testing"]) is type(numpy) and numpy.testing.assert_allclose
@@ -45,7 +45,7 @@ def test_defer_skips_submodules_already_imported_and_unknown_names():
 
 def test_console_main_defers_before_running_the_command(monkeypatch):
     from rotonly_cli import cli
-    from rotonly_cli.cli import startup
+    from rotonly_cli.runtime import startup
 
     calls = []
     monkeypatch.setattr(startup, "defer_unused_numpy_submodules", lambda: calls.append("defer"))

@@ -1,4 +1,4 @@
-"""rotonly_cli.parallel: edge-parallel TRRM / identification over forked processes gives the
+"""rotonly_cli.runtime.parallel: edge-parallel TRRM / identification over forked processes gives the
 numbers of one process, bit for bit; failures in a worker surface in the caller."""
 
 from __future__ import annotations
@@ -13,7 +13,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rotonly_cli import parallel, twoview
+from rotonly_cli import twoview
+from rotonly_cli.runtime import parallel
 from rotonly_cli.simulation.fivepoint import perturbed_rotation
 from rotonly_cli.simulation.twoview import simulate_twoview
 
@@ -180,7 +181,7 @@ def test_run_with_jobs_writes_the_same_files(tmp_path, small_parts):
 
 def test_a_progress_bar_leaves_forking_possible():
     """tqdm's monitor thread would outlive the bar and turn every later fork_map serial."""
-    from rotonly_cli.progress import progress_bar
+    from rotonly_cli.runtime.progress import progress_bar
 
     assert sum(progress_bar(range(5), disable=False)) == 10
     assert parallel.fork_safe()

@@ -87,7 +87,7 @@ def test_early_keypoint_colors_equal_decoding_in_triangulate(tmp_path):
 def test_collector_paused_restores_the_collector_state():
     import gc
 
-    from rotonly_cli.pipeline import collector_paused
+    from rotonly_cli.runtime.startup import collector_paused
 
     assert gc.isenabled()
     with pytest.raises(RuntimeError):

@@ -108,7 +108,7 @@ class CellCheckpoint:
 
 def parallel_map(fn: Callable, tasks: list, jobs: int, desc: str, progress: bool = True) -> list:
     """``[fn(t) for t in tasks]`` in order, over ``jobs`` forked processes, with a tqdm bar."""
-    from rotonly_cli.progress import progress_bar
+    from rotonly_cli.runtime.progress import progress_bar
 
     bar = progress_bar(total=len(tasks), desc=desc, disable=not progress, file=sys.stderr, leave=False)
     try:

@@ -110,8 +110,8 @@ def console_main() -> None:
     :func:`main`, which freezes nothing.
 
     Before ``main``, numpy submodules that no command needs at start-up are registered as
-    lazily loaded (:mod:`rotonly_cli.cli.startup`: about 0.09 s of scipy's import)."""
-    from rotonly_cli.cli.startup import defer_unused_numpy_submodules
+    lazily loaded (:mod:`rotonly_cli.runtime.startup`: about 0.09 s of scipy's import)."""
+    from rotonly_cli.runtime.startup import defer_unused_numpy_submodules
 
     defer_unused_numpy_submodules()
     try:

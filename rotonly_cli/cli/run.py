@@ -11,6 +11,12 @@ import click
 from rotonly_cli.stages.load import REESTIMATE_MODES
 
 
+def _usable_cpus() -> int:
+    from rotonly_cli.runtime.parallel import usable_cpus
+
+    return usable_cpus()
+
+
 def shared_load_options(function):
     """Options of the load stage, shared by `run` and `identify`."""
     options = [
@@ -34,20 +40,10 @@ def shared_load_options(function):
     return function
 
 
-def usable_cpus() -> int:
-    """CPUs this process may run on (the affinity mask where the OS has one)."""
-    import os
-
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not on Linux
-        return max(1, os.cpu_count() or 1)
-
-
 def jobs_option(function):
     """``--jobs N`` (an int: the usable CPUs when not given)."""
     return click.option("--jobs", type=click.IntRange(min=1), default=None,
-                        callback=lambda ctx, param, value: usable_cpus() if value is None else value,
+                        callback=lambda ctx, param, value: _usable_cpus() if value is None else value,
                         help="Processes for scene identification and TRRM (forked, Linux; default: the "
                              "usable CPUs). The numbers do not depend on it. Both stay in one process while "
                              "images are being decoded for the point colours (a fork is unsafe with a "
@@ -110,7 +106,7 @@ def command(ctx: click.Context, input_path: Path, out_dir: Path, gt_path: Path |
     Views outside the largest connected view graph component are reported, not registered.
     """
     collecting = gc.isenabled()
-    gc.disable()  # from the imports on: see pipeline.collector_paused
+    gc.disable()  # from the imports on: see runtime.startup.collector_paused
     try:
         from rotonly_cli.pipeline import run_pipeline
 

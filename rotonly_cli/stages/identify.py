@@ -16,14 +16,14 @@ import numpy as np
 
 from rotonly_cli.geometry.scene import IdentificationOptions, identify
 from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, filter_rotation_singular, kind_counts
-from rotonly_cli.parallel import map_edges, plan
+from rotonly_cli.runtime.parallel import map_edges, plan
 
 logger = logging.getLogger(__name__)
 
 def identify_edges(graph: ViewGraph, normalized: dict[int, np.ndarray],
                    options: IdentificationOptions = IdentificationOptions(), jobs: int = 1) -> dict:
     """Set scene_kind / detection values of the active edges at their current rotations.
-    ``jobs`` > 1: over forked processes where that is safe and pays (rotonly_cli.parallel)."""
+    ``jobs`` > 1: over forked processes where that is safe and pays (rotonly_cli.runtime.parallel)."""
     start = time.perf_counter()
     edges = graph.active_edges()
     processes = 1

@@ -156,7 +156,7 @@ def build_view_graph(scene: SfMScene, options: LoadOptions = LoadOptions()) -> t
     with ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1)) as pool:
         estimated = pool.map(estimate_edge, to_estimate)
         if options.progress:
-            from rotonly_cli.progress import progress_bar
+            from rotonly_cli.runtime.progress import progress_bar
 
             estimated = progress_bar(estimated, total=len(to_estimate), desc="relative poses (RANSAC)", unit="edge")
         estimates = list(estimated)

@@ -16,7 +16,7 @@ from rotonly_cli.geometry import so3
 from rotonly_cli.geometry.scene import IdentificationOptions
 from rotonly_cli.geometry.trrm import TRRMOptions, refine
 from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, filter_rotation_singular, kind_counts
-from rotonly_cli.parallel import map_edges, plan
+from rotonly_cli.runtime.parallel import map_edges, plan
 
 logger = logging.getLogger(__name__)
 
@@ -25,7 +25,7 @@ def refine_edges(graph: ViewGraph, normalized: dict[int, np.ndarray], options: T
                  identification_options: IdentificationOptions = IdentificationOptions(), jobs: int = 1) -> dict:
     """Refine R_j_from_i and t_dir of the active edges in place; returns the report.
     ``jobs`` > 1: the edges are split over forked processes where that is safe and pays
-    (rotonly_cli.parallel); the report says how many parts ran."""
+    (rotonly_cli.runtime.parallel); the report says how many parts ran."""
     start = time.perf_counter()
     edges = graph.active_edges()
     report: dict = {"num_edges": len(edges)}

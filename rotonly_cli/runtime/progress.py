@@ -2,7 +2,7 @@
 
 tqdm starts a daemon "tqdm_monitor" thread with the first bar and keeps it for the life of
 the process; it only tunes the refresh interval of bars that stall. A live thread makes a
-later fork unsafe (a fork copies only the calling thread), so rotonly_cli.parallel would
+later fork unsafe (a fork copies only the calling thread), so rotonly_cli.runtime.parallel would
 refine in one process for the rest of a `rotonly run` that showed a bar. Bars come from here.
 """
 

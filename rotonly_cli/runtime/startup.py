@@ -20,8 +20,11 @@ library changes nothing.
 
 from __future__ import annotations
 
+import gc
 import importlib.util
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 #: numpy submodules that scipy's namespace clone imports and that rotonly's commands do not
 #: need at start-up. numpy.typing is left out: scipy imports it explicitly before cloning.
@@ -50,3 +53,22 @@ def defer_unused_numpy_submodules(names: tuple[str, ...] = DEFERRED_NUMPY_SUBMOD
         setattr(numpy, name, module)
         deferred.append(name)
     return deferred
+
+
+@contextmanager
+def collector_paused() -> Iterator[None]:
+    """CPython's cyclic garbage collector off for the block (restored after).
+
+    A run allocates ~10⁵ small containers per 10⁴ points (tuples, lists, dicts); every
+    700 of them trigger a collection, and the older generations re-scan all live objects,
+    the imported numpy/scipy/pycolmap modules included: 0.07-0.15 s of a Herz-Jesus-P8 run
+    (measured with gc.callbacks). The stages build no reference cycles per point or per
+    iteration, so reference counting alone frees what they drop; the few cycles left
+    (thread pools, loggers) are collected once the collector is back on."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import multiprocessing as mp
+import os
 import sys
 import threading
 from typing import Callable, Sequence
@@ -32,6 +33,14 @@ MIN_MATCHES_PER_JOB = 100_000
 
 #: seconds a child that sent its result may take to exit before it is terminated
 DELIVERED_EXIT_TIMEOUT_S = 10.0
+
+
+def usable_cpus() -> int:
+    """CPUs this process may run on (the affinity mask where the OS has one)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
 
 
 def fork_safe() -> bool:
