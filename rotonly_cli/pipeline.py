@@ -27,34 +27,17 @@ from rotonly_cli.errors import AlgorithmError, InputError, RotonlyError
 from rotonly_cli.io.detect import InputKind
 from rotonly_cli.runtime.startup import collector_paused
 from rotonly_cli.io.atomic import check_replaceable, make_staging_dir, replace_dir
-from rotonly_cli.geometry.scene import IdentificationOptions
-from rotonly_cli.geometry.trrm import TRRMOptions
 from rotonly_cli.scene.tracks import TrackCache
 from rotonly_cli.scene.types import SfMScene, Structure
 from rotonly_cli.scene.view_graph import ViewGraph, largest_component
 from rotonly_cli.io.workspace import (STATE_FILE, WorkspaceState, load_state, save_state, write_report,
                                       write_view_graph_json)
-from rotonly_cli.stages.average import AverageOptions
-from rotonly_cli.stages.load import LoadOptions
+from rotonly_cli.options import RunOptions
 
 logger = logging.getLogger(__name__)
 STAGES = ("load", "identify", "refine", "average", "optimize", "translate", "triangulate")
 #: files a workspace may hold; an existing OUT with anything else is not replaced
 WORKSPACE_ENTRIES = {"sfm_data.json", "sparse", "view_graph.json", "reports", "run.log", STATE_FILE, "eval"}
-
-
-@dataclass(frozen=True)
-class RunOptions:
-    matches_dir: str | None = None  # OpenMVG input: features + matches folder
-    image_path: str | None = None  # images for the point colours (default: beside the input)
-    gt: str | None = None  # ground truth for the final evaluation
-    load: LoadOptions = LoadOptions()
-    identification: IdentificationOptions = IdentificationOptions()
-    trrm: TRRMOptions = TRRMOptions()
-    average: AverageOptions = AverageOptions()
-    grrm: bool = True  # False: keep the averaged rotations (ablation)
-    progress: bool = False
-    jobs: int = 1  # processes for identification + TRRM (rotonly_cli.runtime.parallel; same numbers for any value)
 
 
 @dataclass
@@ -129,14 +112,15 @@ def optimize_stage(run: Run) -> None:
     if not run.options.grrm:
         run.reports["optimize"] = {"skipped": "disabled (--no-grrm)"}
         return
-    run.rotations, run.reports["optimize"] = optimize_graph(run.graph, run.scene.normalized, run.rotations)
+    run.rotations, run.reports["optimize"] = optimize_graph(run.graph, run.scene.normalized, run.rotations,
+                                                            run.options.optimize)
 
 
 def translate_stage(run: Run) -> None:
     from rotonly_cli.stages.translate import translate_graph
 
     run.centers, run.reports["translate"] = translate_graph(run.graph, run.scene.normalized, run.rotations,
-                                                            track_cache=run.tracks)
+                                                            run.options.translate, track_cache=run.tracks)
 
 
 def image_root(run: Run) -> Path | None:
@@ -159,7 +143,8 @@ def triangulate_stage(run: Run) -> None:
     from rotonly_cli.stages.triangulate import triangulate_graph
 
     run.structure, run.reports["triangulate"] = triangulate_graph(run.graph, run.scene, run.rotations, run.centers,
-                                                                  image_root(run), keypoint_rgb=run.keypoint_rgb,
+                                                                  image_root(run), run.options.triangulate,
+                                                                  keypoint_rgb=run.keypoint_rgb,
                                                                   track_cache=run.tracks)
 
 

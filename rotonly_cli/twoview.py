@@ -21,7 +21,7 @@ from typing import Sequence
 import numpy as np
 
 from rotonly_cli.geometry import twoview as _tv
-from rotonly_cli.geometry.scene import IdentificationOptions, SceneKind, identify
+from rotonly_cli.geometry.identification import IdentificationOptions, SceneKind, identify
 from rotonly_cli.geometry.trrm import TRRMOptions, refine
 from rotonly_cli.runtime.parallel import map_edges, plan
 
@@ -125,7 +125,7 @@ def identify_scenes(R_j_from_i, xs_i: Sequence, xs_j: Sequence,
     splits the edges over that many forked processes (rotonly_cli.runtime.parallel: Linux, large
     batches; same numbers).
 
-    ROTATION_SINGULAR does not depend on the rotation; the PR/B/I ratio does (geometry/scene.py):
+    ROTATION_SINGULAR does not depend on the rotation; the PR/B/I ratio does (geometry/identification.py):
     from a poor rotation a regular edge can read as PURE_ROTATION (Standard scene, 1 px, starts
     1 deg off: 5 of 1000 edges). ``refine_rotations`` decides PR/B/I again at the refined
     rotation, which is what ``rotonly run`` uses."""

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from rotonly_cli.geometry import grrm, so3
+from rotonly_cli.geometry import grrm, robust, so3
 
 from multiview_scene import grrm_problem as _problem
 from multiview_scene import l1_irls_start as _l1_irls_start
@@ -38,8 +38,8 @@ def test_linearize_equals_explicit_jacobian(setup, chunk, dense, monkeypatch):
     problem = grrm._Problem(8, prob.edge_views, prob.batch, prob.obs_ids)
     cost, H, g, remainder = problem.linearize(R, "cauchy", scale, True, True, exact_radial_curvature=True)
     assert isinstance(H, np.ndarray) == dense
-    rho, drho = grrm._robust(sq, "cauchy", scale)
-    beta = grrm._robust_curvature(sq, "cauchy", scale)
+    rho, drho = robust.robust_rho(sq, "cauchy", scale)
+    beta = robust.robust_curvature(sq, "cauchy", scale)
     u = sq / scale**2
     excess = np.maximum(2 * u / (1 + u) - 1, 0)
     assert 0.05 < np.mean(excess > 0) < 0.5  # the remainder is really exercised

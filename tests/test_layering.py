@@ -11,11 +11,12 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "rotonly_cli"
 
-#: what each part of the package may import from rotonly_cli (besides itself)
+#: what each part of the package may import from rotonly_cli (besides itself); compat, errors
+#: and options are leaves (they import nothing of rotonly but each other)
 ALLOWED = {
-    "geometry": {"compat", "errors"},
-    "scene": {"compat", "errors", "geometry"},
-    "io": {"compat", "errors", "geometry", "scene"},
+    "geometry": {"compat", "errors", "options"},
+    "scene": {"compat", "errors", "options", "geometry"},
+    "io": {"compat", "errors", "options", "geometry", "scene"},
     "stages": {"compat", "errors", "geometry", "scene", "io", "options", "runtime"},
 }
 
@@ -44,6 +45,14 @@ def test_imports_point_downwards(part):
             if pieces[0] != "rotonly_cli" or len(pieces) < 2 or pieces[1] == part:
                 continue
             assert pieces[1] in ALLOWED[part], f"{path.relative_to(PACKAGE)} imports {name}"
+
+
+def test_leaves_import_only_leaves():
+    for name in ("compat", "errors", "options"):
+        for imported in _imports(PACKAGE / f"{name}.py"):
+            pieces = imported.split(".")
+            if pieces[0] == "rotonly_cli":
+                assert pieces[1] in {"compat", "errors", "options"}, f"{name}.py imports {imported}"
 
 
 def test_no_stage_imports_another_stage():

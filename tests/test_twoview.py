@@ -11,7 +11,7 @@ import pytest
 from rotonly_cli import twoview
 from rotonly_cli.geometry import so3
 from rotonly_cli.geometry import twoview as tv
-from rotonly_cli.geometry.scene import SceneKind
+from rotonly_cli.geometry.identification import SceneKind
 from rotonly_cli.geometry.trrm import TRRMOptions, optimize_rotations
 from rotonly_cli.simulation.twoview import simulate_twoview
 
@@ -267,7 +267,7 @@ def test_identification_at_1px():
 
 
 def test_pure_rotation_ratio_bands():
-    """The two populations the PR/B/I threshold (3) separates (geometry/scene.py docstring)."""
+    """The two populations the PR/B/I threshold (3) separates (geometry/identification.py docstring)."""
     rho_pure = [r.pure_rotation_ratio for r in _identify_many("pure_rotation", 40, seed0=7)]
     rho_std = [r.pure_rotation_ratio for r in _identify_many("standard", 40, seed0=7)]
     assert max(rho_pure) < 1.0

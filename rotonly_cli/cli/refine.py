@@ -17,7 +17,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from rotonly_cli.cli.run import jobs_option
+from rotonly_cli.cli import options as cli_options
 from rotonly_cli.errors import AlgorithmError, InputError
 
 
@@ -104,7 +104,7 @@ def format_table(row: dict) -> str:
               default=2.0, show_default=True, help="RANSAC epipolar threshold (px).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of RANSAC / the perturbation.")
 @click.option("--json", "as_json", is_flag=True, help="Print the numbers as JSON.")
-@jobs_option
+@cli_options.jobs
 def command(target: Path, init: str, perturb_deg: float, ransac_threshold_px: float, seed: int, as_json: bool,
             jobs: int) -> None:
     """TRRM-refine the edges of a workspace, or the simulated edge of a .npz file.
@@ -119,7 +119,8 @@ def command(target: Path, init: str, perturb_deg: float, ransac_threshold_px: fl
     if target.is_dir():
         from rotonly_cli.cli.run import echo_summary
         from rotonly_cli.io.workspace import STATE_FILE
-        from rotonly_cli.pipeline import RunOptions, resume
+        from rotonly_cli.options import RunOptions
+        from rotonly_cli.pipeline import resume
 
         if not (target / STATE_FILE).is_file():
             raise InputError(f"folder is not a rotonly workspace (no {STATE_FILE}; make one with "

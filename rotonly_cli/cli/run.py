@@ -8,53 +8,12 @@ from pathlib import Path
 
 import click
 
-from rotonly_cli.stages.load import REESTIMATE_MODES
-
-
-def _usable_cpus() -> int:
-    from rotonly_cli.runtime.parallel import usable_cpus
-
-    return usable_cpus()
-
-
-def shared_load_options(function):
-    """Options of the load stage, shared by `run` and `identify`."""
-    options = [
-        click.option("--matches-dir", type=click.Path(path_type=Path), default=None,
-                     help="OpenMVG input: folder with <view>.feat and matches.e/f/putative .bin|.txt "
-                          "(default: the sfm_data.json folder)."),
-        click.option("--image-path", type=click.Path(path_type=Path), default=None,
-                     help="Images, for point colours (default: images/ beside a database, root_path of "
-                          "an OpenMVG project; missing images give grey points)."),
-        click.option("--min-inliers", type=click.IntRange(min=6), default=30, show_default=True,
-                     help="Edges with fewer inlier matches are filtered."),
-        click.option("--reestimate", type=click.Choice(REESTIMATE_MODES), default="auto", show_default=True,
-                     help="Re-estimate relative poses with calibrated RANSAC: auto = edges without an "
-                          "E-based stored pose (PLANAR/UNCALIBRATED/... or none stored)."),
-        click.option("--ransac-max-error", type=click.FloatRange(min=0, min_open=True), default=2.0,
-                     show_default=True, help="RANSAC threshold in pixels."),
-        click.option("--seed", type=int, default=0, show_default=True, help="RANSAC seed (runs are deterministic)."),
-    ]
-    for option in reversed(options):
-        function = option(function)
-    return function
-
-
-def jobs_option(function):
-    """``--jobs N`` (an int: the usable CPUs when not given)."""
-    return click.option("--jobs", type=click.IntRange(min=1), default=None,
-                        callback=lambda ctx, param, value: _usable_cpus() if value is None else value,
-                        help="Processes for scene identification and TRRM (forked, Linux; default: the "
-                             "usable CPUs). The numbers do not depend on it. Both stay in one process while "
-                             "images are being decoded for the point colours (a fork is unsafe with a "
-                             "thread running).")(function)
+from rotonly_cli.cli import options as cli_options
 
 
 def run_options(ctx: click.Context, matches_dir, image_path, min_inliers, reestimate, ransac_max_error, seed,
                 **extra):
-    from rotonly_cli.pipeline import RunOptions
-    from rotonly_cli.stages.average import AverageOptions
-    from rotonly_cli.stages.load import LoadOptions
+    from rotonly_cli.options import AverageOptions, LoadOptions, RunOptions
 
     quiet = (ctx.obj or {}).get("verbosity", 0) < 0
     load = LoadOptions(reestimate=reestimate, ransac_max_error_px=ransac_max_error, seed=seed,
@@ -86,13 +45,11 @@ def echo_summary(summary: dict, out_dir: Path) -> None:
 @click.argument("input_path", metavar="INPUT", type=click.Path(path_type=Path))
 @click.option("-o", "--output", "out_dir", required=True, type=click.Path(path_type=Path),
               help="Workspace folder (new, empty, or a previous rotonly workspace: replaced atomically).")
-@click.option("--gt", "gt_path", type=click.Path(path_type=Path), default=None,
-              help="Ground truth (Strecha folder, sfm_data.json or COLMAP model): writes OUT/eval/report.{json,html}.")
-@shared_load_options
-@click.option("--max-residual-deg", type=click.FloatRange(min=0, min_open=True), default=5.0, show_default=True,
-              help="Edges further than this from the averaged rotations are filtered as outliers.")
+@cli_options.gt
+@cli_options.load_options
+@cli_options.max_residual_deg
 @click.option("--no-grrm", is_flag=True, help="Skip GRRM (keep the averaged rotations).")
-@jobs_option
+@cli_options.jobs
 @click.pass_context
 def command(ctx: click.Context, input_path: Path, out_dir: Path, gt_path: Path | None, no_grrm: bool,
             jobs: int, **load_options) -> None:

@@ -9,6 +9,17 @@ import click
 
 logger = logging.getLogger(__name__)
 
+#: options of both scene kinds
+noise = click.option("--noise", "noise_px", type=click.FloatRange(min=0), default=1.0, show_default=True,
+                     help="Pixel noise n (default model: magnitude U(0, n), random direction).")
+noise_model = click.option("--noise-model", type=click.Choice(["uniform", "gaussian", "opengv"]), default="uniform",
+                           show_default=True)
+seed = click.option("--seed", type=int, default=0, show_default=True)
+focal = click.option("--focal", type=click.FloatRange(min=0, min_open=True), default=800.0, show_default=True,
+                     help="Focal length (px).")
+image_size = click.option("--image-size", type=click.IntRange(min=1), default=960, show_default=True,
+                          help="Square image side (px).")
+
 
 @click.group("simulate")
 def command() -> None:
@@ -18,13 +29,12 @@ def command() -> None:
 @command.command("twoview")
 @click.option("--scene", type=click.Choice(["standard", "planar", "holoplane", "rankregular_line", "pure_rotation"]),
               default="standard", show_default=True, help="Scene structure (paper §Default Settings / §Scene Identification).")
-@click.option("--noise", "noise_px", type=click.FloatRange(min=0), default=1.0, show_default=True,
-              help="Pixel noise n (default model: magnitude U(0, n), random direction).")
-@click.option("--noise-model", type=click.Choice(["uniform", "gaussian", "opengv"]), default="uniform", show_default=True)
+@noise
+@noise_model
 @click.option("--points", "num_points", type=click.IntRange(min=6), default=1000, show_default=True)
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--focal", type=click.FloatRange(min=0, min_open=True), default=800.0, show_default=True, help="Focal length (px).")
-@click.option("--image-size", type=click.IntRange(min=1), default=960, show_default=True, help="Square image side (px).")
+@seed
+@focal
+@image_size
 @click.option("-o", "--output", "output", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Output .npz (ground truth included).")
 def twoview(scene: str, noise_px: float, noise_model: str, num_points: int, seed: int, focal: float,
@@ -43,11 +53,11 @@ def twoview(scene: str, noise_px: float, noise_model: str, num_points: int, seed
 @click.option("--setup", type=click.Choice(["circular", "square", "linear", "outward"]), default="circular", show_default=True)
 @click.option("--views", "num_views", type=click.IntRange(min=3), default=100, show_default=True)
 @click.option("--points", "num_points", type=click.IntRange(min=1), default=10_000, show_default=True)
-@click.option("--noise", "noise_px", type=click.FloatRange(min=0), default=1.0, show_default=True)
-@click.option("--noise-model", type=click.Choice(["uniform", "gaussian", "opengv"]), default="uniform", show_default=True)
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--focal", type=click.FloatRange(min=0, min_open=True), default=800.0, show_default=True)
-@click.option("--image-size", type=click.IntRange(min=1), default=960, show_default=True)
+@noise
+@noise_model
+@seed
+@focal
+@image_size
 @click.option("--spacing", type=click.FloatRange(min=0, min_open=True), default=10.0, show_default=True,
               help="Distance between adjacent cameras (m).")
 @click.option("--window", type=click.IntRange(min=1), default=10, show_default=True,

@@ -16,15 +16,16 @@ from pathlib import Path
 
 import click
 
-from rotonly_cli.cli.run import echo_summary, jobs_option, run_options, shared_load_options
+from rotonly_cli.cli import options as cli_options
+from rotonly_cli.cli.run import echo_summary, run_options
 
 
 @click.command("identify")
 @click.argument("input_path", metavar="INPUT", type=click.Path(path_type=Path))
 @click.option("-o", "--output", "out_dir", required=True, type=click.Path(path_type=Path),
               help="Workspace folder to create (or a previous workspace to replace).")
-@shared_load_options
-@jobs_option
+@cli_options.load_options
+@cli_options.jobs
 @click.pass_context
 def identify(ctx: click.Context, input_path: Path, out_dir: Path, jobs: int, **load_options) -> None:
     """Load INPUT (COLMAP .db or OpenMVG sfm_data.json), estimate the view graph and identify
@@ -35,11 +36,12 @@ def identify(ctx: click.Context, input_path: Path, out_dir: Path, jobs: int, **l
     echo_summary(run_pipeline(input_path, out_dir, options, stages=("load", "identify")), out_dir)
 
 
-def _stage_command(stage: str, summary: str, extra_options=()):
+def _stage_command(stage: str, summary: str, *options):
+    """`rotonly <stage> WORKSPACE [options]`: one stage on an OUT workspace, in place."""
     def callback(workspace: Path, max_residual_deg: float | None = None, image_path: Path | None = None,
                  gt_path: Path | None = None) -> None:
-        from rotonly_cli.pipeline import RunOptions, resume
-        from rotonly_cli.stages.average import AverageOptions
+        from rotonly_cli.options import AverageOptions, RunOptions
+        from rotonly_cli.pipeline import resume
 
         kwargs: dict = {}
         if max_residual_deg is not None:
@@ -50,27 +52,22 @@ def _stage_command(stage: str, summary: str, extra_options=()):
             kwargs["gt"] = str(gt_path)
         echo_summary(resume(workspace, stage, RunOptions(**kwargs)), workspace)
 
-    command = click.Command(stage, callback=callback, help=f"{summary}\n\nWORKSPACE is an OUT folder made by "
-                            "`rotonly identify` or `rotonly run`; its state.npz, view_graph.json and "
-                            f"reports/{stage}.json are updated in place.",
-                            params=[click.Argument(["workspace"], metavar="WORKSPACE",
-                                                   type=click.Path(path_type=Path)), *extra_options])
-    return command
+    for option in reversed(options):
+        callback = option(callback)
+    callback = click.argument("workspace", metavar="WORKSPACE", type=click.Path(path_type=Path))(callback)
+    return click.command(stage, help=f"{summary}\n\nWORKSPACE is an OUT folder made by `rotonly identify` or "
+                         "`rotonly run`; its state.npz, view_graph.json and "
+                         f"reports/{stage}.json are updated in place.")(callback)
 
 
 average = _stage_command("average", "Robust rotation averaging (L1 + IRLS, weighted by inlier count) of the "
-                         "active edges; edges beyond --max-residual-deg are filtered.",
-                         [click.Option(["--max-residual-deg"], type=click.FloatRange(min=0, min_open=True),
-                                       default=5.0, show_default=True, help="Outlier threshold (degrees).")])
+                         "active edges; edges beyond --max-residual-deg are filtered.", cli_options.max_residual_deg)
 optimize = _stage_command("optimize", "GRRM (the paper's Algorithm 4) refines the averaged global rotations on the "
                           "reprojection residuals of all REGULAR edges.")
 translate = _stage_command("translate", "Camera centres by LiGT from the rotations and the tracks of the REGULAR "
                            "edges.")
 triangulate = _stage_command("triangulate", "Triangulate the tracks and write OUT/sfm_data.json and OUT/sparse/.",
-                             [click.Option(["--image-path"], type=click.Path(path_type=Path), default=None,
-                                           help="Images for point colours."),
-                              click.Option(["--gt", "gt_path"], type=click.Path(path_type=Path), default=None,
-                                           help="Ground truth: also write OUT/eval/report.{json,html}.")])
+                             cli_options.image_path, cli_options.gt)
 
 commands = {"identify": identify, "average": average, "optimize": optimize, "translate": translate,
             "triangulate": triangulate}

@@ -23,62 +23,19 @@ Pure numpy/scipy. Model: ``R_j_from_i ≈ R_j R_iᵀ`` with ``R_k = R_cam_from_w
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import Enum
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from rotonly_cli.errors import AlgorithmError, InputError
 from rotonly_cli.geometry import so3
+from rotonly_cli.options import AveragingOptions, RobustWeight
 
 if TYPE_CHECKING:
     import scipy.sparse as sp
 
 __all__ = ["RobustWeight", "AveragingOptions", "AveragingResult", "average_rotations",
            "spanning_tree_rotations", "edge_residuals"]
-
-
-class RobustWeight(str, Enum):
-    """IRLS kernel (algorithms.md §2.1 step 5)."""
-
-    GEMAN_MCCLURE = "geman_mcclure"  # ICCV 2013; COLMAP default
-    HALF_NORM = "half_norm"  # ℓ½, TPAMI 2018 / ROBA / the seed's Chatterjee baseline
-    L2 = "l2"  # no robustness (for tests and ablations)
-
-
-@dataclass(frozen=True, kw_only=True)
-class AveragingOptions:
-    """Options of :func:`average_rotations`; defaults follow COLMAP/Theia (algorithms.md §2.2)."""
-
-    # L1RA outer steps and stop rule: mean ‖Δω_k‖ (rad) below the threshold (§2.1 step 4).
-    max_num_l1_iterations: int = 5
-    l1_step_convergence_threshold: float = 1e-3
-    skip_l1: bool = False
-    # ADMM for each L1 step: ρ = 1 (PoSDK/OpenMVG L1ADMM.h), iteration cap doubling from
-    # 10 up to 100 per L1 step (COLMAP), tolerances abs 1e-4 / rel 1e-2 (PoSDK, Boyd §3.3).
-    admm_rho: float = 1.0
-    admm_initial_iterations: int = 10
-    admm_max_iterations: int = 100
-    admm_absolute_tolerance: float = 1e-4
-    admm_relative_tolerance: float = 1e-2
-    # IRLS (§2.1 step 5). Stop rule as Theia/COLMAP ``ComputeAverageStepSize``: mean over
-    # the free views of ‖Δω_k‖ (rad) below the threshold.
-    weight_type: RobustWeight = RobustWeight.GEMAN_MCCLURE
-    irls_loss_parameter_sigma_deg: float = 5.0  # GM σ in degrees (COLMAP header "in degrees")
-    max_num_irls_iterations: int = 100
-    irls_step_convergence_threshold: float = 1e-3
-    # residual floor for ℓ½ weights (e^{-3/2} blows up at 0); Chatterjee caps the
-    # square-root weight, which is the same thing.
-    half_norm_min_residual_deg: float = 1e-4
-    ridge_regularization: float = 1e-9  # COLMAP ridge_regularization
-    # Edges whose final residual exceeds this are flagged as outliers.
-    max_inlier_residual_deg: float = 5.0
-
-    def validate(self) -> None:
-        if self.max_num_l1_iterations < 0 or self.max_num_irls_iterations < 0:
-            raise InputError("iteration counts must be >= 0", field="options")
-        if self.irls_loss_parameter_sigma_deg <= 0 or self.admm_rho <= 0:
-            raise InputError("sigma and rho must be positive", field="options")
 
 
 @dataclass

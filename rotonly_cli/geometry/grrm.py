@@ -29,82 +29,12 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from rotonly_cli.geometry import kernels, so3
+from rotonly_cli.geometry.robust import radial_excess, robust_curvature, robust_rho
+from rotonly_cli.options import LOSSES, RESIDUALS, GRRMOptions, ResidualForm, RobustLoss  # noqa: F401 (re-exported)
 from rotonly_cli.geometry import twoview as tv
 
 log = logging.getLogger("rotonly.grrm")
 
-LOSSES = ("none", "huber", "cauchy")
-RESIDUALS = ("image", "bearing")
-
-
-@dataclass(frozen=True)
-class GRRMOptions:
-    max_iterations: int = 30  #: k_max of Alg. 4
-    function_tolerance: float = 1e-8  #: stop at a relative cost decrease below this (ε of Alg. 4)
-    #: stop after an accepted step whose largest rotation update is below this (rad). With
-    #: the robust loss's second-order term (robust_hessian) LM converges superlinearly
-    #: (measured steps on entry-P10: 4.6e-3, 1.6e-3, 4.2e-4, 4.7e-5, 3.7e-6, 4.9e-7 rad), so
-    #: what is left after a step below 1e-5 rad is ~1e-6 rad (6e-5 deg), far below real
-    #: rotation errors (~1e-2 deg)
-    step_tolerance: float = 1e-5
-    initial_damping: float = 1e-4  #: μ relative to diag(JᵀJ)
-    max_damping: float = 1e10
-    #: robust loss on ‖V_ik‖ (bearing chord units ≈ radians). Real matches contain a few
-    #: wrong correspondences that survived two-view RANSAC; "cauchy" bounds their pull.
-    loss: str = "cauchy"
-    #: loss scale; None = loss_scale_factor x 1.4826 x median ‖V_ik‖ at the start
-    loss_scale: float | None = None
-    #: 1.5 (a tight Cauchy) was chosen on the three Strecha scenes: their COLMAP inlier sets
-    #: hold wrong matches (repeated structure) that a wider loss lets pull the rotations
-    #: (mean error, factor 1.5 / 3 / 5: entry 0.0198 / 0.0273 / 0.0587 deg, Herz-Jesus
-    #: 0.0176 / 0.0179 / 0.0182, fountain 0.0293 / 0.0289 / 0.0279)
-    loss_scale_factor: float = 1.5
-    #: first phase on Σ_edges λ_min(Pˢ_ij(R_j R_i^T)) (smooth, like TRRM's first phase):
-    #: brings starts a degree or more off into GRRM's basin; 0 disables it
-    epipolar_max_iterations: int = 10
-    epipolar_step_tolerance: float = 1e-4  #: rad; this phase only has to reach the basin
-    #: run the λ_min phase only when GRRM's first LM step from the start is rejected, needs
-    #: more damping, or moves a view more than this (rad): a start that close is already in
-    #: GRRM's basin (on Strecha the first steps are 3e-4 - 3e-3 rad and the λ_min phase's
-    #: start, 0.1-1 deg away, was never taken). None: always run it first (GRRM's first
-    #: iteration is then computed after it)
-    epipolar_trigger: float | None = 1e-2
-    #: "bearing": unit-sphere differences (eq:PA3bearing, the form TRRM uses for one edge);
-    #: "image": normalized image coordinates X^i_ijk - X̃_ik (eq:GRRMRes1 with eq:PA2/PA3,
-    #: the BA residual's units). Bearing is the default: on Strecha the two agree to 3e-4
-    #: deg, and in the multi-view simulations (12 views, 4 seeds, mean error) bearing is
-    #: lower, e.g. circular 1 / 5 px 0.0058 / 0.039 vs 0.0066 / 0.047, outward 1 px 1.66 vs 2.00
-    residual: str = "bearing"
-    #: Hessian with the robust loss's second-order term (see _robust_curvature): same
-    #: optimum, fewer iterations than plain IRLS weights
-    robust_hessian: bool = True
-    #: with robust_hessian, from the start and after accepted steps below this (rad; 0 =
-    #: never, inf = from the start): the Cauchy loss's radial curvature beyond its scale
-    #: (β in (1, 2), a negative rank-1 term per observation) is kept whenever the damped
-    #: system stays positive definite, else the clamped β <= 1. Near the optimum the exact
-    #: Hessian of ρ(‖V‖²) turns LM's linear rate (~0.2 per iteration) quadratic; far from it
-    #: the clamped PSD model is the better one. Iterations (clamped / 1e-3 / from the start)
-    #: on the Strecha databases 3/5/3, 3/5/2, 3/4/2; from OpenMVG's entry-P10 matches
-    #: (first step 1.7e-3 rad) 3 / 4 / 10; a simulated 8-view start with a first step of
-    #: 4e-3 rad took 12 from the start, 6 otherwise. Same optimum (the gradient is unchanged)
-    exact_curvature_below: float = 1e-3
-    #: per-edge t from IRLS-weighted Pˢ (weights fixed at the start; see trrm.TRRMOptions.loss)
-    robust_translation: bool = True
-
-    def validate(self) -> "GRRMOptions":
-        if self.residual not in RESIDUALS:
-            raise ValueError(f"residual: must be one of {RESIDUALS}, got {self.residual!r}")
-        if self.loss not in LOSSES:
-            raise ValueError(f"loss: must be one of {LOSSES}, got {self.loss!r}")
-        if self.max_iterations < 0:
-            raise ValueError("max_iterations: must be >= 0")
-        if self.loss_scale is not None and not self.loss_scale > 0:
-            raise ValueError("loss_scale: must be > 0")
-        if not self.exact_curvature_below >= 0:
-            raise ValueError("exact_curvature_below: must be >= 0")
-        if self.epipolar_trigger is not None and not self.epipolar_trigger >= 0:
-            raise ValueError("epipolar_trigger: must be >= 0 or None")
-        return self
 
 
 @dataclass
@@ -320,17 +250,17 @@ class _Problem:
         cost = 0.0
         for blk, V_blk, _, B in self._block_terms(R, with_jacobian):
             sq = V_blk[0] * V_blk[0] + V_blk[1] * V_blk[1] + V_blk[2] * V_blk[2]
-            rho, drho = _robust(sq, loss, scale)
+            rho, drho = robust_rho(sq, loss, scale)
             cost += float(rho.sum())
             if with_jacobian:
                 alpha = None
                 if robust_hessian:
-                    beta = _robust_curvature(sq, loss, scale)
+                    beta = robust_curvature(sq, loss, scale)
                     if np.any(beta > 0):
                         alpha = 1.0 - np.sqrt(1.0 - np.clip(beta, 0.0, 1.0))
                 self._accumulate(sums, blk, B, V_blk, drho, alpha)
                 if excess_sums is not None:
-                    excess = _radial_excess(sq, loss, scale)
+                    excess = radial_excess(sq, loss, scale)
                     if np.any(excess > 0):
                         any_excess = True
                         self._accumulate_rank_one(excess_sums, blk, B, V_blk, drho * excess)
@@ -455,7 +385,7 @@ class _Problem:
 
         ``radial_curvature`` β_g (G,): the Hessian block of observation g becomes
         ρ' J_gᵀ (I - β_g v̂ v̂ᵀ) J_g (v̂ = V_g / ‖V_g‖), the robust loss's second-order term
-        (see :func:`_robust_curvature`); the gradient is unchanged. I - β v̂v̂ᵀ = (I - α v̂v̂ᵀ)²
+        (see :func:`robust_curvature`); the gradient is unchanged. I - β v̂v̂ᵀ = (I - α v̂v̂ᵀ)²
         with α = 1 - sqrt(1 - β): every block is scaled once, B_c <- (I - α v̂ v̂ᵀ) B_c, and
         the pair products stay as they are."""
         sums = self._new_sums()
@@ -485,49 +415,6 @@ def _block_products(Ba: np.ndarray, Bb: np.ndarray, index: np.ndarray, length: i
             if symmetric and q > p:
                 out[:, 3 * q + p] = out[:, 3 * p + q]
     return out
-
-
-def _robust_curvature(sq_norm: np.ndarray, loss: str, scale: float) -> np.ndarray:
-    """β = -2 s ρ''(s) / ρ'(s), clamped to [0, 1]: with it, ρ'(I - β v̂v̂ᵀ) is the exact
-    Hessian of ρ(‖V‖²) w.r.t. V (up to the factor 2), kept positive semi-definite.
-
-    Without it (plain IRLS weights ρ') LM converges only linearly under a robust loss
-    (measured ratio ~0.5 per iteration on Strecha); this is Triggs et al.'s correction
-    ("Bundle adjustment — a modern synthesis", §4.3), which Ceres applies only for ρ'' > 0.
-    Here ρ'' < 0 (Cauchy, Huber) and the clamp β ≤ 1 drops only the radial curvature of
-    observations beyond the loss scale, so the damped system stays positive definite.
-    """
-    if loss == "none":
-        return np.zeros_like(sq_norm)
-    u = sq_norm / (scale * scale)
-    if loss == "huber":
-        return (u > 1.0).astype(float)
-    return np.minimum(2.0 * u / (1.0 + u), 1.0)  # cauchy
-
-
-def _radial_excess(sq_norm: np.ndarray, loss: str, scale: float) -> np.ndarray:
-    """(β - 1)₊ of the unclamped β = -2 s ρ''(s) / ρ'(s) (see _robust_curvature): Cauchy's
-    β = 2u / (1 + u) exceeds 1 beyond the loss scale (u > 1); Huber's is at most 1."""
-    if loss != "cauchy":
-        return np.zeros_like(sq_norm)
-    u = sq_norm / (scale * scale)
-    return np.maximum((u - 1.0) / (1.0 + u), 0.0)
-
-
-def _robust(sq_norm: np.ndarray, loss: str, scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """ρ(s) and ρ'(s) of a squared norm s (Ceres' convention: ρ(s) ≈ s near 0)."""
-    if loss == "none":
-        return sq_norm, np.ones_like(sq_norm)
-    c2 = scale * scale
-    if loss == "huber":
-        small = sq_norm <= c2
-        root = np.sqrt(sq_norm)
-        rho = np.where(small, sq_norm, 2.0 * scale * root - c2)
-        drho = np.where(small, 1.0, scale / np.where(small, 1.0, root))
-        return rho, drho
-    rho = c2 * np.log1p(sq_norm / c2)  # cauchy
-    drho = 1.0 / (1.0 + sq_norm / c2)
-    return rho, drho
 
 
 def validate_inputs(R_cam_from_world, edge_views, batch: tv.EdgeBatch, obs_ids) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -672,7 +559,7 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
         active = S > 0
         med = np.median(np.sqrt(sq[active])) if np.any(active) else 0.0
         scale = max(options.loss_scale_factor * 1.4826 * med, 1e-12)
-    cost = float(_robust(sq, options.loss, scale)[0].sum())  # without translation weights
+    cost = float(robust_rho(sq, options.loss, scale)[0].sum())  # without translation weights
 
     def linearize(R_at: np.ndarray, with_jacobian: bool, exact: bool = False):
         # (robust cost, JᵀWJ, JᵀWV, remainder) of all 3n parameters

@@ -35,29 +35,9 @@ from scipy.sparse.linalg import eigsh
 from rotonly_cli.errors import AlgorithmError, InputError
 from rotonly_cli.geometry.so3 import hat
 from rotonly_cli.geometry.tracks import pairs_within_tracks, segment_sums
+from rotonly_cli.options import LiGTOptions
 
 __all__ = ["LiGTOptions", "LiGTResult", "ligt_translations", "ligt_normal_matrix"]
-
-
-@dataclass(frozen=True, kw_only=True)
-class LiGTOptions:
-    """Options of :func:`ligt_translations`."""
-
-    # Tracks whose best base pair has ‖θ_lr‖ below this carry no translation information
-    # (pure rotation / infinitely far points, seed §6.1: all θ = 0 for PR/B/I).
-    min_base_theta_norm: float = 1e-10
-    # Up to this many free unknowns (3(n−1)) the dense eigh is used; above it the sparse
-    # shift-invert Lanczos (OpenMVG/pyTheia use Spectra's shift-invert with shift 0,
-    # algorithms.md §1.2). Measured: both agree to 1e-13; sparse is already as fast at
-    # n = 100 views (0.3 s), dense eigh of 300 unknowns took 0.1-0.4 s on 2 cores.
-    max_dense_unknowns: int = 150
-    # Constraints assembled per chunk; bounds the memory of one chunk's per-constraint terms.
-    chunk_size: int = 50_000
-    # Tracks longer than this select their base pair among their first views only
-    # (the exhaustive pair scan costs Σ L²).
-    max_base_search_views: int = 64
-    # Views needing at least this many constraint rows to be solved.
-    min_constraints_per_view: int = 1
 
 
 @dataclass

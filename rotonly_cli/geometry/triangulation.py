@@ -26,33 +26,9 @@ import numpy as np
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.geometry.tracks import pairs_within_tracks, segment_sums
+from rotonly_cli.options import TriangulationOptions
 
 __all__ = ["TriangulationOptions", "TriangulationResult", "triangulate_tracks", "max_ray_angle_deg"]
-
-
-@dataclass(frozen=True, kw_only=True)
-class TriangulationOptions:
-    """Options of :func:`triangulate_tracks`."""
-
-    # Gauss-Newton iterations of the reprojection error (3 is plenty from the linear start).
-    num_refinement_iterations: int = 5
-    # Mean reprojection error threshold in normalized units (≈ pixels / f). 4 px is
-    # OpenMVG's 4th-BA outlier rule (algorithms.md §7a); at f = 1000 that is 4e-3.
-    max_reprojection_error: float = 4e-3
-    # Minimum over-track max ray angle. OpenMVG's 4th BA drops < 2° (algorithms.md §7a);
-    # 1° keeps more points and is COLMAP's min_tri_angle-like default (1.5°) rounded down.
-    min_parallax_deg: float = 1.0
-    # Points must have positive depth in every observing camera.
-    min_depth: float = 1e-9
-    # Tracks longer than this use only their first ``max_parallax_views`` rays for the
-    # parallax test (the exact max over all pairs costs Σ L² memory).
-    max_parallax_views: int = 64
-
-    def validate(self) -> None:
-        if self.num_refinement_iterations < 0 or self.max_reprojection_error <= 0:
-            raise InputError("num_refinement_iterations >= 0 and max_reprojection_error > 0 needed", field="options")
-        if self.min_parallax_deg < 0 or self.max_parallax_views < 2:
-            raise InputError("min_parallax_deg >= 0 and max_parallax_views >= 2 needed", field="options")
 
 
 @dataclass

@@ -18,95 +18,9 @@ import numpy as np
 
 from rotonly_cli.geometry import kernels, so3
 from rotonly_cli.geometry import twoview as tv
-from rotonly_cli.geometry.scene import (Identification, IdentificationOptions, SceneKind, ratios_and_ps, classify,
+from rotonly_cli.options import TRRMOptions
+from rotonly_cli.geometry.identification import (Identification, IdentificationOptions, SceneKind, ratios_and_ps, classify,
                                         detection_values, kind_mask)
-
-
-@dataclass(frozen=True)
-class TRRMOptions:
-    max_iterations: int = 50  #: k_max of Alg. 2
-    function_tolerance: float = 1e-12  #: stop when the relative cost decrease is below this (ε of Alg. 2)
-    #: stop after a step shorter than this (rad), four orders below the noise-level error.
-    #: With noise LM converges linearly, fast: measured steps 1.4e-4 -> 1.2e-7 -> 1.5e-10 rad
-    #: (Standard, 1000 points, 1 px); noise-free it converges quadratically.
-    step_tolerance: float = 1e-7
-    #: also stop after an accepted step shorter than this (rad) when the contraction
-    #: κ = step / previous accepted step predicts less than ``step_tolerance`` still to go
-    #: (step κ / (1 - κ), the geometric tail). Such a candidate is evaluated without the
-    #: Jacobian. In the example above this saves the third step (1.5e-10 rad) and two
-    #: Jacobian evaluations per LM run. The prediction is trusted only in the asymptotic
-    #: regime: far from the optimum shrinking steps need not mean convergence (a noise-free
-    #: start 10° off stopped 0.08 rad short when the λ_min(Pˢ) phase used it); 0 disables it.
-    contraction_stop_below: float = 1e-5
-    #: after a step shorter than this (rad) from a point whose JᵀJ is fresh, keep that JᵀJ
-    #: for one more iteration and compute only the exact gradient Jᵀr at the candidate
-    #: (reverse mode, kernels._adjoint_gradient: 0.21 s instead of 0.30 s per million
-    #: matches). The fixed point (Jᵀr = 0) is the same and on the throughput benchmark the
-    #: iterations and rotations do not change (-0.2 s of 2.6 s), but far from the optimum
-    #: the different path can end in another minimum: with 1e-3, one of 20 Standard 5 px
-    #: trials of ``rotonly bench twoview`` went from 0.2° to 12.8°. Off (0) by default.
-    frozen_hessian_below: float = 0.0
-    gradient_tolerance: float = 1e-14  #: stop when ‖J^T r‖ / (cost + tiny) is below this
-    initial_damping: float = 1e-4  #: μ relative to the diagonal of J^T J (Marquardt scaling)
-    min_damping: float = 1e-12
-    max_damping: float = 1e8
-    #: first phase on the smooth λ_min(Pˢ) cost (twoview.epipolar_residuals) before TRRM, so
-    #: that starts several degrees off still reach TRRM's basin; 0 disables it.
-    epipolar_max_iterations: int = 30
-    #: the first phase only has to reach TRRM's basin: it stops at steps below this (rad)
-    #: or at a relative decrease below ``epipolar_function_tolerance``.
-    epipolar_step_tolerance: float = 1e-4
-    epipolar_function_tolerance: float = 1e-4
-    #: robust TRRM: "cauchy" (IRLS) or "none" (the paper's plain least squares). Real matches
-    #: contain wrong correspondences and points near the epipole whose analytic depth
-    #: (eq:analyticalDepth) is noise-dominated: their bearing residuals reach O(1) and, squared,
-    #: outweigh hundreds of good matches — both in the cost and in Pˢ, which then gives a
-    #: wrong t for everyone. IRLS weights w = 1/(1 + s/c²) enter Pˢ (Σ w θθᵀ: the noise-free
-    #: null vector is unchanged by any positive weights) and the residual rows.
-    loss: str = "cauchy"
-    #: Cauchy scale c = loss_scale_factor x 1.4826 x the edge's median per-match residual norm
-    loss_scale_factor: float = 3.0
-    #: floor of c (bearing units); noise-free data would otherwise get c = 0
-    min_loss_scale: float = 1e-9
-    #: IRLS rounds: weights are re-estimated and LM re-run this many times. One Cauchy round
-    #: then the final inlier pass (whose σ comes from that round's result) costs as much as
-    #: the two Cauchy rounds it replaced; two rounds plus the pass were +0.8 s on
-    #: scripts/bench_throughput.py for a mean rotation error within 1 % of one round.
-    irls_rounds: int = 1
-    #: step tolerance (rad) of every round but the last (None: ``step_tolerance``); those
-    #: rounds only place the rotation at which the next weights are computed. 1e-3 stops
-    #: them after one Gauss-Newton step (~1e-4 rad after the λ_min(Pˢ) phase): measured on
-    #: 1000 Standard edges at 1 px, -0.25 s of 2.7 s, but the per-edge medians in the Cauchy
-    #: scale make single edges move by up to 1e-4 rad (mean 6e-7), so it is off by default.
-    irls_step_tolerance: float | None = None
-    #: robust loss only: after the IRLS rounds, one more LM on plain least squares over the
-    #: inliers (weights 1 for matches with ‖r‖ <= ``inlier_threshold_sigmas`` x σ, 0 otherwise,
-    #: σ = 1.4826 x the edge's median residual norm at the IRLS result; Pˢ = Σ w θθᵀ as for
-    #: the IRLS weights). The Cauchy weights down-weight good matches too (a 2σ match gets
-    #: 1/(1 + 4/9)): on clean Standard 1 px edges that cost ~4 % in mean rotation error against
-    #: the plain least-squares optimum (issue 3); the 0/1 weights keep the robustness to wrong
-    #: matches, which the IRLS rounds have already pushed out past the threshold.
-    final_inlier_pass: bool = True
-    #: k of the inlier test ‖r‖ <= k σ: 3σ rejection keeps ~99.7 % of Gaussian inliers (for a
-    #: 1-D Gaussian 1.4826 x median |r| is σ). Measured on 30 Standard 1 px edges at the true
-    #: rotation: k = 3 keeps 99.7 % (Gaussian pixel noise) / 99.9 % (uniform magnitude);
-    #: k = 2.5 keeps 98.9 % but the truncated tail already cost 5 % in mean rotation error.
-    inlier_threshold_sigmas: float = 3.0
-
-    def validate(self) -> "TRRMOptions":
-        if self.loss not in ("cauchy", "none"):
-            raise ValueError(f"loss: must be 'cauchy' or 'none', got {self.loss!r}")
-        if self.max_iterations < 0:
-            raise ValueError("max_iterations: must be >= 0")
-        for name in ("function_tolerance", "step_tolerance", "gradient_tolerance", "initial_damping",
-                     "contraction_stop_below", "frozen_hessian_below"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name}: must be >= 0")
-        if not self.inlier_threshold_sigmas > 0:
-            raise ValueError("inlier_threshold_sigmas: must be > 0")
-        if self.irls_step_tolerance is not None and not self.irls_step_tolerance >= 0:
-            raise ValueError("irls_step_tolerance: must be >= 0 or None")
-        return self
 
 
 @dataclass

@@ -26,9 +26,8 @@ from typing import Sequence
 import numpy as np
 
 from rotonly_cli.geometry import so3
+from rotonly_cli.options import MIN_MATCHES  # noqa: F401 (re-exported)
 
-#: Fewest matches an edge may have (five-point minimum + one to over-determine Pˢ).
-MIN_MATCHES = 6
 
 
 # ----------------------------------------------------------------------------- packing

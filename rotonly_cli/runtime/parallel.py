@@ -1,6 +1,6 @@
 """Edge-parallel TRRM and scene identification over forked processes.
 
-Every per-edge quantity of the two-view core (geometry/trrm.py, geometry/scene.py) depends
+Every per-edge quantity of the two-view core (geometry/trrm.py, geometry/identification.py) depends
 on that edge's matches only, so the edges can be cut into contiguous parts that are refined
 side by side. Threads do not pay: the lean kernels issue many small numpy calls per group of
 edges and hold the GIL between them (two threads on edge halves: 1.16-1.6x on 2 cores,

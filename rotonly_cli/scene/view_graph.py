@@ -18,7 +18,7 @@ import numpy as np
 
 from rotonly_cli.compat import StrEnum
 from rotonly_cli.geometry import twoview as tv
-from rotonly_cli.geometry.scene import SceneKind
+from rotonly_cli.geometry.identification import SceneKind
 from rotonly_cli.scene.types import View
 
 

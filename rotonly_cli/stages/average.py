@@ -10,25 +10,17 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
 from rotonly_cli.errors import AlgorithmError
 from rotonly_cli.geometry.averaging import AveragingOptions, average_rotations
+from rotonly_cli.options import AverageOptions
 from rotonly_cli.scene.view_graph import ViewGraph, largest_component, view_index
 
 logger = logging.getLogger(__name__)
 OUTLIER_REASON = "rotation averaging outlier"
-
-
-@dataclass(frozen=True)
-class AverageOptions:
-    #: residual (deg) above which an edge is a gross outlier. 5°: averaging.py's inlier
-    #: threshold (Geman-McClure σ = 5°, Chatterjee & Govindu ICCV 2013).
-    max_residual_deg: float = 5.0
-    max_rounds: int = 5
-    averaging: AveragingOptions = AveragingOptions()
 
 
 def _solve(graph: ViewGraph, index: dict[int, int], averaging: AveragingOptions):

@@ -1,6 +1,6 @@
 """Stage `identify`: scene identification of every active edge (paper §"Scene Identification").
 
-Batched over all edges (``geometry.scene.identify``). Filter: ROTATION_SINGULAR edges
+Batched over all edges (``geometry.identification.identify``). Filter: ROTATION_SINGULAR edges
 (Holoplane / RankRegular-line) are excluded, as the paper says — their rotation is not
 determined by the matches. PURE_ROTATION edges stay active: they keep their rotation for
 averaging but give no translation constraint (``stages.translate`` uses REGULAR edges only).
@@ -14,7 +14,7 @@ from functools import partial
 
 import numpy as np
 
-from rotonly_cli.geometry.scene import IdentificationOptions, identify
+from rotonly_cli.geometry.identification import IdentificationOptions, identify
 from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, filter_rotation_singular, kind_counts
 from rotonly_cli.runtime.parallel import map_edges, plan
 

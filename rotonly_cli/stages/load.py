@@ -14,14 +14,13 @@ from __future__ import annotations
 import logging
 import os
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from rotonly_cli.errors import InputError
-from rotonly_cli.geometry.twoview import MIN_MATCHES
 from rotonly_cli.io.detect import InputKind, detect_input
+from rotonly_cli.options import LoadOptions, Reestimate
 from rotonly_cli.scene.types import Intrinsics, SfMScene
 from rotonly_cli.scene.view_graph import Edge, ViewGraph, largest_component
 
@@ -29,41 +28,6 @@ logger = logging.getLogger(__name__)
 
 #: configurations whose stored cam2_from_cam1 comes from an essential matrix (formats.md §4.5)
 ESSENTIAL_CONFIGS = ("CALIBRATED", "E")
-REESTIMATE_MODES = ("auto", "all", "none")
-
-
-@dataclass(frozen=True)
-class LoadOptions:
-    #: "auto": re-estimate edges without an E-based stored pose; "all"; "none" (such edges
-    #: are filtered instead).
-    reestimate: str = "auto"
-    #: RANSAC threshold in pixels (Sampson error at the view's focal length). 2 px: half of
-    #: COLMAP's verification default (4 px) — the inputs are already verified at 4 px, and
-    #: TRRM has no robust loss, so a tighter inlier set pays off.
-    ransac_max_error_px: float = 2.0
-    #: pycolmap's default of 1000 minimum trials costs 0.4 s per Strecha pair; the matches
-    #: are verified inliers already (high inlier ratio), so the adaptive count stops far
-    #: below that (measured on fountain-P11: 113193 vs 113133 inliers, 23.5 s vs 2.6 s).
-    #: 20 rather than 100: each trial scores every match (~0.3 ms per pair), so this is 3.5x
-    #: less RANSAC time on entry-P10 (42 re-estimated pairs: 1.35 -> 0.46 s CPU) at the same
-    #: accuracy within the seed spread (5 seeds, mean rotation error 0.0204 -> 0.0200 deg,
-    #: position 0.0350 -> 0.0356; HJ-P8 / fountain-P11 unchanged).
-    ransac_min_trials: int = 20
-    ransac_confidence: float = 0.9999
-    seed: int = 0
-    #: edges with fewer inlier matches are filtered (task default 30)
-    min_inliers: int = 30
-    progress: bool = False
-
-    def validate(self) -> "LoadOptions":
-        if self.reestimate not in REESTIMATE_MODES:
-            raise InputError(f"must be one of {', '.join(REESTIMATE_MODES)}", field="reestimate")
-        if not self.ransac_max_error_px > 0:
-            raise InputError("must be > 0", field="ransac_max_error_px")
-        if self.min_inliers < MIN_MATCHES:
-            raise InputError(f"must be >= {MIN_MATCHES}", field="min_inliers")
-        return self
-
 
 def read_input(input_path: str | Path, matches_dir: str | Path | None = None) -> tuple[SfMScene, str]:
     """(scene, kind) for a COLMAP database or an OpenMVG sfm_data.json (+ features, matches)."""
@@ -135,7 +99,8 @@ def build_view_graph(scene: SfMScene, options: LoadOptions = LoadOptions()) -> t
             edge.filter("view without calibration")
         elif len(matches) < options.min_inliers:
             edge.filter("too few inliers")
-        elif options.reestimate == "all" or (options.reestimate == "auto" and not (has_pose and essential)):
+        elif options.reestimate == Reestimate.ALL or (options.reestimate == Reestimate.AUTO
+                                                      and not (has_pose and essential)):
             to_estimate.append(len(graph.edges) - 1)
         elif not has_pose:
             edge.filter("no relative pose")

@@ -1,7 +1,7 @@
 """Stage `optimize`: GRRM (paper Alg. 3-4) on the averaged rotations.
 
 GRRM's residuals need each edge's closed-form translation, so only active REGULAR edges
-enter (PURE_ROTATION and ROTATION_SINGULAR edges are kept out of GRRM: geometry/scene.py).
+enter (PURE_ROTATION and ROTATION_SINGULAR edges are kept out of GRRM: geometry/identification.py).
 The problem is the largest connected component of those edges; its first view is the gauge.
 Views outside it keep their averaged rotations. Observation ids: (view, keypoint) numbered
 by a per-view offset, so every match of every edge through that keypoint shares the id.

@@ -29,33 +29,18 @@ at 1 px and ≥ 6.8 at 5 px; PlanarScene ≥ 4.0 at 5 px; tests/test_twoview.py 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import Enum
 
 import numpy as np
 
+from rotonly_cli.compat import StrEnum
 from rotonly_cli.geometry import twoview as tv
+from rotonly_cli.options import IdentificationOptions
 
 
-class SceneKind(str, Enum):
+class SceneKind(StrEnum):
     REGULAR = "REGULAR"  #: translation observable, rotation well constrained
     PURE_ROTATION = "PURE_ROTATION"  #: PR/B/I: rank Pˢ = 0, no translation information
     ROTATION_SINGULAR = "ROTATION_SINGULAR"  #: Holoplane or RankRegular-line (Corollary 2)
-
-
-@dataclass(frozen=True)
-class IdentificationOptions:
-    #: v_rs below this -> RotationSingular. Paper §"Scene Identification" / §7.2.1 (1e-4),
-    #: on z = 1 normalized coordinates.
-    rotation_singular_threshold: float = 1e-4
-    #: ρ = f_pure / f_TRRM below this -> PURE_ROTATION (module docstring: ρ < 1 under PR/B/I).
-    pure_rotation_ratio_threshold: float = 3.0
-
-    def validate(self) -> "IdentificationOptions":
-        if not self.rotation_singular_threshold >= 0:
-            raise ValueError("rotation_singular_threshold: must be >= 0")
-        if not self.pure_rotation_ratio_threshold > 0:
-            raise ValueError("pure_rotation_ratio_threshold: must be > 0")
-        return self
 
 
 @dataclass

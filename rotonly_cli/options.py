@@ -1,0 +1,339 @@
+"""Every option of rotonly, one frozen dataclass per stage composed in :class:`RunOptions`,
+and every choice as a StrEnum.
+
+A StrEnum member equals its string (``RobustLoss.CAUCHY == "cauchy"``), so callers may pass
+either. This module imports nothing of rotonly but ``compat`` and ``errors``: the geometry
+modules take their options from here, and each re-exports its own (``trrm.TRRMOptions``).
+The measurements behind the defaults are in docs/tuning.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from rotonly_cli.compat import StrEnum
+from rotonly_cli.errors import InputError
+
+__all__ = [
+    "AverageOptions", "AveragingOptions", "GRRMOptions", "IdentificationOptions", "LiGTOptions", "LoadOptions",
+    "Reestimate", "ResidualForm", "RobustLoss", "RobustWeight", "RunOptions", "TRRMOptions", "TriangulationOptions",
+]
+
+
+# ============================================================================ choices
+
+class RobustLoss(StrEnum):
+    """Robust loss ρ(s) of a squared residual norm s (geometry/robust.py)."""
+
+    NONE = "none"  #: plain least squares (the paper's)
+    HUBER = "huber"  #: ρ(s) = s inside the scale, linear in √s beyond
+    CAUCHY = "cauchy"  #: ρ(s) = c² log(1 + s/c²)
+
+
+class ResidualForm(StrEnum):
+    """Units of GRRM's residual V_ik."""
+
+    IMAGE = "image"  #: normalized image coordinates (eq:GRRMRes1 with eq:PA2/PA3, BA's units)
+    BEARING = "bearing"  #: unit-sphere differences (eq:PA3bearing, TRRM's form)
+
+
+class RobustWeight(StrEnum):
+    """IRLS kernel of rotation averaging (algorithms.md §2.1 step 5)."""
+
+    GEMAN_MCCLURE = "geman_mcclure"  #: ICCV 2013; COLMAP default
+    HALF_NORM = "half_norm"  #: ℓ½, TPAMI 2018 / ROBA / the seed's Chatterjee baseline
+    L2 = "l2"  #: no robustness (for tests and ablations)
+
+
+class Reestimate(StrEnum):
+    """Which stored relative poses the load stage re-estimates with calibrated RANSAC."""
+
+    AUTO = "auto"  #: edges without an E-based stored pose (PLANAR, UNCALIBRATED, ..., none stored)
+    ALL = "all"  #: every edge
+    NONE = "none"  #: none: edges without a usable stored pose are filtered
+
+
+#: fewest matches an edge may have (five-point minimum + one to over-determine Pˢ)
+MIN_MATCHES = 6
+LOSSES = tuple(loss.value for loss in RobustLoss)
+RESIDUALS = tuple(form.value for form in ResidualForm)
+REESTIMATE_MODES = tuple(mode.value for mode in Reestimate)
+
+
+# ============================================================================ geometry
+
+@dataclass(frozen=True)
+class IdentificationOptions:
+    """Scene identification (geometry/identification.py)."""
+
+    #: v_rs below this -> ROTATION_SINGULAR: paper §"Scene Identification" / §7.2.1 (1e-4), on
+    #: z = 1 normalized coordinates
+    rotation_singular_threshold: float = 1e-4
+    #: ρ = f_pure / f_TRRM below this -> PURE_ROTATION: between the PR/B/I (ρ < 1) and regular
+    #: (ρ ≫ 1) populations (geometry/identification.py)
+    pure_rotation_ratio_threshold: float = 3.0
+
+    def validate(self) -> IdentificationOptions:
+        if not self.rotation_singular_threshold >= 0:
+            raise ValueError("rotation_singular_threshold: must be >= 0")
+        if not self.pure_rotation_ratio_threshold > 0:
+            raise ValueError("pure_rotation_ratio_threshold: must be > 0")
+        return self
+
+
+@dataclass(frozen=True)
+class TRRMOptions:
+    """Two-view TRRM (paper Alg. 1-2; geometry/trrm.py)."""
+
+    max_iterations: int = 50  #: k_max of Alg. 2
+    function_tolerance: float = 1e-12  #: stop when the relative cost decrease is below this (ε of Alg. 2)
+    #: stop after a step shorter than this (rad), four orders below the noise-level error
+    step_tolerance: float = 1e-7
+    #: also stop after an accepted step shorter than this (rad) when the observed contraction
+    #: predicts less than ``step_tolerance`` still to go; such a candidate needs no Jacobian.
+    #: Trusted only in the Gauss-Newton regime (see trrm._lock_step_lm); 0 disables it
+    contraction_stop_below: float = 1e-5
+    #: after a step shorter than this (rad), keep JᵀJ one more iteration and compute only Jᵀr
+    #: (reverse mode). Same fixed point, but from far off the other path can end in another
+    #: minimum, so it is off (0) by default
+    frozen_hessian_below: float = 0.0
+    gradient_tolerance: float = 1e-14  #: stop when ‖J^T r‖ / (cost + tiny) is below this
+    initial_damping: float = 1e-4  #: μ relative to the diagonal of J^T J (Marquardt scaling)
+    min_damping: float = 1e-12
+    max_damping: float = 1e8
+    #: first phase on the smooth λ_min(Pˢ) cost (twoview.epipolar_residuals), so that starts
+    #: several degrees off still reach TRRM's basin; 0 disables it
+    epipolar_max_iterations: int = 30
+    #: the first phase only has to reach TRRM's basin: it stops at steps below this (rad)
+    #: or at a relative decrease below ``epipolar_function_tolerance``
+    epipolar_step_tolerance: float = 1e-4
+    epipolar_function_tolerance: float = 1e-4
+    #: "cauchy" (IRLS) or "none" (the paper's plain least squares): wrong matches and points
+    #: near the epipole give O(1) residuals that would outweigh the good matches, in the cost
+    #: and in Pˢ (IRLS weights enter Pˢ as Σ w θθᵀ; its noise-free null vector is unchanged)
+    loss: RobustLoss = RobustLoss.CAUCHY
+    #: Cauchy scale c = loss_scale_factor x 1.4826 x the edge's median per-match residual norm
+    loss_scale_factor: float = 3.0
+    #: floor of c (bearing units); noise-free data would otherwise get c = 0
+    min_loss_scale: float = 1e-9
+    #: IRLS rounds (weights re-estimated, LM re-run); one round plus the final inlier pass is
+    #: as accurate as more rounds
+    irls_rounds: int = 1
+    #: step tolerance (rad) of every round but the last (None: ``step_tolerance``); looser
+    #: values save time but move single edges, so it is off by default
+    irls_step_tolerance: float | None = None
+    #: robust loss only: after the IRLS rounds, one more LM on plain least squares over the
+    #: matches within ``inlier_threshold_sigmas`` robust σ of the IRLS result (0/1 weights):
+    #: Cauchy weights also down-weight good matches, which costs accuracy on clean data
+    final_inlier_pass: bool = True
+    #: k of the inlier test ‖r‖ <= k σ: 3σ keeps ~99.7 % of Gaussian inliers
+    inlier_threshold_sigmas: float = 3.0
+
+    def validate(self) -> TRRMOptions:
+        if self.loss not in (RobustLoss.CAUCHY, RobustLoss.NONE):
+            raise ValueError(f"loss: must be 'cauchy' or 'none', got {self.loss!r}")
+        if self.max_iterations < 0:
+            raise ValueError("max_iterations: must be >= 0")
+        for name in ("function_tolerance", "step_tolerance", "gradient_tolerance", "initial_damping",
+                     "contraction_stop_below", "frozen_hessian_below"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name}: must be >= 0")
+        if not self.inlier_threshold_sigmas > 0:
+            raise ValueError("inlier_threshold_sigmas: must be > 0")
+        if self.irls_step_tolerance is not None and not self.irls_step_tolerance >= 0:
+            raise ValueError("irls_step_tolerance: must be >= 0 or None")
+        return self
+
+
+@dataclass(frozen=True, kw_only=True)
+class AveragingOptions:
+    """Robust rotation averaging (geometry/averaging.py); defaults follow COLMAP/Theia
+    (algorithms.md §2.2)."""
+
+    #: L1RA outer steps and stop rule: mean ‖Δω_k‖ (rad) below the threshold (§2.1 step 4)
+    max_num_l1_iterations: int = 5
+    l1_step_convergence_threshold: float = 1e-3
+    skip_l1: bool = False
+    #: ADMM for each L1 step: ρ = 1 (PoSDK/OpenMVG L1ADMM.h), iteration cap doubling from 10 up
+    #: to 100 per L1 step (COLMAP), tolerances abs 1e-4 / rel 1e-2 (PoSDK, Boyd §3.3)
+    admm_rho: float = 1.0
+    admm_initial_iterations: int = 10
+    admm_max_iterations: int = 100
+    admm_absolute_tolerance: float = 1e-4
+    admm_relative_tolerance: float = 1e-2
+    #: IRLS (§2.1 step 5); stop rule as Theia/COLMAP ``ComputeAverageStepSize``: mean over
+    #: the free views of ‖Δω_k‖ (rad) below the threshold
+    weight_type: RobustWeight = RobustWeight.GEMAN_MCCLURE
+    irls_loss_parameter_sigma_deg: float = 5.0  #: GM σ in degrees (COLMAP header "in degrees")
+    max_num_irls_iterations: int = 100
+    irls_step_convergence_threshold: float = 1e-3
+    #: residual floor for ℓ½ weights (e^{-3/2} blows up at 0); Chatterjee caps the
+    #: square-root weight, which is the same thing
+    half_norm_min_residual_deg: float = 1e-4
+    ridge_regularization: float = 1e-9  #: COLMAP ridge_regularization
+    #: edges whose final residual exceeds this are flagged as outliers
+    max_inlier_residual_deg: float = 5.0
+
+    def validate(self) -> None:
+        if self.max_num_l1_iterations < 0 or self.max_num_irls_iterations < 0:
+            raise InputError("iteration counts must be >= 0", field="options")
+        if self.irls_loss_parameter_sigma_deg <= 0 or self.admm_rho <= 0:
+            raise InputError("sigma and rho must be positive", field="options")
+
+
+@dataclass(frozen=True)
+class GRRMOptions:
+    """Multi-view GRRM (paper Alg. 3-4; geometry/grrm/)."""
+
+    max_iterations: int = 30  #: k_max of Alg. 4
+    function_tolerance: float = 1e-8  #: stop at a relative cost decrease below this (ε of Alg. 4)
+    #: stop after an accepted step whose largest rotation update is below this (rad): LM
+    #: converges superlinearly here, so what is left is far below real rotation errors
+    step_tolerance: float = 1e-5
+    initial_damping: float = 1e-4  #: μ relative to diag(JᵀJ)
+    max_damping: float = 1e10
+    #: robust loss on ‖V_ik‖ (bearing chord units ≈ radians): bounds the pull of the wrong
+    #: correspondences that survive two-view RANSAC
+    loss: RobustLoss = RobustLoss.CAUCHY
+    #: loss scale; None = loss_scale_factor x 1.4826 x median ‖V_ik‖ at the start
+    loss_scale: float | None = None
+    #: a tight Cauchy: the Strecha inlier sets hold wrong matches (repeated structure) that a
+    #: wider loss lets pull the rotations
+    loss_scale_factor: float = 1.5
+    #: first phase on Σ_edges λ_min(Pˢ_ij(R_j R_i^T)) (smooth, like TRRM's first phase):
+    #: brings starts a degree or more off into GRRM's basin; 0 disables it
+    epipolar_max_iterations: int = 10
+    epipolar_step_tolerance: float = 1e-4  #: rad; this phase only has to reach the basin
+    #: run the λ_min phase only when GRRM's first LM step from the start is rejected, needs
+    #: more damping, or moves a view more than this (rad); None: always run it first
+    epipolar_trigger: float | None = 1e-2
+    #: units of V_ik; bearing matches TRRM's residual and measured no worse
+    residual: ResidualForm = ResidualForm.BEARING
+    #: Hessian with the robust loss's second-order term (geometry/robust.robust_curvature):
+    #: same optimum, fewer iterations than plain IRLS weights
+    robust_hessian: bool = True
+    #: with robust_hessian, from the start and after accepted steps below this (rad; 0 =
+    #: never, inf = from the start): keep the Cauchy loss's full radial curvature whenever the
+    #: damped system stays positive definite; it turns LM's linear rate quadratic near the
+    #: optimum, while far from it the clamped PSD model is the better one
+    exact_curvature_below: float = 1e-3
+    #: per-edge t from IRLS-weighted Pˢ (weights fixed at the start; see TRRMOptions.loss)
+    robust_translation: bool = True
+
+    def validate(self) -> GRRMOptions:
+        if self.residual not in RESIDUALS:
+            raise ValueError(f"residual: must be one of {RESIDUALS}, got {self.residual!r}")
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss: must be one of {LOSSES}, got {self.loss!r}")
+        if self.max_iterations < 0:
+            raise ValueError("max_iterations: must be >= 0")
+        if self.loss_scale is not None and not self.loss_scale > 0:
+            raise ValueError("loss_scale: must be > 0")
+        if not self.exact_curvature_below >= 0:
+            raise ValueError("exact_curvature_below: must be >= 0")
+        if self.epipolar_trigger is not None and not self.epipolar_trigger >= 0:
+            raise ValueError("epipolar_trigger: must be >= 0 or None")
+        return self
+
+
+@dataclass(frozen=True, kw_only=True)
+class LiGTOptions:
+    """LiGT camera centres (geometry/ligt.py)."""
+
+    #: tracks whose best base pair has ‖θ_lr‖ below this carry no translation information
+    #: (pure rotation / infinitely far points, seed §6.1: all θ = 0 for PR/B/I)
+    min_base_theta_norm: float = 1e-10
+    #: up to this many free unknowns (3(n−1)) the dense eigh is used, above it the sparse
+    #: shift-invert Lanczos (algorithms.md §1.2); both agree, sparse is faster beyond
+    max_dense_unknowns: int = 150
+    #: constraints assembled per chunk; bounds the memory of one chunk's per-constraint terms
+    chunk_size: int = 50_000
+    #: tracks longer than this select their base pair among their first views only (the
+    #: exhaustive pair scan costs Σ L²)
+    max_base_search_views: int = 64
+    #: views needing at least this many constraint rows to be solved
+    min_constraints_per_view: int = 1
+
+
+@dataclass(frozen=True, kw_only=True)
+class TriangulationOptions:
+    """Triangulation of the tracks (geometry/triangulation.py)."""
+
+    #: Gauss-Newton iterations of the reprojection error (3 is plenty from the linear start)
+    num_refinement_iterations: int = 5
+    #: mean reprojection error threshold in normalized units (≈ pixels / f): OpenMVG's 4th-BA
+    #: outlier rule of 4 px (algorithms.md §7a) at f = 1000
+    max_reprojection_error: float = 4e-3
+    #: minimum over-track max ray angle: OpenMVG's 4th BA drops < 2° (algorithms.md §7a); 1°
+    #: keeps more points, COLMAP's min_tri_angle-like default (1.5°) rounded down
+    min_parallax_deg: float = 1.0
+    #: points must have positive depth in every observing camera
+    min_depth: float = 1e-9
+    #: tracks longer than this use only their first ``max_parallax_views`` rays for the
+    #: parallax test (the exact max over all pairs costs Σ L² memory)
+    max_parallax_views: int = 64
+
+    def validate(self) -> None:
+        if self.num_refinement_iterations < 0 or self.max_reprojection_error <= 0:
+            raise InputError("num_refinement_iterations >= 0 and max_reprojection_error > 0 needed", field="options")
+        if self.min_parallax_deg < 0 or self.max_parallax_views < 2:
+            raise InputError("min_parallax_deg >= 0 and max_parallax_views >= 2 needed", field="options")
+
+
+# ============================================================================ stages
+
+@dataclass(frozen=True)
+class LoadOptions:
+    """The load stage (stages/load.py)."""
+
+    reestimate: Reestimate = Reestimate.AUTO
+    #: RANSAC threshold in pixels (Sampson error at the view's focal length): half of COLMAP's
+    #: verification default, since the inputs are already verified at 4 px
+    ransac_max_error_px: float = 2.0
+    #: the matches are verified inliers already, so the adaptive trial count stops early;
+    #: pycolmap's default floor of 1000 trials would dominate the load time
+    ransac_min_trials: int = 20
+    ransac_confidence: float = 0.9999
+    seed: int = 0
+    min_inliers: int = 30  #: edges with fewer inlier matches are filtered
+    progress: bool = False
+
+    def validate(self) -> LoadOptions:
+        if self.reestimate not in REESTIMATE_MODES:
+            raise InputError(f"must be one of {', '.join(REESTIMATE_MODES)}", field="reestimate")
+        if not self.ransac_max_error_px > 0:
+            raise InputError("must be > 0", field="ransac_max_error_px")
+        if self.min_inliers < MIN_MATCHES:
+            raise InputError(f"must be >= {MIN_MATCHES}", field="min_inliers")
+        return self
+
+
+@dataclass(frozen=True)
+class AverageOptions:
+    """The average stage (stages/average.py)."""
+
+    #: residual (deg) above which an edge is a gross outlier: the averaging's own inlier
+    #: threshold (Geman-McClure σ = 5°, Chatterjee & Govindu ICCV 2013)
+    max_residual_deg: float = 5.0
+    max_rounds: int = 5
+    averaging: AveragingOptions = AveragingOptions()
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """`rotonly run`: the whole chain."""
+
+    matches_dir: str | None = None  #: OpenMVG input: features + matches folder
+    image_path: str | None = None  #: images for the point colours (default: beside the input)
+    gt: str | None = None  #: ground truth for the final evaluation
+    load: LoadOptions = LoadOptions()
+    identification: IdentificationOptions = IdentificationOptions()
+    trrm: TRRMOptions = TRRMOptions()
+    average: AverageOptions = AverageOptions()
+    optimize: GRRMOptions = GRRMOptions()
+    translate: LiGTOptions = LiGTOptions()
+    triangulate: TriangulationOptions = TriangulationOptions()
+    grrm: bool = True  #: False: keep the averaged rotations (ablation)
+    progress: bool = False
+    #: processes for identification + TRRM (runtime/parallel); the numbers do not depend on it
+    jobs: int = 1
