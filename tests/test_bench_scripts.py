@@ -28,8 +28,6 @@ def _load_script(name: str):
 
 bench_strecha = _load_script("bench_strecha")
 bench_scale = _load_script("bench_scale")
-probe = _load_script("probe_grrm_residuals")
-probe_structure = _load_script("probe_grrm_structure")
 
 
 def _digest(path: Path) -> str:
@@ -145,35 +143,6 @@ def test_bench_strecha_refuses_results_inside_root(tmp_path):
         bench_strecha.main(["--root", str(root), "-o", str(root / "results")])
     assert exc.value.code == 2
     assert not (root / "results").exists()
-
-
-# ============================================================================ probe_grrm_residuals
-
-def test_probe_grrm_residuals_on_fixture(tmp_path, capsys):
-    """The probe's rows on the Herz-Jesu fixture: the real keypoints and the same residuals
-    moved around; every rebuilt set gives a lower GRRM error than the real keypoints (the
-    property README "Known limits" rests on), and the input is untouched."""
-    (tmp_path / "root").mkdir()
-    (tmp_path / "root" / "Herz-Jesus-P8").symlink_to(FIXTURES / "herzjesu_p8")
-    before = _digest(FIXTURES / "herzjesu_p8" / "database.db")
-    assert probe.main(["--root", str(tmp_path / "root"), "--scene", "Herz-Jesus-P8", "--input", "database"]) == 0
-    assert _digest(FIXTURES / "herzjesu_p8" / "database.db") == before
-    rows = {line.split(" | ")[0].lstrip("| "): line.split(" | ") for line in capsys.readouterr().out.splitlines()
-            if line.startswith("| ") and not line.startswith("| keypoints")}
-    assert len(rows) == 5
-    start = {label: float(cells[1]) for label, cells in rows.items()}
-    grrm = {label: float(cells[2]) for label, cells in rows.items()}
-    real = grrm.pop("real keypoints")
-    assert 0.005 < real < 0.1 and 0.005 < start.pop("real keypoints") < 0.1
-    assert all(value < real for value in grrm.values()), grrm
-    assert all(value < real for value in start.values()), start  # the start is rebuilt too
-    assert all(len(cells[3].rstrip(" |").split()) == 8 for cells in rows.values())  # one error per camera
-
-
-def test_probe_grrm_residuals_refuses_a_missing_scene(tmp_path):
-    with pytest.raises(SystemExit) as exc:
-        probe.main(["--root", str(tmp_path), "--scene", "nothing"])
-    assert exc.value.code == 2
 
 
 # ============================================================================ bench_scale pieces
@@ -352,111 +321,3 @@ def test_global_mapper_runs_as_a_process_and_both_times_are_kept(tmp_path):
     lines = bench_strecha.ratio_lines([ours, mapper])
     assert len(lines) == 2 and "0.25x (global_mapping call" in lines[1]
     assert f"{mapper.time_s / 4 / mapper.extra['process_wall_s']:.2f}x of its process wall" in lines[1]
-
-
-# ============================================================================ probe_grrm_structure
-
-def _edge(i: int, j: int, matches) -> "Edge":
-    from rotonly_cli.scene.view_graph import Edge
-
-    edge = Edge(i=i, j=j, R_j_from_i=np.eye(3), t_dir=np.array([1.0, 0.0, 0.0]),
-                matches=np.array(matches, dtype=np.int64).reshape(-1, 2))
-    edge.scene_kind = "REGULAR"
-    return edge
-
-
-def test_completed_graph_adds_the_matches_tracks_imply():
-    """Track a: 0:5 - 1:7 - 2:9 matched only along 0-1 and 1-2; edge 0-2 lacks (5, 9) and gets
-    it; track b (0:1 - 1:2 - 3:4) implies pairs 0-3 and 1-3, which have no edge: new edges only
-    when asked for and with enough tracks; an inconsistent track adds nothing."""
-    from rotonly_cli.scene.view_graph import ViewGraph
-
-    graph = ViewGraph(views={v: None for v in range(4)},
-                      edges=[_edge(0, 1, [[5, 7], [1, 2], [3, 3]]), _edge(1, 2, [[7, 9], [3, 4]]),
-                             _edge(0, 2, [[0, 0], [3, 6]]), _edge(1, 3, [[2, 4]])])
-    completed, added, new_edges = probe_structure.completed_graph(graph, [0, 1, 2, 3])
-    # track 0:3-1:3-2:4-2:6 sees view 2 twice: inconsistent, dropped
-    assert added == 1 and new_edges == []
-    assert completed.edges[2].matches.tolist() == [[0, 0], [3, 6], [5, 9]]
-    assert [e.matches.tolist() for e in completed.edges[:2]] == [[[5, 7], [1, 2], [3, 3]], [[7, 9], [3, 4]]]
-    assert graph.edges[2].matches.tolist() == [[0, 0], [3, 6]]  # the input graph is untouched
-    with_new, _, new_edges = probe_structure.completed_graph(graph, [0, 1, 2, 3], new_edge_min=1)
-    assert new_edges == [(0, 3, 1)]
-    assert with_new.edges[-1].matches.tolist() == [[1, 4]] and with_new.edges[-1].scene_kind == "REGULAR"
-    assert probe_structure.completed_graph(graph, [0, 1, 2, 3], new_edge_min=2)[2] == []
-
-
-def test_average_directions_recovers_centres_from_exact_directions():
-    """Exact baseline directions of a random 6-view graph give the centres up to translation
-    and positive scale; the sign follows the directions."""
-    rng = np.random.default_rng(7)
-    C = rng.normal(size=(6, 3))
-    views = np.array([(i, j) for i in range(6) for j in range(i + 1, 6) if (i + j) % 4])
-    d = C[views[:, 0]] - C[views[:, 1]]
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    est = probe_structure.average_directions(6, views, d)
-    fit = (est - est[0]) / np.linalg.norm(est - est[0]) - (C - C[0]) / np.linalg.norm(C - C[0])
-    assert np.abs(fit).max() < 1e-10
-    flipped = probe_structure.average_directions(6, views, -d)
-    assert np.abs(flipped + est).max() < 1e-10
-
-
-def test_epipolar_angles_zero_on_exact_matches_and_sine_of_the_offset():
-    rng = np.random.default_rng(5)
-    R = so3.random_rotations(1, rng)[0]
-    t = np.array([1.0, 0.2, -0.1])
-    X = rng.normal(size=(20, 3)) + [0, 0, 6]
-    x_i = X[:, :2] / X[:, 2:]
-    Xj = X @ R.T + t
-    x_j = Xj[:, :2] / Xj[:, 2:]
-    edge = _edge(0, 1, np.column_stack([np.arange(20), np.arange(20)]))
-    edge.R_j_from_i, edge.t_dir = R, t / np.linalg.norm(t)
-    normalized = {0: x_i, 1: x_j}
-    assert probe_structure.epipolar_angles(edge, normalized, edge.matches).max() < 1e-12
-    moved = {0: x_i, 1: x_j + 1e-3}
-    angles = probe_structure.epipolar_angles(edge, moved, edge.matches)
-    # independently: |x̂_jᵀ E x̂_i| / ‖E x̂_i‖ with E = [t]x R
-    b_i = np.column_stack([x_i, np.ones(20)])
-    b_j = np.column_stack([moved[1], np.ones(20)])
-    b_i /= np.linalg.norm(b_i, axis=1, keepdims=True)
-    b_j /= np.linalg.norm(b_j, axis=1, keepdims=True)
-    Ex = b_i @ (so3.hat(edge.t_dir) @ R).T
-    expected = np.abs(np.einsum("nk,nk->n", b_j, Ex)) / np.linalg.norm(Ex, axis=1)
-    np.testing.assert_allclose(angles, expected, rtol=1e-9, atol=1e-15)
-    assert angles.mean() > 1e-5
-
-
-def test_probe_grrm_structure_on_fixture(tmp_path, capsys):
-    """The four tables on the Herz-Jesu fixture's OpenMVG project: one row per GRRM edge with
-    finite errors, the completion rows add matches, the translation rows, the scale rows cover
-    the observations, and the input is untouched."""
-    (tmp_path / "root").mkdir()
-    (tmp_path / "root" / "Herz-Jesus-P8").symlink_to(FIXTURES / "herzjesu_p8")
-    before = _digest(FIXTURES / "herzjesu_p8" / "openmvg" / "matches.e.bin")
-    assert probe_structure.main(["--root", str(tmp_path / "root"), "--scene", "Herz-Jesus-P8",
-                                 "--input", "openmvg"]) == 0
-    assert _digest(FIXTURES / "herzjesu_p8" / "openmvg" / "matches.e.bin") == before
-    out = capsys.readouterr().out
-    tables = [[line.strip("| ").split(" | ") for line in block.splitlines() if line.startswith("| ")
-               and not line.startswith("|---")][1:] for block in out.split("\n\n")[1:]]
-    edges, tracks, translations, scale = [t for t in tables if t]
-    assert len(edges) >= 10 and all(len(row) == 5 for row in edges)
-    # relative errors: TRRM up to ~1 deg on the 45-match edge 0-7, GRRM's below 0.1
-    assert all(0.0 <= float(row[2]) < 5.0 and 0.0 <= float(row[3]) < 0.1 and 0.005 < float(row[4]) < 0.05
-               for row in edges)
-    loaded = int(tracks[0][1])
-    assert tracks[0][0] == "as loaded" and len(tracks) == 4
-    assert all(int(row[1]) > loaded for row in tracks[1:])
-    assert all(0.001 < float(row[2]) < 0.2 for row in tracks)
-    # per-edge translations: the paper's Pˢ, the GT oracle, three LiGT rounds, three rounds of
-    # averaged centres; the oracle's t error is 0, the others within a degree of the GT
-    assert [row[0].split(",")[0] for row in translations] == [
-        "Pˢ null vector (the paper)", "held at the GT direction"] + [
-        "held at LiGT's directions from the rotations before"] * 3 + [
-        "held at directions of centres averaged from Pˢ's from the rotations before"] * 3
-    assert translations[1][1] == "0"
-    assert all(0.0 < float(row[1].split(" / ")[0]) < 1.0 for row in translations if row[1] != "0")
-    assert all(0.001 < float(row[2]) < 0.2 for row in translations)
-    # the fixture's .feat files come from the database's keypoints (scale column 1): one bin
-    assert scale and sum(int(row[1]) for row in scale) > 15000
-    assert all(0.05 < float(row[4]) < 2.0 and abs(float(row[2])) < 0.05 for row in scale)

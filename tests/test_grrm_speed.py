@@ -32,10 +32,10 @@ def test_linearize_equals_explicit_jacobian(setup, chunk, dense, monkeypatch):
     """Cost, JᵀWJ (with Triggs' clamped radial term), JᵀWV and the exact-curvature remainder
     from the block-by-block linearisation equal the products of the explicit Jacobian, for the
     dense and the sparse view-block assembly and blocks cut every 97 contributions."""
-    monkeypatch.setattr(grrm, "_CHUNK", chunk)
+    monkeypatch.setattr(grrm.problem, "_CHUNK", chunk)
     monkeypatch.setattr(grrm, "_DENSE_MAX_VIEWS", 200 if dense else 0)
     p, prob, R, V, J, sq, scale = setup
-    problem = grrm._Problem(8, prob.edge_views, prob.batch, prob.obs_ids)
+    problem = grrm.GRRMSystem(8, prob.edge_views, prob.batch, prob.obs_ids)
     cost, H, g, remainder = problem.linearize(R, "cauchy", scale, True, True, exact_radial_curvature=True)
     assert isinstance(H, np.ndarray) == dense
     rho, drho = robust.robust_rho(sq, "cauchy", scale)

@@ -1,5 +1,5 @@
 """Lean TRRM evaluator, λ_min(Pˢ) from moments, padded medians, Procrustes on a MatchTable
-(geometry/kernels.py) against the readable reference implementations in geometry/twoview.py,
+(geometry/kernels/) against the readable reference implementations in geometry/twoview.py,
 and the contraction stopping rule of the lock-step LM (geometry/trrm.py)."""
 
 from __future__ import annotations

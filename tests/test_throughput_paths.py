@@ -1,4 +1,4 @@
-"""The speed paths of geometry/kernels.py give the same bits as the plain paths they replace:
+"""The speed paths of geometry/kernels/ give the same bits as the plain paths they replace:
 eigenproblems batched over edge groups, mostly-COST groups evaluated without a gather, the
 Jacobian stage in blocks, consecutive equal-size medians read as a view, and the
 all-accepted commit of the TRRM problem."""
@@ -48,11 +48,11 @@ def test_batched_eigenproblems_and_blocks_give_the_same_bits(monkeypatch, weight
     batch, R, w = _batch()
     table = kernels.MatchTable.from_batch(batch, w if weighted else None, chunk=300)  # 9 groups
     assert len(table.groups) >= 8
-    monkeypatch.setattr(kernels, "EIGEN_BATCH_GROUPS", 1)
-    monkeypatch.setattr(kernels, "NORMAL_BLOCK", 1 << 14)
+    monkeypatch.setattr(kernels.lean, "EIGEN_BATCH_GROUPS", 1)
+    monkeypatch.setattr(kernels.lean, "NORMAL_BLOCK", 1 << 14)
     per_group = _evaluate(R, table, **kw)
-    monkeypatch.setattr(kernels, "EIGEN_BATCH_GROUPS", 3)
-    monkeypatch.setattr(kernels, "NORMAL_BLOCK", 128)  # blocks that cut edges in two
+    monkeypatch.setattr(kernels.lean, "EIGEN_BATCH_GROUPS", 3)
+    monkeypatch.setattr(kernels.lean, "NORMAL_BLOCK", 128)  # blocks that cut edges in two
     _assert_same(_evaluate(R, table, **kw), per_group)
     # and one group per call of the unbatched _lean_group (no `pre`) agrees as well
     out = {"cost": np.zeros(table.num_edges), "t": np.zeros((table.num_edges, 3))}
@@ -63,7 +63,7 @@ def test_batched_eigenproblems_and_blocks_give_the_same_bits(monkeypatch, weight
     mode = kernels.NORMAL if kw.get("jacobian") else kernels.GRADIENT if kw.get("gradient") else kernels.COST
     sq = np.full(table.data.shape[1], -1.0)
     for e0, e1, m0, m1, cnt, starts in table.group_slices():
-        kernels._lean_group(R[e0:e1], cnt, starts, table.data[:, m0:m1],
+        kernels.lean._lean_group(R[e0:e1], cnt, starts, table.data[:, m0:m1],
                             None if table.weights is None else table.weights[m0:m1], mode,
                             bool(kw.get("unit_theta")), out, slice(e0, e1), sq[m0:m1], bool(kw.get("plain_ps")))
     for key in ("cost", "t", "JtJ", "Jtr"):

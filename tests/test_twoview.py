@@ -341,7 +341,7 @@ def test_degenerate_input_emits_no_warning():
 
 # ----------------------------------------------------------------------------- fast kernels
 def test_fast_kernels_equal_reference_implementation():
-    """kernels.py (structure-of-arrays, chunked) computes exactly what the readable
+    """kernels/ (structure-of-arrays, chunked) computes exactly what the readable
     reference residuals of twoview.py compute (whose Jacobian is checked against FD above)."""
     from rotonly_cli.geometry import kernels
 

@@ -264,10 +264,7 @@ def _writer(module: str, name: str):
     """The COLMAP / OpenMVG writers of ``rotonly_cli.io``, imported lazily."""
     import importlib
 
-    try:
-        return getattr(importlib.import_module(f"rotonly_cli.io.{module}"), name)
-    except (ModuleNotFoundError, AttributeError) as exc:
-        raise AlgorithmError(f"writer rotonly_cli.io.{module}.{name} is not available: {exc}") from exc
+    return getattr(importlib.import_module(f"rotonly_cli.io.{module}"), name)
 
 
 def as_openmvg_camera(scene: SfMScene) -> SfMScene:

@@ -11,33 +11,38 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
 from rotonly_cli.errors import AlgorithmError
+from rotonly_cli.geometry.grrm import GRRMOptions, optimize_global_rotations
+from rotonly_cli.geometry.twoview import EdgeBatch
 from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, largest_component_of, regular_edges, view_index
 
 logger = logging.getLogger(__name__)
 
 
-def optimize_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_world: np.ndarray,
-                   options=None, translations: dict[int, np.ndarray] | None = None) -> tuple[np.ndarray, dict]:
-    """GRRM-refined copy of ``R_cam_from_world`` (sorted-view-id rows); report with costs.
-    ``translations``: t_ij per graph edge index, held fixed in GRRM (a diagnostic, see
-    grrm.optimize_global_rotations); every edge GRRM takes must have one."""
-    start = time.perf_counter()
-    R_out = np.array(R_cam_from_world, dtype=float, copy=True)
-    try:
-        from rotonly_cli.geometry.grrm import GRRMOptions, optimize_global_rotations
-    except ImportError as exc:  # GRRM not available in this build: keep the averaged rotations
-        logger.warning("optimize: GRRM unavailable (%s); keeping the averaged rotations", exc)
-        return R_out, {"skipped": f"GRRM unavailable: {exc}", "time_s": time.perf_counter() - start}
-    options = options or GRRMOptions()
+@dataclass
+class GRRMInputs:
+    """What GRRM takes from the view graph: the largest component of the active REGULAR edges
+    between views with a rotation, in array form (views in sorted-id order, the first fixed)."""
+
+    views: list[int]  #: view ids, in GRRM's row order
+    edges: list[int]  #: graph edge indices, in GRRM's edge order
+    edge_views: np.ndarray  #: (E, 2) rows of ``views``
+    batch: EdgeBatch
+    obs_ids: np.ndarray  #: (M, 2) observation ids (per-view keypoint offset + keypoint)
+
+
+def grrm_inputs(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_world: np.ndarray
+                ) -> GRRMInputs | None:
+    """:class:`GRRMInputs` of the graph at these rotations; None without a REGULAR edge."""
     index = view_index(graph)
-    registered = {v for v, row in index.items() if np.all(np.isfinite(R_out[row]))}
+    registered = {v for v, row in index.items() if np.all(np.isfinite(R_cam_from_world[row]))}
     edges = [k for k in regular_edges(graph) if graph.edges[k].i in registered and graph.edges[k].j in registered]
     if not edges:
-        return R_out, {"skipped": "no REGULAR edge", "time_s": time.perf_counter() - start}
+        return None
     # the largest component of the REGULAR edges
     touched = sorted({v for k in edges for v in (graph.edges[k].i, graph.edges[k].j)})
     views = largest_component_of(touched, [(graph.edges[k].i, graph.edges[k].j) for k in edges])
@@ -50,13 +55,26 @@ def optimize_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_fr
     obs_ids = np.concatenate([np.stack([offset[local[graph.edges[k].i]] + graph.edges[k].matches[:, 0],
                                         offset[local[graph.edges[k].j]] + graph.edges[k].matches[:, 1]], axis=1)
                               for k in edges])
-    batch = edge_batch(graph, normalized, edges)
+    return GRRMInputs(views, edges, edge_views, edge_batch(graph, normalized, edges), obs_ids)
+
+
+def optimize_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_world: np.ndarray,
+                   options=None) -> tuple[np.ndarray, dict]:
+    """GRRM-refined copy of ``R_cam_from_world`` (sorted-view-id rows); report with costs."""
+    start = time.perf_counter()
+    R_out = np.array(R_cam_from_world, dtype=float, copy=True)
+    options = options or GRRMOptions()
+    index = view_index(graph)
+    registered = {v for v, row in index.items() if np.all(np.isfinite(R_out[row]))}
+    inputs = grrm_inputs(graph, normalized, R_out)
+    if inputs is None:
+        return R_out, {"skipped": "no REGULAR edge", "time_s": time.perf_counter() - start}
+    views, edges, batch = inputs.views, inputs.edges, inputs.batch
     R0 = np.stack([R_out[index[v]] for v in views])
     try:
         with np.errstate(all="ignore"):
-            result = optimize_global_rotations(
-                R0, edge_views, batch, obs_ids, fixed_view=0, options=options,
-                translations=None if translations is None else np.stack([translations[k] for k in edges]))
+            result = optimize_global_rotations(R0, inputs.edge_views, batch, inputs.obs_ids, fixed_view=0,
+                                               options=options)
     except ValueError as exc:
         raise AlgorithmError(f"GRRM failed: {exc}") from exc
     from rotonly_cli.geometry import so3
@@ -68,7 +86,7 @@ def optimize_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_fr
               "cost_before": float(result.initial_cost), "cost_after": float(result.cost),
               "iterations": int(result.iterations), "converged": bool(result.converged),
               "rotation_change_deg": {"mean": float(change.mean()), "max": float(change.max())},
-              "views_kept_averaged": sorted(v for v in registered if v not in local),
+              "views_kept_averaged": sorted(registered - set(views)),
               "history": list(result.history), "time_s": time.perf_counter() - start}
     logger.info("optimize (GRRM): %d views, %d edges, cost %.6g -> %.6g in %d iterations, mean change %.4f deg",
                 len(views), len(edges), result.initial_cost, result.cost, result.iterations, change.mean())

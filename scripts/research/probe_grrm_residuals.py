@@ -19,7 +19,7 @@ L1-IRLS start and of GRRM for every row, and GRRM's per-camera errors. A large g
 images, not from their size. README "Known limits" uses this to explain Herz-Jesus-P8 from
 OpenMVG's matches, and GRRM against its start on fountain-P11.
 
-    python scripts/probe_grrm_residuals.py --root ../shared/data/strecha --scene Herz-Jesus-P8 --input openmvg
+    python scripts/research/probe_grrm_residuals.py --root ../shared/data/strecha --scene Herz-Jesus-P8 --input openmvg
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
 
     logging.basicConfig(level=logging.WARNING)  # the stages log at INFO; this prints a table
 
-    from rotonly_cli.bench.strecha import gt_poses_for, gt_track_residuals
+    from strecha_gt import gt_poses_for, gt_track_residuals
     from rotonly_cli.geometry.alignment import rotation_errors_after_alignment
     from rotonly_cli.io.detect import read_ground_truth
     from rotonly_cli.pipeline import STAGE_FUNCTIONS, Run, RunOptions, load_stage

@@ -23,7 +23,7 @@ averaged rotations (load, identify, refine, average), then prints four tables:
   averaged from Pˢ's own directions (:func:`average_directions`), each re-computed for three
   rounds.
 
-    python scripts/probe_grrm_structure.py --root ../shared/data/strecha --scene Herz-Jesus-P8 --input openmvg
+    python scripts/research/probe_grrm_structure.py --root ../shared/data/strecha --scene Herz-Jesus-P8 --input openmvg
 """
 
 from __future__ import annotations
@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
 
     logging.basicConfig(level=logging.WARNING)  # the stages log at INFO; this prints tables
 
-    from rotonly_cli.bench.strecha import gt_poses_for, gt_track_residuals
+    from strecha_gt import gt_poses_for, gt_track_residuals
     from rotonly_cli.geometry import so3
     from rotonly_cli.geometry.alignment import rotation_errors_after_alignment
     from rotonly_cli.io.detect import read_ground_truth
@@ -138,6 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     from rotonly_cli.geometry import kernels
     from rotonly_cli.scene.view_graph import edge_batch
     from rotonly_cli.scene.view_graph import regular_edges
+    from grrm_fixed_translations import optimize_graph_with_translations
     from rotonly_cli.stages.optimize import optimize_graph
     from rotonly_cli.stages.translate import translate_graph
 
@@ -156,7 +157,9 @@ def main(argv: list[str] | None = None) -> int:
     start = run.rotations.copy()
 
     def grrm(g, translations: dict | None = None, R_start: np.ndarray = start) -> np.ndarray:
-        return optimize_graph(g, scene.normalized, R_start, translations=translations)[0]
+        if translations is not None:  # every t_ij held (grrm_fixed_translations.py)
+            return optimize_graph_with_translations(g, scene.normalized, R_start, translations)
+        return optimize_graph(g, scene.normalized, R_start)[0]
 
     def directions(R: np.ndarray, C: np.ndarray, ks: list[int]) -> dict[int, np.ndarray]:
         # t_ij = R_j (c_i - c_j): camera j's axes, x_j ~ R_ij x_i + t_ij

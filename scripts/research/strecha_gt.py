@@ -1,0 +1,46 @@
+"""Ground-truth pieces the GRRM probes share: GT poses by image file name, and rotonly's tracks
+re-projected through the GT cameras."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from rotonly_cli.errors import InputError
+
+
+def gt_poses_for(gt, scene, view_ids) -> tuple[np.ndarray, np.ndarray]:
+    """GT (R_cam_from_world projected to SO(3), centre) of ``view_ids`` of ``scene``, matched
+    by image file name: ((n, 3, 3), (n, 3))."""
+    from rotonly_cli.geometry import so3
+
+    by_name = {Path(gt.views[v].name).name: pose for v, pose in gt.poses.items()}
+    names = [Path(scene.views[v].name).name for v in view_ids]
+    missing = [n for n in names if n not in by_name]
+    if missing:
+        raise InputError(f"no ground truth for {', '.join(missing[:3])}", field="--root")
+    return (np.stack([so3.project_to_so3(by_name[n].R_cam_from_world) for n in names]),
+            np.stack([by_name[n].center for n in names]))
+
+
+def gt_track_residuals(structure, view_ids, normalized: dict, R_gt: np.ndarray, C_gt: np.ndarray) -> dict:
+    """rotonly's tracks (``Structure.observations``) triangulated with the GT cameras (loose:
+    1 normalized unit, no parallax limit) and reprojected: per observation its view row,
+    keypoint, point, observed and GT-projected normalized coordinates (flat arrays)."""
+    from rotonly_cli.geometry.triangulation import TriangulationOptions, triangulate_tracks
+
+    observations = structure.observations
+    point = np.repeat(np.arange(len(observations)), [len(o) for o in observations])
+    flat = np.array([vk for o in observations for vk in o], dtype=np.int64).reshape(-1, 2)
+    view_row = np.searchsorted(view_ids, flat[:, 0])  # view_ids are sorted
+    keypoint = flat[:, 1]
+    observed = np.empty((len(keypoint), 2))
+    for r, v in enumerate(view_ids):
+        rows = view_row == r
+        observed[rows] = normalized[v][keypoint[rows]]
+    loose = TriangulationOptions(max_reprojection_error=1.0, min_parallax_deg=0.0)
+    X = triangulate_tracks(R_gt, C_gt, point, view_row, observed, options=loose).points_in_world
+    cam = np.einsum("nij,nj->ni", R_gt[view_row], X[point] - C_gt[view_row])
+    return {"view_row": view_row, "keypoint": keypoint, "point": point, "observed": observed,
+            "projected": cam[:, :2] / cam[:, 2:3]}
