@@ -1,4 +1,4 @@
-"""scripts/bench_strecha.py and scripts/bench_scale.py on small fixtures / simulated scenes."""
+"""scripts/bench/strecha_tools.py and scripts/bench/scale.py on small fixtures / simulated scenes."""
 
 from __future__ import annotations
 
@@ -19,15 +19,15 @@ FIXTURES = ROOT / "data_fixtures"
 
 
 def _load_script(name: str):
-    spec = importlib.util.spec_from_file_location(f"bench_script_{name}", ROOT / "scripts" / f"{name}.py")
+    spec = importlib.util.spec_from_file_location(f"bench_script_{name}", ROOT / "scripts" / "bench" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # dataclasses look their module up
     spec.loader.exec_module(module)
     return module
 
 
-bench_strecha = _load_script("bench_strecha")
-bench_scale = _load_script("bench_scale")
+bench_strecha = _load_script("strecha_tools")
+bench_scale = _load_script("scale")
 
 
 def _digest(path: Path) -> str:

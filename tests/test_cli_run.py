@@ -98,7 +98,7 @@ def test_run_colmap_fixture_rotation_error_band(herzjesu_run):
 
 
 def test_run_database_written_by_colmap_3_8(tmp_path):
-    """A database written by COLMAP 3.8 itself (Debian's colmap; scripts/make_colmap38_fixture.py):
+    """A database written by COLMAP 3.8 itself (Debian's colmap; scripts/fixtures/make_colmap38_fixture.py):
     the 3.8 schema, and all-zero qvec/tvec because 3.8 does not compute relative poses by
     default, so every CALIBRATED edge is re-estimated. The input is left byte for byte."""
     import sqlite3

@@ -10,8 +10,8 @@ import scipy.sparse as sp
 from rotonly_cli import multiview
 from rotonly_cli.geometry import alignment, grrm, so3
 
-from multiview_scene import grrm_problem as _problem
-from multiview_scene import l1_irls_start as _l1_irls_start
+from helpers import grrm_problem as _problem
+from helpers import l1_irls_start as _l1_irls_start
 
 
 def _mean_err_deg(R, R_gt):

@@ -12,8 +12,8 @@ import scipy.sparse as sp
 
 from rotonly_cli.geometry import grrm, robust, so3
 
-from multiview_scene import grrm_problem as _problem
-from multiview_scene import l1_irls_start as _l1_irls_start
+from helpers import grrm_problem as _problem
+from helpers import l1_irls_start as _l1_irls_start
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +33,7 @@ def test_linearize_equals_explicit_jacobian(setup, chunk, dense, monkeypatch):
     from the block-by-block linearisation equal the products of the explicit Jacobian, for the
     dense and the sparse view-block assembly and blocks cut every 97 contributions."""
     monkeypatch.setattr(grrm.problem, "_CHUNK", chunk)
-    monkeypatch.setattr(grrm, "_DENSE_MAX_VIEWS", 200 if dense else 0)
+    monkeypatch.setattr(grrm.problem, "_DENSE_MAX_VIEWS", 200 if dense else 0)
     p, prob, R, V, J, sq, scale = setup
     problem = grrm.GRRMSystem(8, prob.edge_views, prob.batch, prob.obs_ids)
     cost, H, g, remainder = problem.linearize(R, "cauchy", scale, True, True, exact_radial_curvature=True)

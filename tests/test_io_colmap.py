@@ -1,4 +1,4 @@
-"""io.colmap on the Strecha fixtures (data_fixtures/, made by scripts/make_fixtures.py)."""
+"""io.colmap on the Strecha fixtures (data_fixtures/, made by scripts/fixtures/make_fixtures.py)."""
 
 from __future__ import annotations
 

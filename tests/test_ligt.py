@@ -8,7 +8,7 @@ import pytest
 from rotonly_cli.errors import AlgorithmError
 from rotonly_cli.geometry import so3
 from rotonly_cli.geometry.ligt import LiGTOptions, ligt_normal_matrix, ligt_translations
-from multiview_scene import make_street_scene, similarity_align_error
+from helpers import make_street_scene, similarity_align_error
 
 
 def test_noise_free_exact_up_to_similarity():

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from rotonly_cli.geometry.tracks import build_tracks, gather_observations, pairs_within_tracks
-from multiview_scene import make_street_scene
+from helpers import make_street_scene
 
 
 def matches_from_scene(obs_point, obs_view, num_views, rng, chain_only: bool):

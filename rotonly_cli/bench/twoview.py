@@ -1,5 +1,5 @@
 """Two-view Monte-Carlo benchmark in the paper's set-up (rotation_only.tex §"Default Settings",
-§"Two-view Rotation Optimization"; folded in from scripts/bench_twoview.py).
+§"Two-view Rotation Optimization").
 
 Per scene (the five two-view scenes) and noise level (pixel noise of magnitude U(0, n),
 960×960 images, focal 800 px), ``trials`` problems:

@@ -29,7 +29,15 @@ def _common(fn):
                       help="Worker processes.")(fn)
     fn = click.option("--quick", is_flag=True, help="Small smoke run (under a minute).")(fn)
     fn = click.option("--no-progress", is_flag=True, help="No progress bar.")(fn)
+    fn = click.option("--results-md", type=click.Path(dir_okay=False), default=None,
+                      help="Also write the table into this file's section for this benchmark (docs/results.md).")(fn)
     return fn
+
+
+def _record(results_md: str | None, key: str, title: str, table: str) -> None:
+    from rotonly_cli.bench import results_md as md
+
+    md.record(results_md, key, title, md.command_line("rotonly"), md.strip_title(table))
 
 
 @click.group("bench")
@@ -46,7 +54,7 @@ def command() -> None:
 @click.option("--methods", default=",".join(bench_twoview.METHODS[1:]), show_default=True,
               help="Methods to run after the 5-point start (always run); e.g. 'TRRM,Kneip eigen' for many "
                    "trials without the slow per-edge baselines. The problems do not depend on this choice.")
-def twoview_cmd(out_dir, seed, jobs, quick, no_progress, trials, noise, scenes, points, methods) -> None:
+def twoview_cmd(out_dir, seed, jobs, quick, no_progress, results_md, trials, noise, scenes, points, methods) -> None:
     """Five two-view scenes x noise x (5-point, BA, PA, Kneip eigen, Kneip nonlinear, TRRM)."""
     scene_list = tuple(s.strip() for s in scenes.split(",") if s.strip())
     bad = [s for s in scene_list if s not in bench_twoview.SCENES]
@@ -63,6 +71,7 @@ def twoview_cmd(out_dir, seed, jobs, quick, no_progress, trials, noise, scenes, 
     table, _ = bench_twoview.run(out_dir, scene_list, noise_levels, trials, points, seed, jobs, not no_progress,
                                  ("initial",) + method_list)
     click.echo(table)
+    _record(results_md, "bench-twoview", "Two-view simulations (the paper's two-view tables)", table)
 
 
 @command.command("multiview")
@@ -74,7 +83,8 @@ def twoview_cmd(out_dir, seed, jobs, quick, no_progress, trials, noise, scenes, 
 @click.option("--points", type=click.IntRange(10), default=3000, show_default=True)
 @click.option("--window", type=click.IntRange(1), default=5, show_default=True,
               help="Pairs: cameras at most this many apart along the trajectory.")
-def multiview_cmd(out_dir, seed, jobs, quick, no_progress, trials, noise, setups, views, points, window) -> None:
+def multiview_cmd(out_dir, seed, jobs, quick, no_progress, results_md, trials, noise, setups, views, points,
+                  window) -> None:
     """Circular / square / linear / outward x noise x (Chatterjee, ROBA, GRRM, pycolmap RA)."""
     setup_list = tuple(s.strip() for s in setups.split(",") if s.strip())
     bad = [s for s in setup_list if s not in bench_multiview.SETUPS]
@@ -86,6 +96,7 @@ def multiview_cmd(out_dir, seed, jobs, quick, no_progress, trials, noise, setups
     table, _ = bench_multiview.run(out_dir, setup_list, noise_levels, trials, views, points, window, seed, jobs,
                                    not no_progress)
     click.echo(table)
+    _record(results_md, "bench-multiview", "Multi-view simulations (the paper's multi-view tables)", table)
 
 
 @command.command("strecha")
@@ -94,10 +105,11 @@ def multiview_cmd(out_dir, seed, jobs, quick, no_progress, trials, noise, setups
               help="Folder of Strecha scenes (each with database.db and gt_dense_cameras/).")
 @click.option("--no-mapper", is_flag=True, help="Skip the pycolmap global mapper reference.")
 @click.option("--max-pairs", type=click.IntRange(1), default=None, help="Use at most this many pairs per scene.")
-def strecha_cmd(out_dir, seed, jobs, quick, no_progress, root, no_mapper, max_pairs) -> None:
+def strecha_cmd(out_dir, seed, jobs, quick, no_progress, results_md, root, no_mapper, max_pairs) -> None:
     """Per-pair (table 1) and global (table 2) rotation errors vs Strecha GT, with published numbers."""
     if quick:
         max_pairs = max_pairs or 12
     table, _ = bench_strecha.run(out_dir, root, jobs, seed, with_mapper=not no_mapper, max_pairs=max_pairs,
                                  progress=not no_progress)
     click.echo(table)
+    _record(results_md, "bench-strecha", "Strecha: the paper's two-view and global tables with the baselines", table)

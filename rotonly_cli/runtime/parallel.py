@@ -4,7 +4,7 @@ Every per-edge quantity of the two-view core (geometry/trrm.py, geometry/identif
 on that edge's matches only, so the edges can be cut into contiguous parts that are refined
 side by side. Threads do not pay: the lean kernels issue many small numpy calls per group of
 edges and hold the GIL between them (two threads on edge halves: 1.16-1.6x on 2 cores,
-scripts/bench_throughput.py), while two processes reach 1.8x. The parts go to forked
+scripts/bench/throughput.py), while two processes reach 1.8x. The parts go to forked
 children (they inherit the match arrays; only the small per-edge results come back through
 a pipe) and the first part runs in this process.
 

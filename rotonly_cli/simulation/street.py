@@ -1,4 +1,5 @@
-"""Synthetic multi-view scene for the geometry building-block tests and the bench script.
+"""A synthetic "street" scene for the geometry building-block tests and
+scripts/bench/multiview_blocks.py: exact observations of points seen by several cameras.
 
 A "street" of cameras along the x axis looking roughly at +z (random tilt), points in a slab
 in front of them; a point is observed by every camera that sees it inside a 1000×1000 px
@@ -15,7 +16,7 @@ from rotonly_cli.geometry import so3
 
 
 @dataclass
-class Scene:
+class StreetScene:
     R_cam_from_world: np.ndarray  # (n, 3, 3)
     centers: np.ndarray  # (n, 3)
     points: np.ndarray  # (N, 3)
@@ -26,7 +27,7 @@ class Scene:
 
 def make_street_scene(num_views: int, num_points: int, seed: int, spacing: float = 1.0,
                       max_tilt_deg: float = 8.0, depth: tuple[float, float] = (8.0, 12.0),
-                      min_track_length: int = 2) -> Scene:
+                      min_track_length: int = 2) -> StreetScene:
     rng = np.random.default_rng(seed)
     centers = np.stack([np.arange(num_views) * spacing,
                         rng.normal(scale=0.3, size=num_views),
@@ -53,7 +54,7 @@ def make_street_scene(num_views: int, num_points: int, seed: int, spacing: float
     new_index = np.cumsum(keep_point) - 1
     obs_point = new_index[cand_point[seen]]
     order = np.lexsort((cand_view[seen], obs_point))
-    return Scene(R, centers, points[keep_point], obs_point[order], cand_view[seen][order],
+    return StreetScene(R, centers, points[keep_point], obs_point[order], cand_view[seen][order],
                  xy[seen][order])
 
 
@@ -69,28 +70,3 @@ def similarity_align_error(estimate: np.ndarray, truth: np.ndarray) -> tuple[flo
     s = float((S * D).sum() / (E**2).sum() * len(E))
     residual = truth - (s * E @ A.T + mu_t)
     return float(np.linalg.norm(residual, axis=1).max()), s
-
-
-def grrm_problem(setup="circular", noise=1.0, seed=1, views=10, points=400, window=3, init="ransac", corrupt=0.0):
-    """A simulated multi-view problem for the GRRM tests: (simulation, multiview problem, R_gt)."""
-    from rotonly_cli import multiview
-    from rotonly_cli.simulation.multiview import simulate_multiview
-
-    p = simulate_multiview(setup, num_views=views, num_points=points, noise_px=noise, rng=seed, window=window,
-                           init=init, corrupt_fraction=corrupt)
-    vids = sorted(p.scene.views)
-    keys = sorted(p.scene.pairs)
-    prob = multiview.build_problem(p.scene.normalized, {k: p.scene.pairs[k].matches for k in keys}, vids)
-    R_gt = np.stack([p.gt_poses[v].R_cam_from_world for v in vids])
-    return p, prob, R_gt
-
-
-def l1_irls_start(p, prob) -> np.ndarray:
-    """GRRM's start: the L1-IRLS average of the simulation's relative rotations, inlier-weighted."""
-    from rotonly_cli.geometry import averaging
-
-    sc = p.scene
-    R_rel = np.stack([sc.pairs[k].R_j_from_i for k in prob.pair_keys])
-    weights = np.array([len(sc.pairs[k].matches) for k in prob.pair_keys], dtype=float)
-    res = averaging.average_rotations(len(prob.view_ids), prob.edge_views[:, 0], prob.edge_views[:, 1], R_rel, weights)
-    return res.R_cam_from_world

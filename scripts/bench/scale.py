@@ -1,6 +1,6 @@
 """Issue-5 scale benchmark: time and peak memory of every rotonly stage on synthetic scenes.
 
-Usage: python scripts/bench_scale.py [--sizes 100 300 1000] [--points-per-view 100] [--setup linear]
+Usage: python scripts/bench/scale.py [--sizes 100 300 1000] [--points-per-view 100] [--setup linear]
                                      [--window 5] [--max-height 100] [--cache DIR] [-o RESULTS_DIR]
 
 Per size n: ``simulate_multiview(setup, num_views=n, num_points=points_per_view * n,
@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rotonly_cli.bench import results_md
 from rotonly_cli.bench.common import code_version
 from rotonly_cli.io.atomic import make_staging_dir, replace_dir, staging_dir
 
@@ -245,6 +246,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--timeout", type=float, default=3600.0, help="per child process (s)")
     parser.add_argument("--jobs", type=int, default=None,
                         help="TRRM processes, as `rotonly run --jobs` (default: the usable CPUs, as rotonly run)")
+    parser.add_argument("--results-md", type=Path, default=None,
+                        help="also write the tables into this file's `scale` section (docs/results.md)")
     parser.add_argument("--_simulate", nargs=2, metavar=("VIEWS", "DIR"), help=argparse.SUPPRESS)
     parser.add_argument("--_measure", nargs=2, metavar=("DIR", "JSON"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -297,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
                                f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; TRRM jobs={jobs}; "
                                f"code {code_version()}.")
     print(table)
-    payload = {"command": " ".join(["bench_scale.py"] + (argv if argv is not None else sys.argv[1:])),
+    payload = {"command": " ".join(["scale.py"] + (argv if argv is not None else sys.argv[1:])),
                "code_version": code_version(), "cpu_count": os.cpu_count(),
                "load_average_1min_start_end": [load_at_start, os.getloadavg()[0]],
                "results": results}
@@ -306,6 +309,8 @@ def main(argv: list[str] | None = None) -> int:
     with staging_dir(out_dir) as tmp:
         (tmp / "results.json").write_text(json.dumps(payload, indent=1, default=float) + "\n")
         (tmp / "table.md").write_text(table + "\n")
+    results_md.record(args.results_md, "scale", "Scale: every stage on large simulated scenes",
+                      results_md.command_line("python scripts/bench/scale.py", argv), table)
     print(f"\nwrote {out_dir}/results.json and table.md", file=sys.stderr)
     return 0
 

@@ -9,8 +9,8 @@ shared); the first batched run, which also pays for fresh memory, is printed bes
 The batched API runs in one process and with ``jobs=--jobs`` (default: the usable CPUs;
 edges split over forked processes, rotonly_cli.runtime.parallel); the loop calls the one-edge API.
 
-    python scripts/bench_throughput.py            # 1000 x 1000, best of 3
-    python scripts/bench_throughput.py --edges 200 --repeat 1
+    python scripts/bench/throughput.py            # 1000 x 1000, best of 3
+    python scripts/bench/throughput.py --edges 200 --repeat 1
 """
 
 from __future__ import annotations
@@ -19,9 +19,11 @@ import argparse
 import os
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
+from rotonly_cli.bench import results_md
 from rotonly_cli.geometry import so3
 from rotonly_cli.simulation.fivepoint import perturbed_rotation
 from rotonly_cli.simulation.twoview import simulate_twoview
@@ -35,6 +37,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--perturb-deg", type=float, default=1.0)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--repeat", type=int, default=3, help="runs per mode; the best wall time is reported")
+    parser.add_argument("--results-md", type=Path, default=None,
+                        help="also write the table into this file's `throughput` section (docs/results.md)")
     parser.add_argument("--jobs", type=int, default=None, help="processes of the parallel batched mode "
                         "(default: the usable CPUs)")
     args = parser.parse_args(argv)
@@ -88,26 +92,31 @@ def main(argv: list[str] | None = None) -> int:
     same_kinds = all(a.kind == b.kind for a, b in zip(batch_kinds, loop_kinds))
 
     E = args.edges
-    print(f"{E} edges x {args.matches} matches, standard scene, {args.noise:g} px, start = truth + "
-          f"{args.perturb_deg:g} deg (simulation took {time_simulate:.1f} s); best of {max(1, args.repeat)} "
-          f"runs per mode, load average {os.getloadavg()[0]:.2f}\n")
-    print("| mode | identify (s) | refine (s) | total (s) | ms / edge | edges / s |")
-    print("|---|---|---|---|---|---|")
+    lines = [f"{E} edges x {args.matches} matches, standard scene, {args.noise:g} px, start = truth + "
+             f"{args.perturb_deg:g} deg (simulation took {time_simulate:.1f} s); best of {max(1, args.repeat)} "
+             f"runs per mode, load average {os.getloadavg()[0]:.2f}", "",
+             "| mode | identify (s) | refine (s) | total (s) | ms / edge | edges / s |", "|---|---|---|---|---|---|"]
     for name, t_id, t_ref in (("batched, 1 process", t_batch_identify, t_batch_refine),
                               (f"batched, jobs={jobs}", t_par_identify, t_par_refine),
                               ("per-edge loop", t_loop_identify, t_loop_refine)):
         total = t_id + t_ref
-        print(f"| {name} | {t_id:.3f} | {t_ref:.3f} | {total:.3f} | {1e3 * total / E:.3f} | {E / total:.0f} |")
-    print(f"\nfirst batched run (fresh memory): {t_first:.3f} s")
+        lines.append(f"| {name} | {t_id:.3f} | {t_ref:.3f} | {total:.3f} | {1e3 * total / E:.3f} | {E / total:.0f} |")
     t_loop = t_loop_identify + t_loop_refine
-    print(f"speed-up batched vs loop: {t_loop / (t_batch_identify + t_batch_refine):.1f}x in 1 process, "
-          f"{t_loop / (t_par_identify + t_par_refine):.1f}x with jobs={jobs}; max rotation difference batched vs "
-          f"loop {agree:.2e} deg; same kinds: {same_kinds}; jobs={jobs} bit-identical to 1 process: {same_parallel}")
     kinds, counts = np.unique([str(getattr(r.kind, "value", r.kind)) for r in batch_kinds], return_counts=True)
-    print("identified kinds at the start rotation (all edges are REGULAR by construction): "
-          + ", ".join(f"{k} {c}" for k, c in zip(kinds, counts)))
-    print(f"rotation error (deg) mean/median: start {err_init.mean():.4f}/{np.median(err_init):.4f}, "
-          f"batched {err_batch.mean():.4f}/{np.median(err_batch):.4f}, loop {err_loop.mean():.4f}/{np.median(err_loop):.4f}")
+    lines += ["", f"first batched run (fresh memory): {t_first:.3f} s  ",
+              f"speed-up batched vs loop: {t_loop / (t_batch_identify + t_batch_refine):.1f}x in 1 process, "
+              f"{t_loop / (t_par_identify + t_par_refine):.1f}x with jobs={jobs}; max rotation difference batched vs "
+              f"loop {agree:.2e} deg; same kinds: {same_kinds}; jobs={jobs} bit-identical to 1 process: "
+              f"{same_parallel}  ",
+              "identified kinds at the start rotation (all edges are REGULAR by construction): "
+              + ", ".join(f"{k} {c}" for k, c in zip(kinds, counts)) + "  ",
+              f"rotation error (deg) mean/median: start {err_init.mean():.4f}/{np.median(err_init):.4f}, "
+              f"batched {err_batch.mean():.4f}/{np.median(err_batch):.4f}, loop "
+              f"{err_loop.mean():.4f}/{np.median(err_loop):.4f}"]
+    print("\n".join(lines))
+    results_md.record(args.results_md, "throughput", "Throughput of identification + TRRM: batched against one "
+                      "edge at a time", results_md.command_line("python scripts/bench/throughput.py", argv),
+                      "\n".join(lines))
     return 0
 
 

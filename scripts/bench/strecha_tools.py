@@ -1,8 +1,13 @@
-"""Issue-5 benchmark on the Strecha scenes: rotonly against pycolmap and OpenMVG, one evaluator.
+"""Strecha scenes: rotonly against the tools it replaces (pycolmap's global mapper, OpenMVG's
+global SfM), timed as their users run them and scored by one evaluator.
 
-Usage: python scripts/bench_strecha.py --root /work/shared/data/strecha [--scenes fountain-P11 ...]
+Usage: python scripts/bench/strecha_tools.py --root DATA/strecha [--scenes fountain-P11 ...]
                                        [-o RESULTS_DIR] [--threads N] [--skip-mapper]
-                                       [--openmvg-bin ../shared/tools/openmvg-2.1/bin] [--timing-rounds N]
+                                       [--openmvg-bin OPENMVG_BIN] [--timing-rounds N]
+                                       [--results-md docs/results.md]
+
+(``rotonly bench strecha`` is the other Strecha benchmark: the paper's per-pair and global
+tables with the baselines.)
 
 For every scene folder under ROOT (database.db, gt_dense_cameras/, openmvg/{sfm_data.json,
 matches.e.bin, global/sfm_data.json}; data/strecha/README.md), in the same run:
@@ -59,6 +64,7 @@ from typing import Callable
 
 import numpy as np
 
+from rotonly_cli.bench import results_md
 from rotonly_cli.bench.common import code_version
 from rotonly_cli.evaluation.quality import evaluate
 from rotonly_cli.io import detect, openmvg
@@ -690,6 +696,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="also time rotonly against the mapper on each database and (with --openmvg-bin) against "
                              "OpenMVG on each scene's OpenMVG matches in this many alternating rounds, and report "
                              "the medians (default 1: the single runs only)")
+    parser.add_argument("--results-md", type=Path, default=None,
+                        help="also write the tables into this file's `strecha-tools` section (docs/results.md)")
     args = parser.parse_args(argv)
     if args.timing_rounds < 1:
         parser.error("--timing-rounds: must be >= 1")
@@ -736,6 +744,9 @@ def main(argv: list[str] | None = None) -> int:
                    "total_time_s": time.perf_counter() - start,
                    "scenes": {n: [vars(r) for r in rs] for n, rs in all_results.items()}}
         write_results(results_dir, payload, table, log_dir)
+        results_md.record(args.results_md, "strecha-tools", "Strecha: rotonly against pycolmap's global mapper "
+                          "and OpenMVG", results_md.command_line("python scripts/bench/strecha_tools.py", argv),
+                          "\n\n".join([summary] + [scene_table(n, r) for n, r in all_results.items()]))
     finally:
         shutil.rmtree(log_dir, ignore_errors=True)
         quiet_pycolmap(previous_log_level)

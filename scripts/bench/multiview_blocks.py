@@ -1,9 +1,9 @@
 """Time and peak memory of the multi-view geometry blocks on a large synthetic scene.
 
-Usage: python scripts/bench_multiview_blocks.py [--views 1000] [--points 100000] [--noise-px 1]
+Usage: python scripts/bench/multiview_blocks.py [--views 1000] [--points 100000] [--noise-px 1]
 
 Prints one row per stage: wall time, peak Python-heap memory (tracemalloc; numpy buffers are
-traced) and the process max RSS (resource). The scene is the "street" of tests/multiview_scene.py
+traced) and the process max RSS (resource). The scene is the "street" of rotonly_cli/simulation/street.py
 (f = 1000, 1000×1000 px). Accuracy columns compare with the generating ground truth.
 """
 
@@ -11,21 +11,19 @@ from __future__ import annotations
 
 import argparse
 import resource
-import sys
 import time
 import tracemalloc
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from multiview_scene import make_street_scene, similarity_align_error  # noqa: E402
-
-from rotonly_cli.geometry import so3  # noqa: E402
-from rotonly_cli.geometry.averaging import average_rotations  # noqa: E402
-from rotonly_cli.geometry.ligt import ligt_translations  # noqa: E402
-from rotonly_cli.geometry.tracks import build_tracks, pairs_within_tracks  # noqa: E402
-from rotonly_cli.geometry.triangulation import triangulate_tracks  # noqa: E402
+from rotonly_cli.bench import results_md
+from rotonly_cli.geometry import so3
+from rotonly_cli.geometry.averaging import average_rotations
+from rotonly_cli.geometry.ligt import ligt_translations
+from rotonly_cli.geometry.tracks import build_tracks, pairs_within_tracks
+from rotonly_cli.geometry.triangulation import triangulate_tracks
+from rotonly_cli.simulation.street import make_street_scene, similarity_align_error
 
 
 def measure(fn):
@@ -38,20 +36,23 @@ def measure(fn):
     return out, elapsed, peak / 2**20
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--views", type=int, default=1000)
     parser.add_argument("--points", type=int, default=100_000)
     parser.add_argument("--noise-px", type=float, default=1.0)
     parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args()
+    parser.add_argument("--results-md", type=Path, default=None,
+                        help="also write the table into this file's `multiview-blocks` section (docs/results.md)")
+    args = parser.parse_args(argv)
 
     scene = make_street_scene(args.views, args.points, seed=args.seed)
     rng = np.random.default_rng(args.seed + 1)
     xy = scene.obs_xy + rng.normal(scale=args.noise_px * 1e-3, size=scene.obs_xy.shape)
     n = args.views
-    print(f"scene: {n} views, {len(scene.points)} points, {scene.obs_point.size} observations, "
-          f"mean track length {scene.obs_point.size / len(scene.points):.2f}, noise {args.noise_px} px")
+    header = (f"scene: {n} views, {len(scene.points)} points, {scene.obs_point.size} observations, "
+              f"mean track length {scene.obs_point.size / len(scene.points):.2f}, noise {args.noise_px} px")
+    print(header)
 
     # pairwise matches of every pair of track members -> tracks (feature = observation index)
     a, b = pairs_within_tracks(np.r_[0, np.flatnonzero(np.diff(scene.obs_point)) + 1, scene.obs_point.size])
@@ -87,10 +88,12 @@ def main() -> None:
     rows.append(("triangulate_tracks (GT poses)", t, m,
                  f"valid {tri.valid.mean():.3f}, median err {np.median(point_error):.4f}"))
 
-    print(f"{'stage':32s} {'time [s]':>9s} {'peak traced [MiB]':>18s}  notes")
-    for name, seconds, mib, note in rows:
-        print(f"{name:32s} {seconds:9.2f} {mib:18.1f}  {note}")
-    print(f"process max RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
+    lines = [header, "", "| stage | time (s) | peak traced (MiB) | notes |", "|---|---|---|---|"]
+    lines += [f"| {name} | {seconds:.2f} | {mib:.1f} | {note} |" for name, seconds, mib, note in rows]
+    lines += ["", f"process max RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB"]
+    print("\n".join(lines[2:]))
+    results_md.record(args.results_md, "multiview-blocks", "Multi-view geometry blocks on a large street scene",
+                      results_md.command_line("python scripts/bench/multiview_blocks.py", argv), "\n".join(lines))
 
 
 if __name__ == "__main__":

@@ -1,0 +1,32 @@
+"""Helpers shared by the tests (tests/ is on sys.path through conftest.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rotonly_cli.simulation.street import StreetScene, make_street_scene, similarity_align_error  # noqa: F401
+
+
+def grrm_problem(setup="circular", noise=1.0, seed=1, views=10, points=400, window=3, init="ransac", corrupt=0.0):
+    """A simulated multi-view problem for the GRRM tests: (simulation, multiview problem, R_gt)."""
+    from rotonly_cli import multiview
+    from rotonly_cli.simulation.multiview import simulate_multiview
+
+    p = simulate_multiview(setup, num_views=views, num_points=points, noise_px=noise, rng=seed, window=window,
+                           init=init, corrupt_fraction=corrupt)
+    vids = sorted(p.scene.views)
+    keys = sorted(p.scene.pairs)
+    prob = multiview.build_problem(p.scene.normalized, {k: p.scene.pairs[k].matches for k in keys}, vids)
+    R_gt = np.stack([p.gt_poses[v].R_cam_from_world for v in vids])
+    return p, prob, R_gt
+
+
+def l1_irls_start(p, prob) -> np.ndarray:
+    """GRRM's start: the L1-IRLS average of the simulation's relative rotations, inlier-weighted."""
+    from rotonly_cli.geometry import averaging
+
+    sc = p.scene
+    R_rel = np.stack([sc.pairs[k].R_j_from_i for k in prob.pair_keys])
+    weights = np.array([len(sc.pairs[k].matches) for k in prob.pair_keys], dtype=float)
+    res = averaging.average_rotations(len(prob.view_ids), prob.edge_views[:, 0], prob.edge_views[:, 1], R_rel, weights)
+    return res.R_cam_from_world
