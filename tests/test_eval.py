@@ -58,7 +58,7 @@ def _read_sfm_data_minimal(path: Path) -> SfMScene:
 
 
 def _read_sfm_data(path: Path) -> SfMScene:
-    """The project's OpenMVG reader when it is there (io/openmvg.py), else the minimal parser."""
+    """The project's OpenMVG reader when it is there (io/openmvg/), else the minimal parser."""
     try:
         from rotonly_cli.io.openmvg import read_sfm_data
     except ImportError:
@@ -361,7 +361,7 @@ def test_cli_bad_input_exits_2_with_one_line_and_no_output(tmp_path, capsys, min
 
 
 def test_cli_end_to_end_with_project_readers(tmp_path, capsys):
-    """`rotonly eval` through the real readers (io/strecha.py, io/openmvg.py)."""
+    """`rotonly eval` through the real readers (io/strecha.py, io/openmvg/)."""
     pytest.importorskip("rotonly_cli.io.strecha")
     pytest.importorskip("rotonly_cli.io.openmvg")
     scene_dir = FIXTURES / "fountain-P11"

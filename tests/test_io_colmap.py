@@ -158,11 +158,11 @@ def test_openmvg_models_map_to_same_colmap_projection(model: str, params: list[f
     assert colmap_intrinsics.model != model and colmap_intrinsics.id == 3
     normalized = np.random.default_rng(1).uniform(-0.4, 0.4, size=(200, 2))
     expected = openmvg.distort_project(openmvg_intrinsics, normalized)
-    camera = colmap._pycolmap_camera(colmap_intrinsics)
+    camera = colmap.pycolmap_camera(colmap_intrinsics)
     projected = camera.img_from_cam(np.c_[normalized, np.ones(len(normalized))])
     np.testing.assert_allclose(projected, expected, rtol=0, atol=1e-9)
     # and back: an exactly representable COLMAP camera maps to an OpenMVG model again
-    exact = colmap._exact_openmvg_intrinsics(colmap_intrinsics)
+    exact = colmap.cameras._exact_openmvg_intrinsics(colmap_intrinsics)
     assert exact is not None
     np.testing.assert_allclose(openmvg.distort_project(exact, normalized), expected, atol=1e-9)
 

@@ -29,11 +29,11 @@ def _awkward_floats(rng: np.random.Generator) -> np.ndarray:
 
 def test_float_and_integer_texts_equal_python_repr():
     values = _awkward_floats(np.random.default_rng(3))
-    assert openmvg._float_reprs(values) == [repr(v) for v in values.tolist()]
-    assert openmvg._float_reprs(values.reshape(-1, 1)[:6]) == [repr(v) for v in values[:6].tolist()]
+    assert openmvg.sfm_data_writer._float_reprs(values) == [repr(v) for v in values.tolist()]
+    assert openmvg.sfm_data_writer._float_reprs(values.reshape(-1, 1)[:6]) == [repr(v) for v in values[:6].tolist()]
     integers = np.array([0, 1, 9, 10, 4294967295, 123456789012, -3], dtype=np.int64)
-    assert openmvg._integer_texts(integers) == ["0", "1", "9", "10", "4294967295", "123456789012", "-3"]
-    assert openmvg._float_reprs(np.zeros(0)) == [] and openmvg._integer_texts(np.zeros(0)) == []
+    assert openmvg.sfm_data_writer._integer_texts(integers) == ["0", "1", "9", "10", "4294967295", "123456789012", "-3"]
+    assert openmvg.sfm_data_writer._float_reprs(np.zeros(0)) == [] and openmvg.sfm_data_writer._integer_texts(np.zeros(0)) == []
 
 
 def _reference_structure(scene: SfMScene) -> list:
@@ -91,7 +91,7 @@ def test_structure_text_equals_json_dumps_of_reference(stored_pixels):
     expected = json.dumps(_reference_structure(scene), indent=4)
     # the structure array sits at indent level 1 inside the document
     expected = expected.replace("\n", "\n    ")
-    assert openmvg._structure_text(scene) == expected
+    assert openmvg.sfm_data_writer._structure_text(scene) == expected
     document = json.loads(openmvg.sfm_data_bytes(scene))
     assert document["structure"] == json.loads(expected)
     assert sum(len(row["value"]["observations"]) == 0 for row in document["structure"]) > 10
@@ -101,16 +101,16 @@ def test_structure_text_single_landmarks():
     scene = _scene(np.random.default_rng(2), 1, True)
     scene.structure.observations[0] = []
     scene.structure.observation_pixels[0] = np.zeros((0, 2))
-    assert openmvg._structure_text(scene) == json.dumps(_reference_structure(scene), indent=4).replace(
+    assert openmvg.sfm_data_writer._structure_text(scene) == json.dumps(_reference_structure(scene), indent=4).replace(
         "\n", "\n    ")
     scene.structure.observations[0] = [(4, 1), (2, 3)]
     scene.structure.observation_pixels[0] = np.array([[1.5, 2.5], [3.5, 4.5]])
-    text = openmvg._structure_text(scene)
+    text = openmvg.sfm_data_writer._structure_text(scene)
     assert json.loads(text)[0]["value"]["observations"] == [
         {"key": 2, "value": {"id_feat": 3, "x": [3.0, 4.0]}},
         {"key": 4, "value": {"id_feat": 1, "x": [1.0, 2.0]}}]
     scene.structure = Structure(np.zeros(0, np.int64), np.zeros((0, 3)), None, [], None)
-    assert openmvg._structure_text(scene) == "[]"
+    assert openmvg.sfm_data_writer._structure_text(scene) == "[]"
 
 
 def test_structure_writer_rejects_bad_landmarks():

@@ -17,11 +17,11 @@ from rotonly_cli.scene.types import Intrinsics, Pose, SfMScene, Structure, View
 def _reference_model(scene: SfMScene, out_dir: Path, binary: bool) -> None:
     """One pycolmap Point3D / TrackElement per point / observation (the old writer)."""
     reconstruction = pycolmap.Reconstruction()
-    view_offset = colmap._id_offset(scene.views)
-    camera_offset = colmap._id_offset(scene.intrinsics)
+    view_offset = colmap.id_offset(scene.views)
+    camera_offset = colmap.id_offset(scene.intrinsics)
     for intrinsic_id in sorted(scene.intrinsics):
         intrinsic = colmap.to_colmap_intrinsics(scene.intrinsics[intrinsic_id])
-        reconstruction.add_camera_with_trivial_rig(colmap._pycolmap_camera(intrinsic, intrinsic_id + camera_offset))
+        reconstruction.add_camera_with_trivial_rig(colmap.pycolmap_camera(intrinsic, intrinsic_id + camera_offset))
     structure = scene.structure
     points2D: dict[int, list[np.ndarray]] = {}
     extra_index: dict[tuple[int, int], int] = {}
@@ -36,7 +36,7 @@ def _reference_model(scene: SfMScene, out_dir: Path, binary: bool) -> None:
                     continue
                 if 0 <= feature < len(points2D[view_id][0]) or (view_id, feature) in extra_index:
                     continue
-                pixel = colmap._observation_pixel(scene, point_index, row)
+                pixel = colmap.model._observation_pixel(scene, point_index, row)
                 extra_index[(view_id, feature)] = sum(len(p) for p in points2D[view_id])
                 points2D[view_id].append(pixel.reshape(1, 2))
     for view_id in posed:
@@ -47,7 +47,7 @@ def _reference_model(scene: SfMScene, out_dir: Path, binary: bool) -> None:
                                camera_id=view.intrinsics_id + camera_offset, image_id=view_id + view_offset)
         reconstruction.add_image_with_trivial_frame(image, cam_from_world)
     if structure is not None:
-        point_offset = colmap._id_offset(np.asarray(structure.point_ids).tolist())
+        point_offset = colmap.id_offset(np.asarray(structure.point_ids).tolist())
         colors = (np.zeros((len(structure.points), 3), np.uint8) if structure.colors is None
                   else np.asarray(structure.colors, dtype=np.uint8))
         for point_index, track in enumerate(structure.observations):

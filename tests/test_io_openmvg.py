@@ -481,13 +481,13 @@ def test_match_index_beyond_keypoints(tmp_path):
 def test_radial_bisection_is_openmvgs_and_polish_stays_inside_its_bracket():
     k = np.array([-0.21, 0.09, -0.02])
     r2_distorted = np.array([1e-4, 0.01, 0.2, 0.5])
-    bisection = openmvg._bisection_radius_solve(k, r2_distorted)
-    polished = openmvg._newton_polish_radius(k, r2_distorted, bisection)
+    bisection = openmvg.cameras._bisection_radius_solve(k, r2_distorted)
+    polished = openmvg.cameras._newton_polish_radius(k, r2_distorted, bisection)
     # OpenMVG's bracket is 1e-10 wide on r^2: its midpoint is within 5e-11 of the root.
     assert np.all(np.abs(polished - bisection) <= 5e-11)
-    residual = openmvg._radial_disto_functor(k, polished) - r2_distorted
+    residual = openmvg.cameras._radial_disto_functor(k, polished) - r2_distorted
     assert np.all(np.abs(residual) <= 4 * np.finfo(float).eps * r2_distorted)
-    assert np.all(np.abs(openmvg._radial_disto_functor(k, bisection) - r2_distorted) > 0)
+    assert np.all(np.abs(openmvg.cameras._radial_disto_functor(k, bisection) - r2_distorted) > 0)
 
 
 def _view_json(view_id: int, ptr_id: int, poly: dict) -> dict:

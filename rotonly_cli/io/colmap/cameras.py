@@ -1,0 +1,170 @@
+"""COLMAP camera models <-> OpenMVG's, through pycolmap (formats.md §4.4), and the
+COLMAP -> OpenMVG scene conversion."""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import replace
+
+import numpy as np
+
+from rotonly_cli.errors import InputError
+from rotonly_cli.scene.ids import shift_ids
+from rotonly_cli.scene.types import Intrinsics, SfMScene
+
+PathLike = str | os.PathLike
+logger = logging.getLogger(__name__)
+
+
+def import_pycolmap():
+    import pycolmap  # lazy: the CLI stays fast for commands that never touch COLMAP
+
+    return pycolmap
+
+
+# ============================================================================ camera models
+
+def to_colmap_intrinsics(intrinsics: Intrinsics) -> Intrinsics:
+    """The nearest COLMAP camera model of an OpenMVG intrinsic (formats.md §4.4 mapping);
+    COLMAP models pass through. Principal points are already in COLMAP's convention."""
+    params = np.asarray(intrinsics.params, dtype=np.float64).ravel()
+    model = intrinsics.model
+    if model == "pinhole":  # f, cx, cy
+        new_model, new_params = "SIMPLE_PINHOLE", params[:3]
+    elif model == "pinhole_radial_k1":  # f, cx, cy, k1: x_d = x (1 + k1 r^2) in both tools
+        new_model, new_params = "SIMPLE_RADIAL", params[:4]
+    elif model == "pinhole_radial_k3":  # f, cx, cy, k1, k2, k3
+        f, cx, cy, k1, k2, k3 = params[:6]
+        if k3 == 0.0:
+            new_model, new_params = "RADIAL", np.array([f, cx, cy, k1, k2])
+        else:  # FULL_OPENCV radial (1 + k1 r2 + k2 r4 + k3 r6) / (1 + 0), no tangential
+            new_model = "FULL_OPENCV"
+            new_params = np.array([f, f, cx, cy, k1, k2, 0.0, 0.0, k3, 0.0, 0.0, 0.0])
+    elif model == "pinhole_brown_t2":  # f, cx, cy, k1, k2, k3, t1, t2 (t1 = OpenCV p1)
+        f, cx, cy, k1, k2, k3, t1, t2 = params[:8]
+        if k3 == 0.0:
+            new_model, new_params = "OPENCV", np.array([f, f, cx, cy, k1, k2, t1, t2])
+        else:
+            new_model = "FULL_OPENCV"
+            new_params = np.array([f, f, cx, cy, k1, k2, t1, t2, k3, 0.0, 0.0, 0.0])
+    elif model == "fisheye":  # f, cx, cy, k1..k4: theta_d = theta (1 + k1 theta^2 + ...)
+        f, cx, cy = params[:3]
+        new_model, new_params = "OPENCV_FISHEYE", np.concatenate([[f, f, cx, cy], params[3:7]])
+    else:
+        pycolmap_camera(intrinsics)  # validates a COLMAP model name / param count
+        return intrinsics
+    return Intrinsics(intrinsics.id, new_model, intrinsics.width, intrinsics.height,
+                      np.asarray(new_params, dtype=np.float64))
+
+
+def pycolmap_camera(intrinsics: Intrinsics, camera_id: int | None = None):
+    pycolmap = import_pycolmap()
+    try:
+        model_id = pycolmap.CameraModelId.__members__[intrinsics.model]
+    except KeyError:
+        raise InputError(f"unknown camera model {intrinsics.model!r}",
+                         field=f"intrinsics[{intrinsics.id}].model") from None
+    camera = pycolmap.Camera(model=model_id, width=int(intrinsics.width),
+                             height=int(intrinsics.height),
+                             params=np.asarray(intrinsics.params, dtype=np.float64).ravel())
+    if not camera.verify_params():
+        raise InputError(f"{intrinsics.model} needs {len(camera.params_info.split(','))} params, "
+                         f"got {np.asarray(intrinsics.params).size}",
+                         field=f"intrinsics[{intrinsics.id}].params")
+    camera.camera_id = intrinsics.id if camera_id is None else camera_id
+    return camera
+
+
+def _exact_openmvg_intrinsics(intrinsics: Intrinsics) -> Intrinsics | None:
+    """An OpenMVG model with the *same* projection as a COLMAP camera, or None.
+    OpenMVG has one focal length, so fx != fy has no exact equivalent."""
+    params = np.asarray(intrinsics.params, dtype=np.float64).ravel()
+    model = intrinsics.model
+    if model in ("PINHOLE", "OPENCV", "OPENCV_FISHEYE", "FULL_OPENCV") and params[0] != params[1]:
+        return None
+    if model == "SIMPLE_PINHOLE":
+        new = ("pinhole", params[:3])
+    elif model == "PINHOLE":
+        new = ("pinhole", params[[0, 2, 3]])
+    elif model == "SIMPLE_RADIAL":
+        new = ("pinhole_radial_k1", params[:4])
+    elif model == "RADIAL":
+        new = ("pinhole_radial_k3", np.concatenate([params[:5], [0.0]]))
+    elif model == "OPENCV":  # brown_t2 distortion order k1, k2, k3, t1, t2
+        new = ("pinhole_brown_t2", np.concatenate([params[[0, 2, 3, 4, 5]], [0.0], params[6:8]]))
+    elif model == "OPENCV_FISHEYE":
+        new = ("fisheye", np.concatenate([params[[0, 2, 3]], params[4:8]]))
+    elif model == "FULL_OPENCV" and np.all(params[9:12] == 0.0):
+        new = ("pinhole_brown_t2", params[[0, 2, 3, 4, 5, 8, 6, 7]])
+    else:
+        return None
+    return Intrinsics(intrinsics.id, new[0], intrinsics.width, intrinsics.height,
+                      np.asarray(new[1], dtype=np.float64))
+
+
+def to_openmvg_scene(scene: SfMScene) -> SfMScene:
+    """A copy of ``scene`` whose intrinsics are OpenMVG models (for ``io.openmvg`` writers).
+
+    COLMAP cameras with an exact OpenMVG equivalent keep their keypoints. The others
+    (fx != fy, models OpenMVG lacks) become an undistorted ``pinhole`` with
+    f = (fx + fy) / 2 and the same principal point, and their keypoints (and stored
+    landmark pixels) are re-rendered from ``normalized`` through it, so normalized
+    coordinates — what rotonly uses — are unchanged.
+    """
+    intrinsics: dict[int, Intrinsics] = {}
+    resampled: dict[int, Intrinsics] = {}
+    for intrinsic_id, intrinsic in scene.intrinsics.items():
+        if intrinsic.model.islower():  # already an OpenMVG model
+            intrinsics[intrinsic_id] = intrinsic
+            continue
+        exact = _exact_openmvg_intrinsics(intrinsic)
+        if exact is None:
+            params = np.asarray(intrinsic.params, dtype=np.float64).ravel()
+            camera = pycolmap_camera(intrinsic)
+            focal = float(np.mean([camera.focal_length_x, camera.focal_length_y]))
+            exact = Intrinsics(intrinsic_id, "pinhole", intrinsic.width, intrinsic.height,
+                               np.array([focal, camera.principal_point_x,
+                                         camera.principal_point_y]))
+            resampled[intrinsic_id] = exact
+            logger.info("camera %d (%s %s) has no exact OpenMVG model: keypoints re-rendered "
+                        "through an undistorted pinhole f=%.6g", intrinsic_id, intrinsic.model,
+                        np.array2string(params, precision=6), focal)
+        intrinsics[intrinsic_id] = exact
+    keypoints = dict(scene.keypoints)
+    for view_id, view in scene.views.items():
+        target = resampled.get(view.intrinsics_id)
+        if target is None or view_id not in keypoints:
+            continue
+        if view_id not in scene.normalized:
+            raise InputError(f"view {view_id} has keypoints but no normalized coordinates",
+                             field=f"views[{view_id}]")
+        keypoints[view_id] = scene.normalized[view_id] * target.params[0] + target.params[1:3]
+    structure = scene.structure
+    if structure is not None and resampled and structure.observation_pixels is not None:
+        structure = replace(structure, observation_pixels=None)  # re-derived from keypoints
+    return replace(scene, intrinsics=intrinsics, keypoints=keypoints, structure=structure,
+                   views=dict(scene.views), poses=dict(scene.poses),
+                   normalized=dict(scene.normalized), pairs=dict(scene.pairs))
+
+
+def colmap_to_openmvg(scene: SfMScene) -> SfMScene:
+    """COLMAP-read scene -> scene for the OpenMVG writers: 0-based ids (scene/ids), OpenMVG
+    camera models (:func:`to_openmvg_scene`)."""
+
+    def down(ids) -> int:
+        ids = list(ids)
+        return -1 if ids and min(ids) >= 1 else 0
+
+    point_ids = [] if scene.structure is None else np.asarray(scene.structure.point_ids).tolist()
+    shifted = shift_ids(scene, down(scene.views), down(scene.intrinsics), down(point_ids))
+    return to_openmvg_scene(shifted)
+
+
+def normalize_keypoints(camera, keypoints: np.ndarray) -> np.ndarray:
+    """(n, 2) COLMAP-convention pixels -> (n, 2) undistorted normalized coordinates, one
+    batched ``Camera.cam_from_img`` call (pycolmap's own undistortion)."""
+    keypoints = np.ascontiguousarray(keypoints, dtype=np.float64).reshape(-1, 2)
+    if keypoints.shape[0] == 0:
+        return np.zeros((0, 2))
+    return np.asarray(camera.cam_from_img(keypoints), dtype=np.float64)

@@ -1,0 +1,264 @@
+"""COLMAP databases (SQLite, formats.md §4.1–§4.5), read and written through pycolmap."""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import sqlite3
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from rotonly_cli.errors import InputError
+from rotonly_cli.io import atomic
+from rotonly_cli.io.colmap.cameras import import_pycolmap, normalize_keypoints, pycolmap_camera, to_colmap_intrinsics
+from rotonly_cli.io.detect import is_sqlite
+from rotonly_cli.scene.types import Intrinsics, PairMatches, SfMScene, View
+
+PathLike = str | os.PathLike
+logger = logging.getLogger(__name__)
+
+
+# Tables read_database needs (formats.md §4.1).
+REQUIRED_TABLES = ("cameras", "images", "keypoints", "two_view_geometries")
+# OpenMVG PairMatches.config -> COLMAP TwoViewGeometry config name (formats.md §4.5). A
+# verified pair of unknown kind is written CALIBRATED: COLMAP skips UNDEFINED pairs.
+_CONFIG_FROM_OPENMVG = {"E": "CALIBRATED", "F": "UNCALIBRATED", "H": "PLANAR", None: "CALIBRATED"}
+# Verified-and-rejected configurations: not a usable pair.
+_REJECTED_CONFIGS = ("UNDEFINED", "DEGENERATE", "WATERMARK")
+
+
+# ============================================================================ database: reading
+
+def check_database(path: PathLike) -> Path:
+    """InputError unless ``path`` is an existing SQLite file holding COLMAP's tables.
+    Reads through sqlite's read-only mode, which never writes."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError("no such file", path=str(path))
+    if not path.is_file():
+        raise InputError("is not a file (expected a COLMAP database)", path=str(path))
+    if not is_sqlite(path):
+        raise InputError("not an SQLite file (expected a COLMAP database)", path=str(path))
+    try:
+        # immutable=1: no locks and no -wal/-shm sidecars next to the input (pycolmap
+        # databases are in WAL mode, where even a read-only open would create them).
+        connection = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro&immutable=1",
+                                     uri=True)
+        try:
+            tables = {row[0] for row in connection.execute(
+                "SELECT name FROM sqlite_master WHERE type = 'table'")}
+        finally:
+            connection.close()
+    except sqlite3.DatabaseError as exc:
+        raise InputError(f"unreadable SQLite database ({exc})", path=str(path)) from None
+    for table in REQUIRED_TABLES:
+        if table not in tables:
+            raise InputError("COLMAP database without this table", path=str(path), field=table)
+    return path
+
+
+@contextmanager
+def _open_database_copy(path: Path) -> Iterator:
+    """pycolmap Database on a private copy of ``path`` (the input stays byte-identical)."""
+    pycolmap = import_pycolmap()
+    with tempfile.TemporaryDirectory(prefix="rotonly-db-") as scratch:
+        copy = Path(scratch) / "database.db"
+        shutil.copyfile(path, copy)
+        wal = Path(f"{path}-wal")  # committed-but-not-checkpointed pages of a WAL database
+        if wal.is_file():
+            shutil.copyfile(wal, Path(f"{copy}-wal"))
+        database = pycolmap.Database.open(str(copy))
+        try:
+            yield database
+        finally:
+            database.close()
+
+
+def read_database(path: PathLike, include_unverified: bool = True) -> SfMScene:
+    """COLMAP database -> SfMScene (formats.md §4.1-§4.6).
+
+    Verified pairs come from ``two_view_geometries`` (inlier matches, config name and, when
+    stored, ``cam2_from_cam1`` as R_j_from_i / unit t_j_from_i); pairs verified and rejected
+    (UNDEFINED, DEGENERATE, WATERMARK or no inlier) are dropped; with
+    ``include_unverified`` the raw ``matches`` of pairs never verified come with
+    ``verified=False``.
+    """
+    pycolmap = import_pycolmap()
+    path = check_database(path)
+    scene = SfMScene(source="colmap-db")
+    with _open_database_copy(path) as database:
+        cameras = {camera.camera_id: camera for camera in database.read_all_cameras()}
+        for camera_id, camera in cameras.items():
+            scene.intrinsics[camera_id] = Intrinsics(
+                camera_id, camera.model.name, int(camera.width), int(camera.height),
+                np.array(camera.params, dtype=np.float64))
+        for image in database.read_all_images():
+            image_id = int(image.image_id)
+            if image.camera_id not in cameras:
+                raise InputError(f"image {image_id} refers to missing camera {image.camera_id}",
+                                 path=str(path), field="images")
+            camera = cameras[image.camera_id]
+            scene.views[image_id] = View(image_id, image.name, int(image.camera_id),
+                                         width=int(camera.width), height=int(camera.height))
+            if database.exists_keypoints(image_id):
+                keypoints = np.asarray(database.read_keypoints(image_id))[:, :2]
+            else:
+                keypoints = np.zeros((0, 2))
+            scene.keypoints[image_id] = keypoints.astype(np.float64)
+            scene.normalized[image_id] = normalize_keypoints(camera, scene.keypoints[image_id])
+
+        pair_ids, geometries = database.read_two_view_geometries()
+        verified_pair_ids = set()
+        num_rejected = 0
+        for pair_id, geometry in zip(pair_ids, geometries):
+            verified_pair_ids.add(int(pair_id))
+            i, j = (int(v) for v in pycolmap.pair_id_to_image_pair(pair_id))  # i < j, canonical
+            config = pycolmap.TwoViewGeometryConfiguration(int(geometry.config)).name
+            inliers = np.asarray(geometry.inlier_matches, dtype=np.int64).reshape(-1, 2)
+            if config in _REJECTED_CONFIGS or inliers.shape[0] == 0:
+                num_rejected += 1
+                continue
+            _check_match_indices(scene, i, j, inliers, path, "two_view_geometries")
+            pair = PairMatches(i, j, inliers, config=config, verified=True)
+            relative = geometry.cam2_from_cam1
+            if relative is not None:
+                pair.R_j_from_i = np.array(relative.rotation.matrix(), dtype=np.float64)
+                # A direction (scale unknown, §4.5): PLANAR/H decompositions store |t| != 1.
+                translation = np.array(relative.translation, dtype=np.float64)
+                norm = np.linalg.norm(translation)
+                pair.t_j_from_i = translation / norm if norm > 0 else translation
+            scene.pairs[(i, j)] = pair
+        if num_rejected:
+            logger.info("%s: %d verified-and-rejected pairs skipped", path, num_rejected)
+
+        if include_unverified:
+            raw_pair_ids, raw_matches = database.read_all_matches()
+            for pair_id, matches in zip(raw_pair_ids, raw_matches):
+                if int(pair_id) in verified_pair_ids:
+                    continue
+                i, j = (int(v) for v in pycolmap.pair_id_to_image_pair(pair_id))
+                matches = np.asarray(matches, dtype=np.int64).reshape(-1, 2)
+                if matches.shape[0] == 0:
+                    continue
+                _check_match_indices(scene, i, j, matches, path, "matches")
+                scene.pairs[(i, j)] = PairMatches(i, j, matches, verified=False)
+    scene.pairs = dict(sorted(scene.pairs.items()))
+    return scene
+
+
+def _check_match_indices(scene: SfMScene, i: int, j: int, matches: np.ndarray, path: Path,
+                         table: str) -> None:
+    for view_id, column in ((i, 0), (j, 1)):
+        if view_id not in scene.views:
+            raise InputError(f"pair ({i}, {j}) refers to missing image {view_id}",
+                             path=str(path), field=table)
+        if matches.shape[0] and (matches[:, column].max() >= len(scene.keypoints[view_id])):
+            raise InputError(f"pair ({i}, {j}): keypoint index {int(matches[:, column].max())} "
+                             f">= {len(scene.keypoints[view_id])} keypoints of image {view_id}",
+                             path=str(path), field=table)
+
+
+# ============================================================================ database: writing
+
+def id_offset(ids) -> int:
+    """COLMAP ids must be > 0 (formats.md §4.2): shift a 0-based id set by +1."""
+    ids = list(ids)
+    return 1 - min(ids) if ids and min(ids) < 1 else 0
+
+
+def write_database(path: PathLike, scene: SfMScene) -> None:
+    """SfMScene -> new COLMAP database at ``path`` (replaced atomically).
+
+    One camera per intrinsic (OpenMVG models mapped by ``to_colmap_intrinsics``), a trivial
+    rig per camera and frame per image, keypoints, ``matches`` for every pair and a
+    ``two_view_geometries`` row (inliers = the pair's matches, config, ``cam2_from_cam1``
+    when known) for verified pairs. View/camera ids < 1 are shifted (``id_offset``).
+    """
+    pycolmap = import_pycolmap()
+    path = Path(path)
+    view_offset = id_offset(scene.views)
+    camera_offset = id_offset(scene.intrinsics)
+    with atomic.file_path(path, ".db", create=False, sidecars=("-journal", "-wal", "-shm")) as staging:
+        database = pycolmap.Database.open(str(staging))
+        try:
+            _fill_database(pycolmap, database, scene, view_offset, camera_offset)
+        finally:
+            database.close()
+        # pycolmap leaves the file in WAL mode, where every later reader (even read-only)
+        # creates -wal/-shm files beside it; a rollback-journal file is self-contained.
+        connection = sqlite3.connect(str(staging))
+        try:
+            connection.execute("PRAGMA journal_mode=DELETE")
+        finally:
+            connection.close()
+
+
+def _default_camera(pycolmap, view: View, camera_id: int):
+    """A camera for a view whose intrinsic is unknown: COLMAP's no-EXIF default (§4.4)."""
+    width, height = int(view.width or 0), int(view.height or 0)
+    if width <= 0 or height <= 0:
+        raise InputError("view without intrinsic nor image size", field=f"views[{view.id}]")
+    camera = pycolmap.Camera.create_from_model_name(camera_id, "SIMPLE_RADIAL",
+                                                    1.2 * max(width, height), width, height)
+    return camera
+
+
+def _fill_database(pycolmap, database, scene: SfMScene, view_offset: int,
+                   camera_offset: int) -> None:
+    camera_ids: dict[int, int] = {}
+    for intrinsic_id in sorted(scene.intrinsics):
+        intrinsic = to_colmap_intrinsics(scene.intrinsics[intrinsic_id])
+        camera = pycolmap_camera(intrinsic, intrinsic_id + camera_offset)
+        camera.has_prior_focal_length = True  # calibrated: COLMAP then keeps E-based geometry
+        camera_ids[intrinsic_id] = database.write_camera(camera, use_camera_id=True)
+    next_camera_id = max(camera_ids.values(), default=0) + 1
+    for view_id in sorted(scene.views):
+        view = scene.views[view_id]
+        if view.intrinsics_id not in camera_ids:
+            camera = _default_camera(pycolmap, view, next_camera_id)
+            camera_ids[view.intrinsics_id] = database.write_camera(camera, use_camera_id=True)
+            next_camera_id += 1
+    for camera_id in sorted(set(camera_ids.values())):
+        rig = pycolmap.Rig(rig_id=camera_id)
+        rig.add_ref_sensor(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, camera_id))
+        database.write_rig(rig, use_rig_id=True)
+    for view_id in sorted(scene.views):
+        view = scene.views[view_id]
+        image_id = view_id + view_offset
+        camera_id = camera_ids[view.intrinsics_id]
+        image = pycolmap.Image(name=view.name, camera_id=camera_id, image_id=image_id)
+        database.write_image(image, use_image_id=True)
+        frame = pycolmap.Frame(frame_id=image_id, rig_id=camera_id)
+        frame.add_data_id(pycolmap.data_t(pycolmap.sensor_t(pycolmap.SensorType.CAMERA,
+                                                             camera_id), image_id))
+        database.write_frame(frame, use_frame_id=True)
+        keypoints = scene.keypoints.get(view_id)
+        if keypoints is not None:
+            database.write_keypoints(image_id, np.ascontiguousarray(keypoints, dtype=np.float32)
+                                     .reshape(-1, 2))
+    for (i, j), pair in sorted(scene.pairs.items()):
+        if i not in scene.views or j not in scene.views:
+            raise InputError(f"pair ({i}, {j}) refers to a missing view", field="pairs")
+        matches = np.ascontiguousarray(pair.matches, dtype=np.uint32).reshape(-1, 2)
+        id1, id2 = i + view_offset, j + view_offset
+        database.write_matches(id1, id2, matches)  # i < j: stored as given (§4.3)
+        if not pair.verified:
+            continue
+        geometry = pycolmap.TwoViewGeometry()
+        config = _CONFIG_FROM_OPENMVG.get(pair.config, pair.config)
+        if config not in pycolmap.TwoViewGeometryConfiguration.__members__:
+            raise InputError(f"unknown two-view configuration {pair.config!r}",
+                             field=f"pairs[({i}, {j})].config")
+        geometry.config = pycolmap.TwoViewGeometryConfiguration.__members__[config]
+        geometry.inlier_matches = matches
+        if pair.R_j_from_i is not None:
+            translation = (np.zeros(3) if pair.t_j_from_i is None
+                           else np.asarray(pair.t_j_from_i, dtype=np.float64).reshape(3))
+            geometry.cam2_from_cam1 = pycolmap.Rigid3d(
+                pycolmap.Rotation3d(np.asarray(pair.R_j_from_i, dtype=np.float64)), translation)
+        database.write_two_view_geometry(id1, id2, geometry)
