@@ -16,7 +16,7 @@ from typing import Mapping
 
 import numpy as np
 
-from rotonly_cli.geometry import twoview as tv
+from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry.grrm import GRRMOptions, GRRMResult, optimize_global_rotations
 
 __all__ = ["GlobalRotations", "GRRMOptions", "GRRMProblem", "build_problem", "optimize_rotations"]
@@ -38,7 +38,7 @@ class GRRMProblem:
 
     view_ids: list
     edge_views: np.ndarray  # (E, 2) indices into view_ids
-    batch: tv.EdgeBatch
+    batch: pg.EdgeBatch
     obs_ids: np.ndarray  # (M, 2) unique observation ids (view offset + keypoint index)
     pair_keys: list  # (i, j) view-id pairs, in edge order
 
@@ -56,7 +56,7 @@ def build_problem(observations: Mapping, edges: Mapping, view_ids: list | None =
         if i not in index or j not in index:
             raise ValueError(f"edges: pair {(i, j)} names a view without observations")
         matches = np.asarray(matches, dtype=np.int64).reshape(-1, 2)
-        if len(matches) < tv.MIN_MATCHES:
+        if len(matches) < pg.MIN_MATCHES:
             continue
         obs_i = np.asarray(observations[i], dtype=float)
         obs_j = np.asarray(observations[j], dtype=float)
@@ -67,7 +67,7 @@ def build_problem(observations: Mapping, edges: Mapping, view_ids: list | None =
         xs_i.append(obs_i[matches[:, 0]])
         xs_j.append(obs_j[matches[:, 1]])
         ids.append(np.stack([offset[index[i]] + matches[:, 0], offset[index[j]] + matches[:, 1]], axis=1))
-    batch = tv.pack_edges(xs_i, xs_j)
+    batch = pg.pack_edges(xs_i, xs_j)
     edge_views = np.array([[index[i], index[j]] for i, j in keys], dtype=np.int64).reshape(-1, 2)
     obs_ids = np.concatenate(ids) if ids else np.zeros((0, 2), dtype=np.int64)
     return GRRMProblem(view_ids=list(view_ids), edge_views=edge_views, batch=batch, obs_ids=obs_ids, pair_keys=keys)

@@ -101,7 +101,7 @@ class TRRMOptions:
     initial_damping: float = 1e-4  #: μ relative to the diagonal of J^T J (Marquardt scaling)
     min_damping: float = 1e-12
     max_damping: float = 1e8
-    #: first phase on the smooth λ_min(Pˢ) cost (twoview.epipolar_residuals), so that starts
+    #: first phase on the smooth λ_min(Pˢ) cost (pairwise.epipolar_residuals), so that starts
     #: several degrees off still reach TRRM's basin; 0 disables it
     epipolar_max_iterations: int = 30
     #: the first phase only has to reach TRRM's basin: it stops at steps below this (rad)

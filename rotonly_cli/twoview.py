@@ -20,7 +20,7 @@ from typing import Sequence
 
 import numpy as np
 
-from rotonly_cli.geometry import twoview as _tv
+from rotonly_cli.geometry import pairwise as _pg
 from rotonly_cli.geometry.identification import IdentificationOptions, SceneKind, identify
 from rotonly_cli.geometry.trrm import TRRMOptions, refine
 from rotonly_cli.runtime.parallel import map_edges, plan
@@ -73,21 +73,21 @@ class BatchRefinement:
                                  detection_value=float(self.detection_values[e]))
 
 
-def _pack(xs_i: Sequence, xs_j: Sequence) -> _tv.EdgeBatch:
-    """geometry.twoview.pack_edges, checked in bulk: when every edge is a pair of float64
+def _pack(xs_i: Sequence, xs_j: Sequence) -> _pg.EdgeBatch:
+    """geometry.pairwise.pack_edges, checked in bulk: when every edge is a pair of float64
     (m, 2) or (m, 3) arrays with m >= MIN_MATCHES, they are concatenated and checked for
     NaN/inf once; anything else goes through pack_edges, which names the bad edge."""
     def plain(a, b) -> tuple | None:
         if not (isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and a.ndim == 2 and b.ndim == 2
-                and a.dtype == np.float64 and b.dtype == np.float64 and a.shape[0] == b.shape[0] >= _tv.MIN_MATCHES):
+                and a.dtype == np.float64 and b.dtype == np.float64 and a.shape[0] == b.shape[0] >= _pg.MIN_MATCHES):
             return None
         return a.shape[1], b.shape[1]
 
     if len(xs_i) == 0 or len(xs_i) != len(xs_j):
-        return _tv.pack_edges(xs_i, xs_j)
+        return _pg.pack_edges(xs_i, xs_j)
     shapes = {plain(a, b) for a, b in zip(xs_i, xs_j)}
     if len(shapes) != 1 or next(iter(shapes)) not in ((2, 2), (3, 3)):
-        return _tv.pack_edges(xs_i, xs_j)
+        return _pg.pack_edges(xs_i, xs_j)
     counts = np.fromiter((a.shape[0] for a in xs_i), dtype=np.int64, count=len(xs_i))
     cols = next(iter(shapes))[0]
     x_i = np.empty((counts.sum(), 3))
@@ -97,13 +97,13 @@ def _pack(xs_i: Sequence, xs_j: Sequence) -> _tv.EdgeBatch:
         if cols == 2:
             x[:, 2] = 1.0
     if not (np.isfinite(x_i).all() and np.isfinite(x_j).all()):
-        return _tv.pack_edges(xs_i, xs_j)
-    return _tv.EdgeBatch(x_i, x_j, np.concatenate([[0], np.cumsum(counts)]))
+        return _pg.pack_edges(xs_i, xs_j)
+    return _pg.EdgeBatch(x_i, x_j, np.concatenate([[0], np.cumsum(counts)]))
 
 
-def _prepare(R_j_from_i, xs_i: Sequence, xs_j: Sequence) -> tuple[np.ndarray, _tv.EdgeBatch]:
+def _prepare(R_j_from_i, xs_i: Sequence, xs_j: Sequence) -> tuple[np.ndarray, _pg.EdgeBatch]:
     batch = _pack(xs_i, xs_j)
-    R = _tv.as_rotations(R_j_from_i, "R_j_from_i", batch=batch.num_edges).reshape(-1, 3, 3)
+    R = _pg.as_rotations(R_j_from_i, "R_j_from_i", batch=batch.num_edges).reshape(-1, 3, 3)
     return R, batch
 
 
@@ -142,7 +142,7 @@ def identify_scenes(R_j_from_i, xs_i: Sequence, xs_j: Sequence,
 def identify_scene(R_j_from_i, x_i, x_j, options: IdentificationOptions = IdentificationOptions()) -> SceneIdentification:
     """Scene kind of one edge: REGULAR, PURE_ROTATION (PR/B/I) or ROTATION_SINGULAR, at the
     given rotation (see ``identify_scenes``)."""
-    R = _tv.as_rotations(R_j_from_i, "R_j_from_i")
+    R = _pg.as_rotations(R_j_from_i, "R_j_from_i")
     if R.ndim != 2:
         raise ValueError(f"R_j_from_i: expected one (3, 3) rotation, got shape {R.shape}")
     return identify_scenes(R[None], [x_i], [x_j], options)[0]
@@ -168,7 +168,7 @@ def refine_rotations(R_j_from_i, xs_i: Sequence, xs_j: Sequence, options: TRRMOp
 def refine_rotation(R_j_from_i, x_i, x_j, options: TRRMOptions = TRRMOptions(),
                     identification_options: IdentificationOptions = IdentificationOptions()) -> TwoViewRefinement:
     """TRRM (Alg. 2) on one edge: the refined R_j_from_i and the closed-form t_ij."""
-    R = _tv.as_rotations(R_j_from_i, "R_j_from_i")
+    R = _pg.as_rotations(R_j_from_i, "R_j_from_i")
     if R.ndim != 2:
         raise ValueError(f"R_j_from_i: expected one (3, 3) rotation, got shape {R.shape}")
     return refine_rotations(R[None], [x_i], [x_j], options, identification_options)[0]

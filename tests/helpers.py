@@ -10,7 +10,7 @@ from rotonly_cli.simulation.street import StreetScene, make_street_scene, simila
 def grrm_problem(setup="circular", noise=1.0, seed=1, views=10, points=400, window=3, init="ransac", corrupt=0.0):
     """A simulated multi-view problem for the GRRM tests: (simulation, multiview problem, R_gt)."""
     from rotonly_cli import multiview
-    from rotonly_cli.simulation.multiview import simulate_multiview
+    from rotonly_cli.simulation.layout_scenes import simulate_multiview
 
     p = simulate_multiview(setup, num_views=views, num_points=points, noise_px=noise, rng=seed, window=window,
                            init=init, corrupt_fraction=corrupt)

@@ -7,7 +7,7 @@ import numpy as np
 from rotonly_cli.baselines.twoview_ba import bundle_adjust_twoview, triangulate_midpoint
 from rotonly_cli.geometry import so3
 from rotonly_cli.simulation.fivepoint import perturbed_rotation
-from rotonly_cli.simulation.twoview import simulate_twoview
+from rotonly_cli.simulation.pair_scenes import simulate_twoview
 
 
 def test_triangulation_noise_free_is_exact() -> None:

@@ -8,16 +8,16 @@ import pytest
 from rotonly_cli.baselines.references import chatterjee, pycolmap_rotation_averaging
 from rotonly_cli.baselines.roba import ROBAOptions, ROBAProblem, roba
 from rotonly_cli.geometry import so3
-from rotonly_cli.geometry import twoview as tv
+from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry.alignment import rotation_errors_after_alignment
-from rotonly_cli.simulation.multiview import simulate_multiview
+from rotonly_cli.simulation.layout_scenes import simulate_multiview
 
 
 def _scene(noise_px: float, seed: int = 0, num_views: int = 12):
     p = simulate_multiview("circular", num_views=num_views, num_points=1500, noise_px=noise_px, rng=seed,
                            init="truth", window=3)
     keys = sorted(p.scene.pairs)
-    batch = tv.pack_edges([p.scene.normalized[i][p.scene.pairs[(i, j)].matches[:, 0]] for i, j in keys],
+    batch = pg.pack_edges([p.scene.normalized[i][p.scene.pairs[(i, j)].matches[:, 0]] for i, j in keys],
                           [p.scene.normalized[j][p.scene.pairs[(i, j)].matches[:, 1]] for i, j in keys])
     R_gt = np.stack([p.gt_poses[v].R_cam_from_world for v in range(num_views)])
     return np.array(keys), batch, R_gt

@@ -12,9 +12,9 @@ from rotonly_cli.baselines.opengv_nonlinear import (
     optimize_nonlinear_twoview, rotation_to_cayley, triangulate_midpoint_frame1)
 from rotonly_cli.baselines.pa import pa_residuals, pose_adjust_twoview
 from rotonly_cli.geometry import so3
-from rotonly_cli.geometry import twoview as tv
+from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.simulation.fivepoint import perturbed_rotation
-from rotonly_cli.simulation.twoview import simulate_twoview
+from rotonly_cli.simulation.pair_scenes import simulate_twoview
 
 
 def _problems(noise_px: float, seeds: range, num_points: int = 200):
@@ -30,21 +30,21 @@ def _starts(problems, angle_deg: float, seed: int):
 
 def test_kneip_matrix_from_sums_equals_direct_sum_and_ps() -> None:
     problems = _problems(1.0, range(3))
-    batch = tv.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
+    batch = pg.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
     R = np.stack([p.R_j_from_i for p in problems])
     M = kneip_matrices(R, kneip_sums(batch))
     f1, f2 = unit_rows(batch.x_j), unit_rows(batch.x_i)
     n = np.cross(f1, np.einsum("mab,mb->ma", np.repeat(R, batch.counts, axis=0), f2))
-    np.testing.assert_allclose(M, tv.outer_segment_sum(n, n, batch.offsets), atol=1e-12)
+    np.testing.assert_allclose(M, pg.outer_segment_sum(n, n, batch.offsets), atol=1e-12)
     # Kneip's M = Pˢ of bearing-normalised observations (algorithms.md §4): same λ_min as the
-    # paper's epipolar cost, which tv.epipolar_residuals evaluates per match
-    lam = tv.symmetric_eigenvalues3(M)[:, 0]
-    np.testing.assert_allclose(lam, tv.epipolar_residuals(R, batch).cost, rtol=1e-8, atol=1e-15)
+    # paper's epipolar cost, which pg.epipolar_residuals evaluates per match
+    lam = pg.symmetric_eigenvalues3(M)[:, 0]
+    np.testing.assert_allclose(lam, pg.epipolar_residuals(R, batch).cost, rtol=1e-8, atol=1e-15)
 
 
 def test_kneip_gradient_matches_finite_differences() -> None:
     problems = _problems(2.0, range(2))
-    batch = tv.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
+    batch = pg.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
     R0, _ = _starts(problems, 2.0, 0)
     G = kneip_sums(batch)
     _, _, grad = smallest_eigenvalue_and_gradient(R0, G)
@@ -64,7 +64,7 @@ def test_cayley_round_trip() -> None:
 
 def test_kneip_eigen_exact_recovery_noise_free() -> None:
     problems = _problems(0.0, range(4))
-    batch = tv.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
+    batch = pg.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
     R0, _ = _starts(problems, 1.0, 1)
     res = refine_kneip_eigen(R0, batch)
     truth = np.stack([p.R_j_from_i for p in problems])
@@ -76,7 +76,7 @@ def test_kneip_eigen_exact_recovery_noise_free() -> None:
 
 def test_kneip_eigen_improves_perturbed_start() -> None:
     problems = _problems(1.0, range(100, 106))
-    batch = tv.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
+    batch = pg.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
     R0, _ = _starts(problems, 1.0, 2)
     res = refine_kneip_eigen(R0, batch)
     truth = np.stack([p.R_j_from_i for p in problems])

@@ -116,7 +116,7 @@ def test_bench_twoview_resumes_finished_cells(tmp_path: Path, monkeypatch: pytes
     """A run killed after its first cell keeps that cell in a checkpoint beside the output;
     the rerun computes only the missing cell, gives the same numbers as an uninterrupted run,
     and removes the checkpoint. Cells from other settings are never reused."""
-    from rotonly_cli.bench import twoview as bench_twoview
+    from rotonly_cli.bench import paper_twoview as bench_twoview
 
     args = ["bench", "twoview", "--no-progress", "--scenes", "standard", "--noise", "1 2", "--trials", "3",
             "--points", "100", "--methods", "TRRM"]

@@ -9,7 +9,7 @@ import pytest
 from click.testing import CliRunner
 
 from rotonly_cli.cli import cli, main
-from rotonly_cli.simulation.twoview import load_twoview
+from rotonly_cli.simulation.pair_scenes import load_twoview
 
 
 def test_simulate_twoview_writes_reproducible_npz(tmp_path) -> None:

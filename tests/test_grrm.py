@@ -23,7 +23,7 @@ def test_residual_is_weighted_mean_of_two_view_residuals(residual):
     """eq:GRRMRes2 for one observation seen by three views, computed by hand from TRRM: the
     ‖θ‖-weighted mean of the bearing residuals x̂ - ŝ, or of the image-plane residuals
     x/x_z - ŝ/ŝ_z (eq:GRRMRes1: reprojection X^i_ijk = Y/Y_3, eq:PA2)."""
-    from rotonly_cli.geometry import twoview as tv
+    from rotonly_cli.geometry import pairwise as pg
 
     p, prob, R_gt = _problem(noise=1.0, seed=3, views=6, window=2)
     R = so3.exp(np.random.default_rng(0).normal(scale=0.003, size=(6, 3))) @ R_gt
@@ -38,8 +38,8 @@ def test_residual_is_weighted_mean_of_two_view_residuals(residual):
     for e, (vi, vj) in enumerate(prob.edge_views):
         R_ij = R[vj] @ R[vi].T
         sub = prob.batch.subset(np.array([e]))
-        ev = tv.trrm_residuals(R_ij[None], sub)
-        theta = tv.theta_vectors(R_ij[None], sub)
+        ev = pg.trrm_residuals(R_ij[None], sub)
+        theta = pg.theta_vectors(R_ij[None], sub)
         for k in range(offsets[e], offsets[e + 1]):
             for side in (0, 1):
                 if prob.obs_ids[k, side] != obs:

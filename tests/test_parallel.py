@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from rotonly_cli import twoview
 from rotonly_cli.runtime import parallel
 from rotonly_cli.simulation.fivepoint import perturbed_rotation
-from rotonly_cli.simulation.twoview import simulate_twoview
+from rotonly_cli.simulation.pair_scenes import simulate_twoview
 
 pytestmark = pytest.mark.skipif(not parallel.fork_safe(), reason="needs fork (Linux, no other thread)")
 
@@ -164,7 +164,7 @@ def test_run_with_jobs_writes_the_same_files(tmp_path, small_parts):
     sfm_data.json of --jobs 1."""
     from rotonly_cli.io import colmap
     from rotonly_cli.pipeline import RunOptions, run_pipeline
-    from rotonly_cli.simulation.multiview import simulate_multiview
+    from rotonly_cli.simulation.layout_scenes import simulate_multiview
 
     problem = simulate_multiview("linear", num_views=8, num_points=800, noise_px=0.5, rng=4, init="perturbed",
                                  init_noise_deg=0.5, window=3, min_shared=30)

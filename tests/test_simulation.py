@@ -7,7 +7,7 @@ import pytest
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.geometry import so3
-from rotonly_cli.simulation import twoview as sim
+from rotonly_cli.simulation import pair_scenes as sim
 from rotonly_cli.simulation.fivepoint import five_point_ransac, perturbed_rotation
 
 

@@ -7,7 +7,7 @@ import pytest
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.geometry import so3
-from rotonly_cli.simulation.multiview import SETUPS, camera_layout, simulate_multiview
+from rotonly_cli.simulation.layout_scenes import SETUPS, camera_layout, simulate_multiview
 
 
 @pytest.mark.parametrize("setup", SETUPS)

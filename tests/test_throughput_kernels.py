@@ -1,5 +1,5 @@
 """Lean TRRM evaluator, λ_min(Pˢ) from moments, padded medians, Procrustes on a MatchTable
-(geometry/kernels/) against the readable reference implementations in geometry/twoview.py,
+(geometry/kernels/) against the readable reference implementations in geometry/pairwise.py,
 and the contraction stopping rule of the lock-step LM (geometry/trrm.py)."""
 
 from __future__ import annotations
@@ -9,16 +9,16 @@ import pytest
 
 from rotonly_cli import twoview
 from rotonly_cli.geometry import kernels, so3
-from rotonly_cli.geometry import twoview as tv
+from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry.trrm import TRRMOptions, optimize_rotations
-from rotonly_cli.simulation.twoview import simulate_twoview
+from rotonly_cli.simulation.pair_scenes import simulate_twoview
 
 
 def _mixed_batch(seed: int = 0, noise_px: float = 1.5):
     kinds = [("standard", 100), ("planar", 300), ("standard", 50), ("standard", 700), ("pure_rotation", 400),
              ("standard", 20), ("rankregular_line", 60)]
     problems = [simulate_twoview(s, num_points=n, noise_px=noise_px, rng=seed + k) for k, (s, n) in enumerate(kinds)]
-    batch = tv.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
+    batch = pg.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
     rng = np.random.default_rng(seed)
     R = np.stack([so3.exp(rng.normal(scale=0.02, size=3)) @ p.R_j_from_i for p in problems])
     return problems, batch, R
@@ -27,7 +27,7 @@ def _mixed_batch(seed: int = 0, noise_px: float = 1.5):
 @pytest.mark.parametrize("chunk", [64, 500, kernels.LEAN_CHUNK])
 def test_lean_evaluator_equals_reference(chunk):
     _, batch, R = _mixed_batch()
-    ref = tv.trrm_residuals(R, batch, with_jacobian=True)
+    ref = pg.trrm_residuals(R, batch, with_jacobian=True)
     table = kernels.MatchTable.from_batch(batch, chunk=chunk)
     sq = np.empty(batch.x_i.shape[0])
     got = kernels.trrm_evaluate(R, table, jacobian=True, sq_out=sq, plain_ps=True)
@@ -37,7 +37,7 @@ def test_lean_evaluator_equals_reference(chunk):
     assert np.max(per_edge(got["Jtr"] - ref.Jtr) / per_edge(ref.Jtr)) < 1e-11
     assert np.max(np.abs(got["t"] - ref.t)) < 1e-12
     assert np.max(np.abs(sq - np.einsum("mk,mk->m", ref.residuals, ref.residuals))) < 1e-15
-    P = tv.ps_matrices(R, batch)
+    P = pg.ps_matrices(R, batch)
     assert np.max(per_edge(got["ps"] - P) / per_edge(P)) < 1e-13
 
 
@@ -61,7 +61,7 @@ def test_lean_evaluator_weights_unit_theta_and_partial_evaluation():
     assert np.array_equal(part["JtJ"][jac], full["JtJ"][jac])
     assert np.all(part["cost"][~(jac | only)] == 0)
     # unit-length θ weights (robust start): the same residuals as trrm_match_terms with 1/‖θ‖²
-    theta = tv.theta_vectors(R, batch)
+    theta = pg.theta_vectors(R, batch)
     unit = batch.with_weights(1.0 / np.maximum(np.einsum("ma,ma->m", theta, theta), 1e-300))
     r = kernels.trrm_match_terms(R, unit, with_jacobian=False)["r"]
     sq = np.empty(len(theta))
@@ -106,7 +106,7 @@ def test_smallest_eigenpair_lean_equals_twoview():
     w[1000:1500, 0] = 0.0
     P = Q @ (w[:, :, None] * np.swapaxes(Q, 1, 2))
     P = 0.5 * (P + np.swapaxes(P, 1, 2))
-    lam_ref, v_ref = tv.smallest_eigenpair(P)
+    lam_ref, v_ref = pg.smallest_eigenpair(P)
     lam, v = kernels.smallest_eigenpair_lean(P[:, 0, 0], P[:, 0, 1], P[:, 0, 2], P[:, 1, 1], P[:, 1, 2], P[:, 2, 2])
     norm = np.linalg.norm(P, axis=(1, 2))
     assert np.max(np.abs(lam - lam_ref) / norm) < 1e-12
@@ -123,24 +123,24 @@ def test_segment_median_equals_sorting_version():
         values = rng.random(offsets[-1]) ** 3
         if trial == 1:
             values[:] = 0.5  # ties everywhere
-        batch = tv.EdgeBatch(np.zeros((offsets[-1], 3)), np.zeros((offsets[-1], 3)), offsets)
-        assert np.array_equal(kernels.segment_median(values, offsets), tv.segment_median(values, batch))
+        batch = pg.EdgeBatch(np.zeros((offsets[-1], 3)), np.zeros((offsets[-1], 3)), offsets)
+        assert np.array_equal(kernels.segment_median(values, offsets), pg.segment_median(values, batch))
 
 
 def test_point_moments_and_procrustes_equal_twoview():
     _, batch, _ = _mixed_batch(seed=9)
     xi = batch.x_i / batch.x_i[:, 2:3]
-    G_i, G_j = kernels.point_moments(tv.EdgeBatch(batch.x_i * 2.0, batch.x_j, batch.offsets))  # z = 2: divided
-    assert np.max(np.abs(G_i - tv.outer_segment_sum(xi, xi, batch.offsets))) < 1e-12 * np.abs(G_i).max()
-    assert np.array_equal(G_j, tv.outer_segment_sum(batch.x_j, batch.x_j, batch.offsets))
+    G_i, G_j = kernels.point_moments(pg.EdgeBatch(batch.x_i * 2.0, batch.x_j, batch.offsets))  # z = 2: divided
+    assert np.max(np.abs(G_i - pg.outer_segment_sum(xi, xi, batch.offsets))) < 1e-12 * np.abs(G_i).max()
+    assert np.array_equal(G_j, pg.outer_segment_sum(batch.x_j, batch.x_j, batch.offsets))
     table = kernels.MatchTable.from_batch(batch)
     for rounds in (0, 2):
-        assert np.max(np.abs(kernels.best_pure_rotation(table, rounds) - tv.best_pure_rotation(batch, rounds))) < 1e-12
+        assert np.max(np.abs(kernels.best_pure_rotation(table, rounds) - pg.best_pure_rotation(batch, rounds))) < 1e-12
 
 
 def test_contraction_stop_saves_iterations_not_accuracy():
     problems = [simulate_twoview("standard", num_points=400, noise_px=1.0, rng=40 + k) for k in range(20)]
-    batch = tv.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
+    batch = pg.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
     rng = np.random.default_rng(6)
     R0 = np.stack([so3.exp(rng.normal(scale=0.01, size=3)) @ p.R_j_from_i for p in problems])
     R_a, _, c_a, it_a, conv_a = optimize_rotations(R0, batch, TRRMOptions())
@@ -170,7 +170,7 @@ def test_bulk_packing_equals_pack_edges():
     for cols in (2, 3):
         xs = [rng.random((n, cols)) for n in (6, 40, 13)]
         ys = [rng.random((n, cols)) for n in (6, 40, 13)]
-        got, ref = _pack(xs, ys), tv.pack_edges(xs, ys)
+        got, ref = _pack(xs, ys), pg.pack_edges(xs, ys)
         assert np.array_equal(got.x_i, ref.x_i) and np.array_equal(got.x_j, ref.x_j)
         assert np.array_equal(got.offsets, ref.offsets)
     mixed = _pack([rng.random((8, 2)), rng.random((8, 3))], [rng.random((8, 2)), rng.random((8, 3))])
@@ -186,7 +186,7 @@ def test_refined_translation_and_eigenvalues_equal_twoview_at_the_result():
     res = twoview.refine_rotations(R, [p.x_i for p in problems], [p.x_j for p in problems])
     regular = np.flatnonzero([k == twoview.SceneKind.REGULAR for k in res.kinds])
     assert regular.size >= 4
-    t_ref, P, _ = tv.translation_directions(res.rotations[regular], batch.subset(regular))
+    t_ref, P, _ = pg.translation_directions(res.rotations[regular], batch.subset(regular))
     assert np.max(np.abs(res.translation_directions[regular] - t_ref)) < 1e-12
     # ρ is decided at the TRRM result; PURE_ROTATION edges then get the Procrustes rotation
     rho_ref = np.array([twoview.identify_scene(res.rotations[e], problems[e].x_i, problems[e].x_j).pure_rotation_ratio
@@ -209,7 +209,7 @@ def test_reverse_mode_gradient_equals_forward_jacobian(weighted):
 
 def test_frozen_hessian_reaches_the_same_rotations():
     problems = [simulate_twoview("standard", num_points=400, noise_px=1.0, rng=60 + k) for k in range(20)]
-    batch = tv.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
+    batch = pg.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
     rng = np.random.default_rng(9)
     R0 = np.stack([so3.exp(rng.normal(scale=0.015, size=3)) @ p.R_j_from_i for p in problems])
     R_a, _, _, it_a, conv_a = optimize_rotations(R0, batch, TRRMOptions(frozen_hessian_below=1e-3))

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from rotonly_cli.geometry import kernels, so3
-from rotonly_cli.geometry import twoview as tv
+from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry.trrm import _TRRMProblem
-from rotonly_cli.simulation.twoview import simulate_twoview
+from rotonly_cli.simulation.pair_scenes import simulate_twoview
 
 
 def _batch(seed: int = 0):
@@ -19,7 +19,7 @@ def _batch(seed: int = 0):
     scenes = ["standard", "planar", "standard", "standard", "pure_rotation", "standard"] * 2
     problems = [simulate_twoview(s, num_points=n, noise_px=1.0, rng=seed + k)
                 for k, (s, n) in enumerate(zip(scenes, sizes))]
-    batch = tv.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
+    batch = pg.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
     rng = np.random.default_rng(seed)
     R = np.stack([so3.exp(rng.normal(scale=0.01, size=3)) @ p.R_j_from_i for p in problems])
     w = rng.uniform(0.0, 1.0, batch.x_i.shape[0])

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from rotonly_cli.geometry import kernels, so3
-from rotonly_cli.geometry import twoview as tv
+from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry.trrm import TRRMOptions, _inlier_weights, optimize_rotations
-from rotonly_cli.simulation.twoview import simulate_twoview
+from rotonly_cli.simulation.pair_scenes import simulate_twoview
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +25,7 @@ def _errors_deg(R: np.ndarray, R_ref: np.ndarray) -> np.ndarray:
 
 def test_inlier_pass_moves_robust_trrm_to_plain_least_squares(standard_1px):
     problems, R_start, R_true = standard_1px
-    batch = tv.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
+    batch = pg.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
     R_plain = optimize_rotations(R_start, batch, TRRMOptions(loss="none"))[0]
     R_pass = optimize_rotations(R_start, batch, TRRMOptions())[0]
     R_cauchy = optimize_rotations(R_start, batch, TRRMOptions(final_inlier_pass=False))[0]
@@ -42,7 +42,7 @@ def test_inlier_pass_keeps_robustness_to_gross_outliers(standard_1px):
     TRRM from this start breaks down with or without the pass: see the task report.)"""
     problems, R_start, R_true = standard_1px
     x_i = [p.x_i for p in problems]
-    R_clean = optimize_rotations(R_start, tv.pack_edges(x_i, [p.x_j for p in problems]), TRRMOptions())[0]
+    R_clean = optimize_rotations(R_start, pg.pack_edges(x_i, [p.x_j for p in problems]), TRRMOptions())[0]
     rng = np.random.default_rng(4)
     x_j = []
     for p in problems:
@@ -50,7 +50,7 @@ def test_inlier_pass_keeps_robustness_to_gross_outliers(standard_1px):
         bad = rng.choice(len(x), size=len(x) // 20, replace=False)
         x[bad] = rng.uniform(-0.6, 0.6, size=(bad.size, 2))
         x_j.append(x)
-    batch = tv.pack_edges(x_i, x_j)
+    batch = pg.pack_edges(x_i, x_j)
     R_pass = optimize_rotations(R_start, batch, TRRMOptions())[0]
     R_cauchy = optimize_rotations(R_start, batch, TRRMOptions(final_inlier_pass=False))[0]
     R_plain = optimize_rotations(R_start, batch, TRRMOptions(loss="none"))[0]
@@ -69,7 +69,7 @@ def test_inlier_weights_are_a_per_edge_k_sigma_cut():
                       2.0, 2.0, 2.0, 2.0, 8.8, 9.0, 2.0])  # edge 1: median 2 -> cut 8.8956
     rng = np.random.default_rng(0)
     points = [rng.normal(size=(7, 2)), rng.normal(size=(7, 2))]
-    table = kernels.MatchTable.from_batch(tv.pack_edges(points, points))  # only its offsets matter
+    table = kernels.MatchTable.from_batch(pg.pack_edges(points, points))  # only its offsets matter
     w = _inlier_weights(norms ** 2, table, TRRMOptions())
     assert w.tolist() == [1, 1, 1, 1, 1, 0, 0, 1, 1, 1, 1, 1, 0, 1]
     w4 = _inlier_weights(norms ** 2, table, TRRMOptions(inlier_threshold_sigmas=4.0))

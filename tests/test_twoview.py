@@ -10,16 +10,16 @@ import pytest
 
 from rotonly_cli import twoview
 from rotonly_cli.geometry import so3
-from rotonly_cli.geometry import twoview as tv
+from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry.identification import SceneKind
 from rotonly_cli.geometry.trrm import TRRMOptions, optimize_rotations
-from rotonly_cli.simulation.twoview import simulate_twoview
+from rotonly_cli.simulation.pair_scenes import simulate_twoview
 
 
 def _batch(problem, noisy=True):
     if noisy:
-        return tv.pack_edges([problem.x_i], [problem.x_j])
-    return tv.pack_edges([problem.x_i_true], [problem.x_j_true])
+        return pg.pack_edges([problem.x_i], [problem.x_j])
+    return pg.pack_edges([problem.x_i_true], [problem.x_j_true])
 
 
 # ----------------------------------------------------------------------------- Theorem 1 and Pˢ
@@ -28,8 +28,8 @@ def test_theorem1_P_equals_theta_theta_T(seed):
     p = simulate_twoview("standard", num_points=200, noise_px=0.0, rng=seed)
     x_i = np.hstack([p.x_i_true, np.ones((200, 1))])
     x_j = np.hstack([p.x_j_true, np.ones((200, 1))])
-    P = tv.ppo_matrix(p.R_j_from_i, x_i, x_j)  # eq:TwoViewPPOLinear2, term by term
-    theta = tv.theta_vectors(p.R_j_from_i[None], _batch(p, noisy=False))
+    P = pg.ppo_matrix(p.R_j_from_i, x_i, x_j)  # eq:TwoViewPPOLinear2, term by term
+    theta = pg.theta_vectors(p.R_j_from_i[None], _batch(p, noisy=False))
     outer = theta[:, :, None] * theta[:, None, :]
     rel = np.abs(P - outer).max(axis=(1, 2)) / np.abs(outer).max(axis=(1, 2))
     assert rel.max() < 1e-12
@@ -43,7 +43,7 @@ def test_translation_spans_null_space(scene):
     for seed in range(5):
         p = simulate_twoview(scene, num_points=300, noise_px=0.0, rng=seed)
         batch = _batch(p, noisy=False)
-        t, P, lam = tv.translation_directions(p.R_j_from_i[None], batch)
+        t, P, lam = pg.translation_directions(p.R_j_from_i[None], batch)
         t_true = p.t_j_from_i / np.linalg.norm(p.t_j_from_i)
         assert np.linalg.norm(P[0] @ t[0]) / np.linalg.norm(P[0]) < 1e-10
         # the chirality sign picks +t_true, not -t_true
@@ -68,11 +68,11 @@ def test_rank_of_Ps_by_scene_structure():
         ranks = {}
         for scene in ("pure_rotation", "holoplane", "rankregular_line", "standard"):
             p = simulate_twoview(scene, num_points=200, noise_px=0.0, rng=seed)
-            ranks[scene] = _rank(tv.ps_matrices(p.R_j_from_i[None], _batch(p, noisy=False))[0])
+            ranks[scene] = _rank(pg.ps_matrices(p.R_j_from_i[None], _batch(p, noisy=False))[0])
         assert ranks == {"pure_rotation": 0, "holoplane": 1, "rankregular_line": 2, "standard": 2}
         p = simulate_twoview("standard", num_points=200, noise_px=0.0, rng=seed)
         R_wrong = so3.exp(np.array([0.01, -0.02, 0.015])) @ p.R_j_from_i
-        assert _rank(tv.ps_matrices(R_wrong[None], _batch(p, noisy=False))[0]) == 3
+        assert _rank(pg.ps_matrices(R_wrong[None], _batch(p, noisy=False))[0]) == 3
 
 
 # ----------------------------------------------------------------------------- closed-form eigenpair
@@ -90,7 +90,7 @@ def test_closed_form_eigenpair_matches_eigh():
     # plus Pˢ-like matrices: sums of outer products, some nearly rank 1 or 2
     theta = rng.normal(size=(2000, 20, 3)) * np.array([1.0, 1.0, 1e-5])
     P = np.concatenate([P, np.einsum("nki,nkj->nij", theta, theta)])
-    lam, v = tv.smallest_eigenpair(P)
+    lam, v = pg.smallest_eigenpair(P)
     w, V = np.linalg.eigh(P)
     norm = np.linalg.norm(P, axis=(1, 2))
     assert np.max(np.abs(lam - w[:, 0]) / norm) < 1e-9
@@ -106,19 +106,19 @@ def test_closed_form_eigenpair_matches_eigh():
     assert np.min(cos) > 1.0 - 1e-9
     # all three eigenvalues from the bare trigonometric formula: near a double root its
     # accuracy is ~sqrt(eps) (hence the Rayleigh polish smallest_eigenpair applies to λ_min)
-    err_all = np.abs(tv.symmetric_eigenvalues3(P) - w) / norm[:, None]
+    err_all = np.abs(pg.symmetric_eigenvalues3(P) - w) / norm[:, None]
     assert np.max(err_all) < 1e-7
 
 
 # ----------------------------------------------------------------------------- residual and Jacobian
 def _fd_jacobian(R, batch, h=1e-6):
-    base = tv.trrm_residuals(R[None], batch)
+    base = pg.trrm_residuals(R[None], batch)
     J = np.zeros(base.residuals.shape + (3,))
     for k in range(3):
         d = np.zeros(3)
         d[k] = h
-        plus = tv.trrm_residuals((so3.exp(d) @ R)[None], batch)
-        minus = tv.trrm_residuals((so3.exp(-d) @ R)[None], batch)
+        plus = pg.trrm_residuals((so3.exp(d) @ R)[None], batch)
+        minus = pg.trrm_residuals((so3.exp(-d) @ R)[None], batch)
         J[:, :, k] = (plus.residuals - minus.residuals) / (2 * h)
     return J
 
@@ -128,7 +128,7 @@ def test_jacobian_matches_central_differences(scene, seed):
     p = simulate_twoview(scene, num_points=150, noise_px=2.0, rng=seed)
     batch = _batch(p)
     R = so3.exp(np.array([0.01, -0.005, 0.02])) @ p.R_j_from_i
-    ev = tv.trrm_residuals(R[None], batch, with_jacobian=True)
+    ev = pg.trrm_residuals(R[None], batch, with_jacobian=True)
     J_fd = _fd_jacobian(R, batch)
     assert np.max(np.abs(ev.jacobian - J_fd)) / np.max(np.abs(ev.jacobian)) < 1e-6
     # the Gauss-Newton pieces are the segment sums of the Jacobian
@@ -138,14 +138,14 @@ def test_jacobian_matches_central_differences(scene, seed):
 def test_residual_invariant_to_sign_and_scale_of_t():
     p = simulate_twoview("standard", num_points=100, noise_px=1.0, rng=5)
     batch = _batch(p)
-    ev = tv.trrm_residuals(p.R_j_from_i[None], batch)
+    ev = pg.trrm_residuals(p.R_j_from_i[None], batch)
     # t is canonicalised (unit, chirality sign): a flipped or scaled input null vector
     # yields the same residuals
     t = ev.t
     for t_other in (-t, 3.0 * t):
         t_c = t_other / np.linalg.norm(t_other, axis=1, keepdims=True)
-        t_c = t_c * tv.chirality_sign(p.R_j_from_i[None], batch, t_c)[:, None]
-        again = tv.trrm_residuals(p.R_j_from_i[None], batch, t=t_c)
+        t_c = t_c * pg.chirality_sign(p.R_j_from_i[None], batch, t_c)[:, None]
+        again = pg.trrm_residuals(p.R_j_from_i[None], batch, t=t_c)
         assert np.allclose(again.residuals, ev.residuals, atol=1e-14)
 
 
@@ -154,7 +154,7 @@ def test_noise_free_residual_is_zero():
     # Alg. 2 never evaluates TRRM on it)
     for scene in ("standard", "planar", "rankregular_line"):
         p = simulate_twoview(scene, num_points=100, noise_px=0.0, rng=1)
-        ev = tv.trrm_residuals(p.R_j_from_i[None], _batch(p, noisy=False))
+        ev = pg.trrm_residuals(p.R_j_from_i[None], _batch(p, noisy=False))
         assert ev.cost[0] < 1e-24, scene
 
 
@@ -348,11 +348,11 @@ def test_fast_kernels_equal_reference_implementation():
     problems = [simulate_twoview(s, num_points=n, noise_px=1.5, rng=k)
                 for k, (s, n) in enumerate([("standard", 100), ("planar", 300), ("standard", 50),
                                             ("standard", 700), ("pure_rotation", 400), ("standard", 20)])]
-    batch = tv.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
+    batch = pg.pack_edges([p.x_i for p in problems], [p.x_j for p in problems])
     rng = np.random.default_rng(0)
     R = np.stack([so3.exp(rng.normal(scale=0.02, size=3)) @ p.R_j_from_i for p in problems])
-    pairs = [(tv.trrm_residuals, kernels.trrm_normal_equations),
-             (tv.epipolar_residuals, kernels.epipolar_normal_equations)]
+    pairs = [(pg.trrm_residuals, kernels.trrm_normal_equations),
+             (pg.epipolar_residuals, kernels.epipolar_normal_equations)]
     for reference, fast in pairs:
         ref = reference(R, batch, with_jacobian=True)
         for chunk in (64, 500, 1 << 15):  # edge groups of every size give the same sums
@@ -367,14 +367,14 @@ def test_epipolar_jacobian_matches_central_differences():
     p = simulate_twoview("standard", num_points=150, noise_px=2.0, rng=9)
     batch = _batch(p)
     R = so3.exp(np.array([0.01, -0.005, 0.02])) @ p.R_j_from_i
-    ev = tv.epipolar_residuals(R[None], batch, with_jacobian=True)
+    ev = pg.epipolar_residuals(R[None], batch, with_jacobian=True)
     J_fd = np.zeros_like(ev.jacobian)
     h = 1e-6
     for k in range(3):
         d = np.zeros(3)
         d[k] = h
-        plus = tv.epipolar_residuals((so3.exp(d) @ R)[None], batch)
-        minus = tv.epipolar_residuals((so3.exp(-d) @ R)[None], batch)
+        plus = pg.epipolar_residuals((so3.exp(d) @ R)[None], batch)
+        minus = pg.epipolar_residuals((so3.exp(-d) @ R)[None], batch)
         sp, sm = np.sign(plus.t[0] @ ev.t[0]), np.sign(minus.t[0] @ ev.t[0])  # eigenvector sign
         J_fd[:, :, k] = (sp * plus.residuals - sm * minus.residuals) / (2 * h)
     assert np.max(np.abs(ev.jacobian - J_fd)) / np.max(np.abs(ev.jacobian)) < 1e-6

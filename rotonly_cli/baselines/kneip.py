@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rotonly_cli.geometry import so3
-from rotonly_cli.geometry import twoview as tv
+from rotonly_cli.geometry import pairwise as pg
 
 #: Levi-Civita symbol ε_abc
 EPS3 = np.zeros((3, 3, 3))
@@ -81,7 +81,7 @@ def _hat_complex(w: np.ndarray) -> np.ndarray:
     return out
 
 
-def kneip_sums(batch: tv.EdgeBatch) -> np.ndarray:
+def kneip_sums(batch: pg.EdgeBatch) -> np.ndarray:
     """G (E, 3, 3, 3, 3) with G[e, b, c, :, :] = Σ_k f1_b f1_c f2 f2ᵀ (OpenGV's xxF ... zzF)."""
     f1 = unit_rows(batch.x_j)
     f2 = unit_rows(batch.x_i)
@@ -113,14 +113,14 @@ def smallest_eigenvalue_and_gradient(R: np.ndarray, G: np.ndarray) -> tuple[np.n
     """λ_min(M(R)) (E,), its eigenvector v (E, 3), and ∂λ_min/∂δ (E, 3) for R <- exp(δ) R."""
     H = _rotated_sums(R, G)
     M = np.einsum("abc,def,nbecf->nad", EPS3, EPS3, H, optimize=True)
-    lam, v = tv.smallest_eigenpair(M)
+    lam, v = pg.smallest_eigenpair(M)
     V = so3.hat(v)
     # Σ_k (u·w)(u × w)_a = ε_ade V_cb V_eg H[b, g, c, d]
     grad = 2.0 * np.einsum("ade,ncb,neg,nbgcd->na", EPS3, V, V, H, optimize=True)
     return lam, v, grad
 
 
-def refine_kneip_eigen(R_start: np.ndarray, batch: tv.EdgeBatch, options: KneipOptions = KneipOptions()) -> KneipResult:
+def refine_kneip_eigen(R_start: np.ndarray, batch: pg.EdgeBatch, options: KneipOptions = KneipOptions()) -> KneipResult:
     """Minimise λ_min(M(R)) per edge (LM on the gradient residual, lock-step over edges)."""
     R_start = np.asarray(R_start, dtype=float).reshape(-1, 3, 3)
     E = batch.num_edges
@@ -175,7 +175,7 @@ def refine_kneip_eigen(R_start: np.ndarray, batch: tv.EdgeBatch, options: KneipO
     R = cayley_to_rotation(c) @ R_start
     R = so3.project_to_so3(R)
     lam, v, _ = smallest_eigenvalue_and_gradient(R, G)
-    t = v * tv.chirality_sign(R, batch, v)[:, None]
+    t = v * pg.chirality_sign(R, batch, v)[:, None]
     counts = batch.counts.astype(float)
     return KneipResult(rotations=R, translation_directions=t, smallest_eigenvalues=lam * counts,
                        initial_eigenvalues=lam0 * counts, iterations=iterations)

@@ -25,7 +25,7 @@ import numpy as np
 
 from rotonly_cli.baselines.kneip import EPS3, kneip_sums
 from rotonly_cli.geometry import so3
-from rotonly_cli.geometry import twoview as tv
+from rotonly_cli.geometry import pairwise as pg
 
 
 @dataclass(frozen=True)
@@ -53,13 +53,13 @@ class ROBAResult:
 def _smallest_eigenvalues(R_rel: np.ndarray, G: np.ndarray) -> np.ndarray:
     H = np.einsum("ncg,nfh,nbegh->nbecf", R_rel, R_rel, G, optimize=True)
     M = np.einsum("abc,def,nbecf->nad", EPS3, EPS3, H, optimize=True)
-    return tv.symmetric_eigenvalues3(M)[:, 0]
+    return pg.symmetric_eigenvalues3(M)[:, 0]
 
 
 class ROBAProblem:
     """Precomputed per-edge sums; cost and forward-difference gradient of all views at once."""
 
-    def __init__(self, num_views: int, edge_views: np.ndarray, batch: tv.EdgeBatch, options: ROBAOptions):
+    def __init__(self, num_views: int, edge_views: np.ndarray, batch: pg.EdgeBatch, options: ROBAOptions):
         self.n = num_views
         self.edge_views = np.asarray(edge_views, dtype=np.int64).reshape(-1, 2)
         self.G = kneip_sums(batch)
@@ -96,7 +96,7 @@ class ROBAProblem:
         return float(base.sum()), grad
 
 
-def roba(R_cam_from_world: np.ndarray, edge_views: np.ndarray, batch: tv.EdgeBatch, fixed_view: int = 0,
+def roba(R_cam_from_world: np.ndarray, edge_views: np.ndarray, batch: pg.EdgeBatch, fixed_view: int = 0,
          options: ROBAOptions = ROBAOptions()) -> ROBAResult:
     """Refine global rotations with ROBA's Adam on Σ sqrt(|λ_min|) (module docstring)."""
     R0 = np.asarray(R_cam_from_world, dtype=float)

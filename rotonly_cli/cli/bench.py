@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import click
 
-from rotonly_cli.bench import multiview as bench_multiview
-from rotonly_cli.bench import strecha as bench_strecha
-from rotonly_cli.bench import twoview as bench_twoview
+from rotonly_cli.bench import paper_multiview as bench_multiview
+from rotonly_cli.bench import paper_strecha as bench_strecha
+from rotonly_cli.bench import paper_twoview as bench_twoview
 
 
 def _floats(text: str) -> tuple[float, ...]:

@@ -38,7 +38,7 @@ def refine_simulation(path: Path, init: str, perturb_deg: float, ransac_threshol
     """Run identification + TRRM on the edge stored in ``path``; returns the table's numbers."""
     from rotonly_cli import twoview
     from rotonly_cli.simulation.fivepoint import five_point_ransac, perturbed_rotation
-    from rotonly_cli.simulation.twoview import load_twoview
+    from rotonly_cli.simulation.pair_scenes import load_twoview
 
     problem = load_twoview(path)
     x_i, x_j = problem.x_i, problem.x_j

@@ -40,7 +40,7 @@ def command() -> None:
 def twoview(scene: str, noise_px: float, noise_model: str, num_points: int, seed: int, focal: float,
             image_size: int, output: Path) -> None:
     """One simulated edge: noisy normalized matches + true R_j_from_i, t_j_from_i and points."""
-    from rotonly_cli.simulation.twoview import save_twoview, simulate_twoview
+    from rotonly_cli.simulation.pair_scenes import save_twoview, simulate_twoview
 
     problem = simulate_twoview(scene, num_points=num_points, noise_px=noise_px, focal=focal,
                                image_size=image_size, rng=seed, noise_model=noise_model)
@@ -77,7 +77,7 @@ def multiview(setup: str, num_views: int, num_points: int, noise_px: float, nois
               focal: float, image_size: int, spacing: float, window: int, min_shared: int, init: str,
               init_noise_deg: float, corrupt_fraction: float, formats: tuple[str, ...], output: Path) -> None:
     """A multi-view scene as a COLMAP database and an OpenMVG project, plus GT sfm_data.json."""
-    from rotonly_cli.simulation.multiview import save_multiview, simulate_multiview
+    from rotonly_cli.simulation.layout_scenes import save_multiview, simulate_multiview
 
     problem = simulate_multiview(setup, num_views=num_views, num_points=num_points, noise_px=noise_px,
                                  focal=focal, image_size=image_size, rng=seed, spacing=spacing, window=window,

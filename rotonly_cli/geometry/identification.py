@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rotonly_cli.compat import StrEnum
-from rotonly_cli.geometry import twoview as tv
+from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.options import IdentificationOptions
 
 
@@ -56,29 +56,29 @@ def kind_mask(kinds: np.ndarray, kind: SceneKind) -> np.ndarray:
     return np.fromiter((k == kind for k in kinds), dtype=bool, count=len(kinds))
 
 
-def detection_values(batch: tv.EdgeBatch) -> np.ndarray:
+def detection_values(batch: pg.EdgeBatch) -> np.ndarray:
     """v_rs = max(λ_min(Gⁱ)/m, λ_min(Gʲ)/m), G = Σ X X^T of z = 1 points (eq:case2IdentifyingMatrixBasic)."""
-    from rotonly_cli.geometry.kernels import point_moments  # kernels imports twoview only
+    from rotonly_cli.geometry.kernels import point_moments  # kernels imports pairwise only
 
     G_i, G_j = point_moments(batch)
     m = batch.counts.astype(float)
-    lam_i = tv.symmetric_eigenvalues3(G_i)[:, 0]
-    lam_j = tv.symmetric_eigenvalues3(G_j)[:, 0]
+    lam_i = pg.symmetric_eigenvalues3(G_i)[:, 0]
+    lam_j = pg.symmetric_eigenvalues3(G_j)[:, 0]
     return np.maximum(lam_i / m, lam_j / m)
 
 
-def pure_rotation_ratios(R_j_from_i: np.ndarray, batch: tv.EdgeBatch) -> np.ndarray:
+def pure_rotation_ratios(R_j_from_i: np.ndarray, batch: pg.EdgeBatch) -> np.ndarray:
     """ρ = f_pure(R*) / f_TRRM(R_ij) per edge (module docstring), with per-match medians in
     place of sums and a robust R*, so that a few wrong matches (large in both models) cannot
     make a regular edge look like a pure rotation."""
     return ratios_and_ps(R_j_from_i, batch)[0]
 
 
-def ratios_and_ps(R_j_from_i: np.ndarray, batch: tv.EdgeBatch,
+def ratios_and_ps(R_j_from_i: np.ndarray, batch: pg.EdgeBatch,
                    table=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """ρ per edge and, as by-products of the same pass, the unweighted Pˢ (E, 3, 3) and its
-    null vector with the chirality sign (E, 3) (twoview.translation_directions)."""
-    from rotonly_cli.geometry import kernels  # kernels imports twoview only
+    null vector with the chirality sign (E, 3) (pairwise.translation_directions)."""
+    from rotonly_cli.geometry import kernels  # kernels imports pairwise only
 
     if table is None:
         table = kernels.MatchTable.from_batch(batch.with_weights(None))
@@ -114,12 +114,12 @@ def classify(v_rs: np.ndarray, rho: np.ndarray, options: IdentificationOptions) 
     return kinds
 
 
-def identify(R_j_from_i: np.ndarray, batch: tv.EdgeBatch,
+def identify(R_j_from_i: np.ndarray, batch: pg.EdgeBatch,
              options: IdentificationOptions = IdentificationOptions()) -> Identification:
     """Identify every edge at the given rotations (see :func:`classify` for the order)."""
     options.validate()
     v_rs = detection_values(batch)
     rho, P, _ = ratios_and_ps(R_j_from_i, batch)
-    eig = tv.symmetric_eigenvalues3(P)
+    eig = pg.symmetric_eigenvalues3(P)
     kinds = classify(v_rs, rho, options)
     return Identification(kinds=kinds, detection_value=v_rs, pure_rotation_ratio=rho, ps_eigenvalues=eig)

@@ -1,7 +1,7 @@
 """TRRM two-view rotation optimisation (paper Alg. 1-2), batched in lock-step over edges.
 
 Levenberg-Marquardt on the rotation manifold: R_ij <- exp([δ]x) R_ij, with the exact
-Jacobian of :func:`rotonly_cli.geometry.twoview.trrm_residuals` (computed by the lean
+Jacobian of :func:`rotonly_cli.geometry.pairwise.trrm_residuals` (computed by the lean
 evaluator kernels.trrm_evaluate). Every edge keeps its own damping and its own convergence
 test; converged edges leave the batch, so the remaining iterations only touch the matches
 of edges still moving. The λ_min(Pˢ) first phase runs on per-edge moments (O(1) per edge
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rotonly_cli.geometry import kernels, so3
-from rotonly_cli.geometry import twoview as tv
+from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.options import TRRMOptions
 from rotonly_cli.geometry.identification import (Identification, IdentificationOptions, SceneKind, ratios_and_ps, classify,
                                         detection_values, kind_mask)
@@ -187,7 +187,7 @@ def _phase1_options(options: TRRMOptions) -> TRRMOptions:
                           "contraction_stop_below": 0.0, "frozen_hessian_below": 0.0})  # O(1) per edge anyway
 
 
-def optimize_rotations(R_init: np.ndarray, batch: tv.EdgeBatch, options: TRRMOptions = TRRMOptions(),
+def optimize_rotations(R_init: np.ndarray, batch: pg.EdgeBatch, options: TRRMOptions = TRRMOptions(),
                        edges: np.ndarray | None = None, table: kernels.MatchTable | None = None
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Alg. 2's LM on eq:ROMerr for the selected ``edges`` (default all), in lock-step, after
@@ -275,7 +275,7 @@ def _inlier_weights(sq: np.ndarray, table: kernels.MatchTable, options: TRRMOpti
     return (sq <= np.repeat(threshold * threshold, table.counts)).astype(float)
 
 
-def robust_match_weights(R: np.ndarray, batch: tv.EdgeBatch, ps_weights: np.ndarray | None,
+def robust_match_weights(R: np.ndarray, batch: pg.EdgeBatch, ps_weights: np.ndarray | None,
                          options: TRRMOptions, kind: str = "cauchy") -> np.ndarray:
     """Cauchy IRLS weights 1/(1 + s/c²) of every match from its TRRM residual s = ‖r‖²,
     with t the null vector of Σ w θθᵀ (``ps_weights`` w; None: w = 1/‖θ‖², unit θ) and c
@@ -287,7 +287,7 @@ def robust_match_weights(R: np.ndarray, batch: tv.EdgeBatch, ps_weights: np.ndar
     return _cauchy_weights(sq, table, options, kind)
 
 
-def refine(R_init: np.ndarray, batch: tv.EdgeBatch, options: TRRMOptions = TRRMOptions(),
+def refine(R_init: np.ndarray, batch: pg.EdgeBatch, options: TRRMOptions = TRRMOptions(),
            identification_options: IdentificationOptions = IdentificationOptions()) -> TRRMResult:
     """Alg. 2 for every edge:
 
@@ -317,17 +317,17 @@ def refine(R_init: np.ndarray, batch: tv.EdgeBatch, options: TRRMOptions = TRRMO
     t[regular] = t_plain[regular]  # closed-form t: plain Pˢ null vector, chirality sign
     if pure.size:
         sub = batch.subset(pure)
-        R_pure = tv.best_pure_rotation(sub)
-        c0[pure] = tv.pure_rotation_residuals(R_init[pure], sub)
-        c1[pure] = tv.pure_rotation_residuals(R_pure, sub)
+        R_pure = pg.best_pure_rotation(sub)
+        c0[pure] = pg.pure_rotation_residuals(R_init[pure], sub)
+        c1[pure] = pg.pure_rotation_residuals(R_pure, sub)
         R[pure] = R_pure
         conv[pure] = True
-        P_plain[pure] = tv.ps_matrices(R_pure, sub)
+        P_plain[pure] = pg.ps_matrices(R_pure, sub)
     if singular.any():
         idx = np.flatnonzero(singular)
         c0[idx] = c1[idx] = kernels.trrm_normal_equations(R_init[idx], batch.subset(idx), with_jacobian=False).cost
         conv[idx] = True
-    eig = tv.symmetric_eigenvalues3(P_plain)
+    eig = pg.symmetric_eigenvalues3(P_plain)
     ident = Identification(kinds=kinds, detection_value=v_rs, pure_rotation_ratio=rho, ps_eigenvalues=eig)
     return TRRMResult(rotations=R, translation_directions=t, initial_cost=c0, cost=c1, iterations=iters,
                       converged=conv, kinds=kinds, identification=ident)

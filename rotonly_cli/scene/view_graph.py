@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rotonly_cli.compat import StrEnum
-from rotonly_cli.geometry import twoview as tv
+from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry.identification import SceneKind
 from rotonly_cli.scene.types import View
 
@@ -185,11 +185,11 @@ def view_index(graph: ViewGraph) -> dict[int, int]:
     return {v: k for k, v in enumerate(graph.view_ids())}
 
 
-def edge_batch(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: list[int]) -> tv.EdgeBatch:
+def edge_batch(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: list[int]) -> pg.EdgeBatch:
     """EdgeBatch (z = 1 normalized coordinates) of the matches of ``edges``, in that order."""
     if not edges:
-        return tv.EdgeBatch(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(1, dtype=np.int64))
+        return pg.EdgeBatch(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(1, dtype=np.int64))
     x_i = np.concatenate([normalized[graph.edges[k].i][graph.edges[k].matches[:, 0]] for k in edges])
     x_j = np.concatenate([normalized[graph.edges[k].j][graph.edges[k].matches[:, 1]] for k in edges])
     counts = np.array([graph.edges[k].num_inliers for k in edges], dtype=np.int64)
-    return tv.pack_flat(x_i, x_j, np.concatenate([[0], np.cumsum(counts)]))
+    return pg.pack_flat(x_i, x_j, np.concatenate([[0], np.cumsum(counts)]))

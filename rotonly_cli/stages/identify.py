@@ -32,7 +32,7 @@ def identify_edges(graph: ViewGraph, normalized: dict[int, np.ndarray],
         R = np.stack([graph.edges[k].R_j_from_i for k in edges])
         ranges = plan(batch, jobs)
         processes = len(ranges)
-        with np.errstate(all="ignore"):  # handled corner cases (twoview._quiet)
+        with np.errstate(all="ignore"):  # handled corner cases (rotonly_cli.twoview._quiet)
             result = map_edges(partial(identify, options=options), R, batch, ranges)
         for row, k in enumerate(edges):
             edge = graph.edges[k]

@@ -17,7 +17,7 @@ import numpy as np
 
 from rotonly_cli.errors import AlgorithmError
 from rotonly_cli.geometry.grrm import GRRMOptions, optimize_global_rotations
-from rotonly_cli.geometry.twoview import EdgeBatch
+from rotonly_cli.geometry.pairwise import EdgeBatch
 from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, largest_component_of, regular_edges, view_index
 
 logger = logging.getLogger(__name__)

@@ -34,7 +34,7 @@ def refine_edges(graph: ViewGraph, normalized: dict[int, np.ndarray], options: T
         R0 = np.stack([graph.edges[k].R_j_from_i for k in edges])
         ranges = plan(batch, jobs)
         report["processes"] = len(ranges)
-        with np.errstate(all="ignore"):  # handled corner cases (twoview._quiet)
+        with np.errstate(all="ignore"):  # handled corner cases (rotonly_cli.twoview._quiet)
             result = map_edges(partial(refine, options=options, identification_options=identification_options),
                                R0, batch, ranges)
         change = np.degrees(so3.geodesic_angle(result.rotations, R0))

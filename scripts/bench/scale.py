@@ -85,7 +85,7 @@ def simulate_to(out_dir: Path, num_views: int, num_points: int, setup: str, wind
                 seed: int) -> None:
     """Simulated scene -> out_dir/{database.db, gt.npz, simulation.json}, atomically."""
     from rotonly_cli.io.colmap import write_database
-    from rotonly_cli.simulation.multiview import simulate_multiview
+    from rotonly_cli.simulation.layout_scenes import simulate_multiview
 
     start = time.perf_counter()
     problem = simulate_multiview(setup, num_views=num_views, num_points=num_points, window=window,

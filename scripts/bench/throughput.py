@@ -26,7 +26,7 @@ import numpy as np
 from rotonly_cli.bench import results_md
 from rotonly_cli.geometry import so3
 from rotonly_cli.simulation.fivepoint import perturbed_rotation
-from rotonly_cli.simulation.twoview import simulate_twoview
+from rotonly_cli.simulation.pair_scenes import simulate_twoview
 
 
 def main(argv: list[str] | None = None) -> int:

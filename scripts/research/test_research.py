@@ -19,7 +19,7 @@ import grrm_fixed_translations as fixed
 from rotonly_cli import multiview
 from rotonly_cli.geometry import alignment, averaging, grrm, so3
 from rotonly_cli.scene.view_graph import Edge
-from rotonly_cli.simulation.multiview import simulate_multiview
+from rotonly_cli.simulation.layout_scenes import simulate_multiview
 
 ROOT = Path(__file__).resolve().parents[2]
 FIXTURES = ROOT / "data_fixtures"

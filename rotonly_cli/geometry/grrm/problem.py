@@ -8,7 +8,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from rotonly_cli.geometry import kernels
-from rotonly_cli.geometry import twoview as tv
+from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry.robust import radial_excess, robust_curvature, robust_rho
 
 
@@ -62,7 +62,7 @@ class GRRMSystem:
     arrays (structure of arrays): a 3x3 product is 27 elementwise multiply-adds.
     """
 
-    def __init__(self, n: int, edge_views: np.ndarray, batch: tv.EdgeBatch, obs_ids: np.ndarray,
+    def __init__(self, n: int, edge_views: np.ndarray, batch: pg.EdgeBatch, obs_ids: np.ndarray,
                  residual_form: str = "bearing"):
         from rotonly_cli.geometry.tracks import pairs_within_tracks
 

@@ -13,7 +13,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from rotonly_cli.geometry import kernels, so3
-from rotonly_cli.geometry import twoview as tv
+from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry.grrm.problem import GRRMSystem, chain_matrix
 from rotonly_cli.geometry.robust import robust_rho
 from rotonly_cli.options import GRRMOptions
@@ -34,8 +34,8 @@ class GRRMResult:
     loss_scale: float = 0.0
 
 
-def validate_inputs(R_cam_from_world, edge_views, batch: tv.EdgeBatch, obs_ids) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    R = tv.as_rotations(R_cam_from_world, "R_cam_from_world").reshape(-1, 3, 3).astype(float)
+def validate_inputs(R_cam_from_world, edge_views, batch: pg.EdgeBatch, obs_ids) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    R = pg.as_rotations(R_cam_from_world, "R_cam_from_world").reshape(-1, 3, 3).astype(float)
     n = R.shape[0]
     edge_views = np.asarray(edge_views)
     if edge_views.ndim != 2 or edge_views.shape[1] != 2 or edge_views.shape[0] != batch.num_edges:
@@ -88,7 +88,7 @@ def _solve_damped(JtJ, grad, mu, remainder=None):
     return delta if np.all(np.isfinite(delta)) else None
 
 
-def epipolar_phase(R: np.ndarray, edge_views: np.ndarray, batch: tv.EdgeBatch, free: np.ndarray,
+def epipolar_phase(R: np.ndarray, edge_views: np.ndarray, batch: pg.EdgeBatch, free: np.ndarray,
                    max_iterations: int, step_tolerance: float) -> tuple[np.ndarray, int]:
     """LM on Σ_e λ_min(Pˢ_e(R_j R_i^T)) (bearing-normalised θ): per-edge normal equations
     from kernels.epipolar_normal_equations chained to the cameras, JᵀJ = Cᵀ diag(JᵀJ_e) C."""
@@ -123,7 +123,7 @@ def epipolar_phase(R: np.ndarray, edge_views: np.ndarray, batch: tv.EdgeBatch, f
     return R, it
 
 
-def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch, obs_ids, fixed_view: int = 0,
+def optimize_global_rotations(R_cam_from_world, edge_views, batch: pg.EdgeBatch, obs_ids, fixed_view: int = 0,
                               options: GRRMOptions = GRRMOptions()) -> GRRMResult:
     """Alg. 4: minimise Σ_ik ρ(‖V_ik‖²) (eq:GRRMerror) over the rotations, one view fixed."""
     options.validate()
@@ -149,7 +149,7 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
         # (robust cost, JᵀWJ, JᵀWV, remainder) of all 3n parameters
         return problem.linearize(R_at, options.loss, scale, options.robust_hessian, with_jacobian, exact)
 
-    def weighted_batch(R_at: np.ndarray) -> tv.EdgeBatch:
+    def weighted_batch(R_at: np.ndarray) -> pg.EdgeBatch:
         # each edge's t from Σ w θθᵀ with Huber IRLS weights of its matches (weight 1 within
         # 3 robust sigmas, so clean data is untouched): wrong matches with large θ would
         # otherwise tilt t for the whole edge. Weighed at the chosen start, after the λ_min
@@ -259,7 +259,7 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: tv.EdgeBatch,
                       converged=converged, history=history, num_observations=problem.num_groups, loss_scale=scale)
 
 
-def grrm_residuals(R_cam_from_world, edge_views, batch: tv.EdgeBatch, obs_ids, with_jacobian: bool = False,
+def grrm_residuals(R_cam_from_world, edge_views, batch: pg.EdgeBatch, obs_ids, with_jacobian: bool = False,
                    residual: str = "bearing"):
     """V_ik (G, 3) of eq:GRRMRes2 for every observation (order: sorted unique ids; ``residual``
     as GRRMOptions.residual) and,

@@ -1,8 +1,8 @@
 """Per-match TRRM and λ_min(Pˢ) terms in forward mode: cost, JᵀJ and Jᵀr per edge, and the
 per-match residuals and Jacobian columns that GRRM chains to the cameras.
 
-Same mathematics as :func:`rotonly_cli.geometry.twoview.trrm_residuals` and
-:func:`~rotonly_cli.geometry.twoview.epipolar_residuals` (the readable reference versions,
+Same mathematics as :func:`rotonly_cli.geometry.pairwise.trrm_residuals` and
+:func:`~rotonly_cli.geometry.pairwise.epipolar_residuals` (the readable reference versions,
 checked against finite differences in the tests), organised for speed: the exact Jacobian
 is built column by column (one pass per rotation axis) over edge groups (kernels/soa.py);
 the loop is over groups of edges, never over edges.
@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rotonly_cli.geometry import twoview as tv
+from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry.kernels.soa import (CHUNK_MATCHES, axpy, cross, dot, edge_chunks, pinv_shifted, rep,
                                                 rotate, seg)
 
@@ -81,11 +81,11 @@ def trrm_chunk_terms(Rg: np.ndarray, cnt: np.ndarray, starts: np.ndarray, xi, xj
     u = rotate(Rg, cnt, xi)
     theta = cross(u, xj)
     P = _ps_from(theta, starts, wk)
-    lam, t = tv.smallest_eigenpair(P)
+    lam, t = pg.smallest_eigenpair(P)
     t_m = tuple(rep(t[:, k], cnt) for k in range(3))
     xj_x_t = cross(xj, t_m)
     u_x_t = cross(u, t_m)
-    # chirality sign (twoview._chirality_sign_from)
+    # chirality sign (pairwise._chirality_sign_from)
     depth_i = dot(theta, xj_x_t)
     depth_j = dot(theta, u_x_t)
     vote = seg(((depth_i > 0) & (depth_j > 0)).astype(np.int64) - ((depth_i < 0) & (depth_j < 0)), starts)
@@ -153,8 +153,8 @@ def _outputs(E: int, with_jacobian: bool):
             np.zeros((E, 3)) if with_jacobian else None)
 
 
-def trrm_normal_equations(R: np.ndarray, batch: tv.EdgeBatch, with_jacobian: bool = True,
-                          chunk: int = CHUNK_MATCHES) -> tv.ResidualEvaluation:
+def trrm_normal_equations(R: np.ndarray, batch: pg.EdgeBatch, with_jacobian: bool = True,
+                          chunk: int = CHUNK_MATCHES) -> pg.ResidualEvaluation:
     """Per-edge TRRM cost (eq:ROMerr) and, optionally, JᵀJ and Jᵀr (exact Jacobian).
 
     With ``batch.weights`` w: Pˢ = Σ w θθᵀ and cost Σ w ‖r‖² (weights held fixed: one IRLS
@@ -173,10 +173,10 @@ def trrm_normal_equations(R: np.ndarray, batch: tv.EdgeBatch, with_jacobian: boo
         cost[e0:e1] = seg(sum(v * v for v in r), starts)
         if with_jacobian:
             JtJ[e0:e1], Jtr[e0:e1] = _accumulate(J_cols, r, starts, e1 - e0)
-    return tv.ResidualEvaluation(residuals=None, cost=cost, t=t_all, JtJ=JtJ, Jtr=Jtr)
+    return pg.ResidualEvaluation(residuals=None, cost=cost, t=t_all, JtJ=JtJ, Jtr=Jtr)
 
 
-def trrm_match_terms(R: np.ndarray, batch: tv.EdgeBatch, with_jacobian: bool = True,
+def trrm_match_terms(R: np.ndarray, batch: pg.EdgeBatch, with_jacobian: bool = True,
                      chunk: int = CHUNK_MATCHES) -> dict:
     """Per-match TRRM terms for GRRM: ``r`` (M, 6) [r_i in camera-j axes, r_j], ``b`` (M,) = ‖θ‖,
     ``w`` (M,) validity, ``t`` (E, 3) and, with the Jacobian, ``J`` (M, 6, 3) = dr/dδ and
@@ -199,16 +199,16 @@ def trrm_match_terms(R: np.ndarray, batch: tv.EdgeBatch, with_jacobian: bool = T
     return out
 
 
-def epipolar_normal_equations(R: np.ndarray, batch: tv.EdgeBatch, with_jacobian: bool = True,
-                              chunk: int = CHUNK_MATCHES) -> tv.ResidualEvaluation:
-    """Per-edge λ_min(Pˢ) of bearing-normalised θ (twoview.epipolar_residuals), JᵀJ, Jᵀr."""
+def epipolar_normal_equations(R: np.ndarray, batch: pg.EdgeBatch, with_jacobian: bool = True,
+                              chunk: int = CHUNK_MATCHES) -> pg.ResidualEvaluation:
+    """Per-edge λ_min(Pˢ) of bearing-normalised θ (pairwise.epipolar_residuals), JᵀJ, Jᵀr."""
     cost, t_all, JtJ, Jtr = _outputs(batch.num_edges, with_jacobian)
     for e0, e1, _, _, cnt, starts, xi, xj, wk in edge_chunks(batch, chunk):
         scale = 1.0 / (np.sqrt(dot(xi, xi)) * np.sqrt(dot(xj, xj)))
         u = rotate(R[e0:e1], cnt, xi)
         theta = tuple(scale * v for v in cross(u, xj))
         P = _ps_from(theta, starts, wk)
-        lam, t = tv.smallest_eigenpair(P)
+        lam, t = pg.smallest_eigenpair(P)
         t_all[e0:e1] = t
         t_m = tuple(rep(t[:, k], cnt) for k in range(3))
         e = dot(theta, t_m)
@@ -230,4 +230,4 @@ def epipolar_normal_equations(R: np.ndarray, batch: tv.EdgeBatch, with_jacobian:
             J_cols = [(root_w * col[0],) for col in J_cols]
             e = root_w * e
         JtJ[e0:e1], Jtr[e0:e1] = _accumulate(J_cols, (e,), starts, e1 - e0)
-    return tv.ResidualEvaluation(residuals=None, cost=cost, t=t_all, JtJ=JtJ, Jtr=Jtr)
+    return pg.ResidualEvaluation(residuals=None, cost=cost, t=t_all, JtJ=JtJ, Jtr=Jtr)

@@ -35,7 +35,7 @@ from rotonly_cli.geometry.kernels.soa import pinv_shifted
 
 
 def smallest_eigenpair_lean(p00, p01, p02, p11, p12, p22, rel_tol: float = 1e-8):
-    """twoview.smallest_eigenpair on the six entries of symmetric 3x3 matrices: the same
+    """pairwise.smallest_eigenpair on the six entries of symmetric 3x3 matrices: the same
     Cardano root (eq:minlambda), eq:anaTset vector with the longest ξ, two Rayleigh passes
     and the eigh fallback near a double root, in component arithmetic (few numpy calls for
     the small edge groups of one pass)."""
@@ -182,7 +182,7 @@ def _lean_group(R: np.ndarray, cnt: np.ndarray, starts: np.ndarray, d: np.ndarra
 
     def chirality(t: np.ndarray, tm: np.ndarray, xt: np.ndarray, ut: np.ndarray) -> np.ndarray:
         """t per match, x_j·t, u·t (into ``tm``, ``xt``, ``ut``) and the chirality sign per edge
-        (twoview.chirality_sign): the depths in views i and j from the dot identities."""
+        (pairwise.chirality_sign): the depths in views i and j from the dot identities."""
         tm[:] = np.repeat(t.T, cnt, axis=1)
         _rowsum_into(xt, np.multiply(xj, tm, out=tmp3))
         _rowsum_into(ut, np.multiply(u, tm, out=tmp3))
@@ -193,7 +193,7 @@ def _lean_group(R: np.ndarray, cnt: np.ndarray, starts: np.ndarray, d: np.ndarra
         vote = np.add.reduceat(both, starts, dtype=np.int64)
         return np.where(vote < 0, -1.0, 1.0)
 
-    if plain_ps:  # t of the plain Pˢ with its chirality sign (= twoview.translation_directions)
+    if plain_ps:  # t of the plain Pˢ with its chirality sign (= pairwise.translation_directions)
         out["t_plain"][rows] = t_plain * chirality(t_plain, tm, xt, ut)[:, None]
     sign = chirality(t, tm, xt, ut)
     t0, t1, t2 = tm
@@ -467,7 +467,7 @@ def trrm_evaluate(R: np.ndarray, table: MatchTable, jacobian: np.ndarray | bool 
     ``evaluate`` (E,) bool: the edges to evaluate (default all; ``jacobian`` implies it).
     ``sq_out`` (M,): per-match ‖r‖² (validity-masked, without weights) of evaluated edges.
     ``plain_ps``: also return the unweighted Pˢ (E, 3, 3) (identification eigenvalues) and
-    its null vector with the chirality sign, ``t_plain`` (= twoview.translation_directions).
+    its null vector with the chirality sign, ``t_plain`` (= pairwise.translation_directions).
     Per-edge results do not depend on which other edges are evaluated with them.
     """
     E = table.num_edges

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rotonly_cli.geometry import twoview as tv
+from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry.kernels.soa import edge_groups
 
 
@@ -32,7 +32,7 @@ class MatchTable:
         self._group_slices: list | None = None
 
     @classmethod
-    def from_batch(cls, batch: tv.EdgeBatch, weights: np.ndarray | None = None,
+    def from_batch(cls, batch: pg.EdgeBatch, weights: np.ndarray | None = None,
                    chunk: int = LEAN_CHUNK) -> "MatchTable":
         M = batch.x_i.shape[0]
         data = np.empty((TABLE_ROWS, M))

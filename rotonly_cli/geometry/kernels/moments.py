@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rotonly_cli.geometry import twoview as tv
+from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry.kernels.lean import smallest_eigenpair_lean
 from rotonly_cli.geometry.kernels.match_table import INV_NXI, LEAN_CHUNK, XI, XJH, MatchTable
 from rotonly_cli.geometry.kernels.soa import edge_groups, pinv_shifted
@@ -79,7 +79,7 @@ def epipolar_from_moments(R: np.ndarray, M: np.ndarray, with_jacobian: bool = Tr
 
 # ----------------------------------------------------------------------------- robust medians, Procrustes
 def segment_median(values: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """twoview.segment_median (per-edge upper median, the element of rank ⌊m/2⌋) with one
+    """pairwise.segment_median (per-edge upper median, the element of rank ⌊m/2⌋) with one
     ``np.partition`` per bucket of edges of similar size instead of one global sort.
 
     Rows are padded to a common width with -inf and +inf so that every row's median sits at
@@ -156,7 +156,7 @@ def bearing_cross_moment(table: MatchTable, w: np.ndarray | None = None) -> np.n
 
 
 def best_pure_rotation(table: MatchTable, robust_iterations: int = 0) -> np.ndarray:
-    """twoview.best_pure_rotation on a MatchTable (same Procrustes and Cauchy rounds)."""
+    """pairwise.best_pure_rotation on a MatchTable (same Procrustes and Cauchy rounds)."""
     from rotonly_cli.geometry import so3
 
     R = so3.project_to_so3(bearing_cross_moment(table))
@@ -167,7 +167,7 @@ def best_pure_rotation(table: MatchTable, robust_iterations: int = 0) -> np.ndar
     return R
 
 
-def point_moments(batch: tv.EdgeBatch) -> tuple[np.ndarray, np.ndarray]:
+def point_moments(batch: pg.EdgeBatch) -> tuple[np.ndarray, np.ndarray]:
     """Gⁱ = Σ X_i X_iᵀ and Gʲ of the z = 1 points per edge, (E, 3, 3) each
     (eq:case2IdentifyingMatrixBasic); the division by z is skipped when z is already 1."""
     E = batch.num_edges

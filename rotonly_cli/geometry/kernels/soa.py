@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rotonly_cli.geometry import twoview as tv
+from rotonly_cli.geometry import pairwise as pg
 
 
 CHUNK_MATCHES = 1 << 15
@@ -63,7 +63,7 @@ def pinv_shifted(P: np.ndarray, lam: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 
-def edge_chunks(batch: tv.EdgeBatch, chunk: int):
+def edge_chunks(batch: pg.EdgeBatch, chunk: int):
     counts = batch.counts
     for e0, e1 in edge_groups(counts, chunk):
         m0, m1 = batch.offsets[e0], batch.offsets[e1]

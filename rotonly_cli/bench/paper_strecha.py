@@ -25,8 +25,8 @@ import numpy as np
 
 from rotonly_cli.bench.common import (
     error_deg, fmt, markdown_table, parallel_map, result_dir, stats, write_json)
-from rotonly_cli.bench.twoview import METHODS as TWOVIEW_METHODS
-from rotonly_cli.bench.twoview import refine_per_edge
+from rotonly_cli.bench.paper_twoview import METHODS as TWOVIEW_METHODS
+from rotonly_cli.bench.paper_twoview import refine_per_edge
 from rotonly_cli.errors import InputError
 
 GLOBAL_METHODS = ("Chatterjee", "ROBA", "GRRM", "pycolmap global mapper")
@@ -90,8 +90,8 @@ def run_scene(folder: Path, jobs: int, progress: bool, with_mapper: bool, max_pa
     from rotonly_cli import twoview
     from rotonly_cli.baselines.kneip import refine_kneip_eigen
     from rotonly_cli.baselines.references import pycolmap_global_mapper
-    from rotonly_cli.bench.multiview import aligned_errors, global_methods
-    from rotonly_cli.geometry import twoview as tv
+    from rotonly_cli.bench.paper_multiview import aligned_errors, global_methods
+    from rotonly_cli.geometry import pairwise as pg
     from rotonly_cli.io.colmap import read_database
     from rotonly_cli.io.strecha import read_strecha_dir
 
@@ -119,7 +119,7 @@ def run_scene(folder: Path, jobs: int, progress: bool, with_mapper: bool, max_pa
         seconds[name] = float(np.mean([r["seconds"][name] for r in results]))
     start = time.perf_counter()
     with np.errstate(all="ignore"):
-        rotations["Kneip eigen"] = refine_kneip_eigen(R_init, tv.pack_edges(x_i, x_j)).rotations
+        rotations["Kneip eigen"] = refine_kneip_eigen(R_init, pg.pack_edges(x_i, x_j)).rotations
     seconds["Kneip eigen"] = (time.perf_counter() - start) / len(keys)
     start = time.perf_counter()
     rotations["TRRM"] = np.asarray(twoview.refine_rotations(R_init, x_i, x_j).rotations)
@@ -136,7 +136,7 @@ def run_scene(folder: Path, jobs: int, progress: bool, with_mapper: bool, max_pa
     obs_ids = np.concatenate([np.column_stack([offset[index[i]] + scene.pairs[(i, j)].matches[r["inlier_mask"], 0],
                                                offset[index[j]] + scene.pairs[(i, j)].matches[r["inlier_mask"], 1]])
                               for (i, j), r in zip(keys, results)])
-    batch = tv.pack_edges(x_i, x_j)
+    batch = pg.pack_edges(x_i, x_j)
     edge_views = np.column_stack([ii, jj])
     with np.errstate(all="ignore"):
         global_R, global_s = global_methods(len(view_ids), edge_views, batch, obs_ids, R_init, batch.counts,

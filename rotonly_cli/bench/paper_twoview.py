@@ -66,7 +66,7 @@ def refine_per_edge(R_init: np.ndarray, t_init: np.ndarray, x_i: np.ndarray, x_j
 def run_trial(args: tuple) -> Trial:
     """Simulate, initialise with 5-point RANSAC and run the per-edge baselines (one pool task)."""
     from rotonly_cli.simulation.fivepoint import five_point_ransac
-    from rotonly_cli.simulation.twoview import simulate_twoview
+    from rotonly_cli.simulation.pair_scenes import simulate_twoview
 
     scene, noise_px, seed, num_points, per_edge_methods = args
     problem = simulate_twoview(scene, num_points=num_points, noise_px=noise_px, rng=seed)
@@ -91,7 +91,7 @@ def run_cell(scene: str, noise_px: float, trials: int, num_points: int, seed0: i
     seeds, hence the problems and the 5-point starts, do not depend on the selection)."""
     from rotonly_cli import twoview
     from rotonly_cli.baselines.kneip import refine_kneip_eigen
-    from rotonly_cli.geometry import twoview as tv
+    from rotonly_cli.geometry import pairwise as pg
 
     seeds = [seed0 + 1_000_003 * SCENES.index(scene) + 10_007 * int(round(noise_px * 10)) + k for k in range(trials)]
     methods = ("initial",) + tuple(m for m in METHODS[1:] if m in methods)
@@ -110,7 +110,7 @@ def run_cell(scene: str, noise_px: float, trials: int, num_points: int, seed0: i
     if "Kneip eigen" in methods:
         start = time.perf_counter()
         with np.errstate(all="ignore"):
-            rotations["Kneip eigen"] = refine_kneip_eigen(R_init, tv.pack_edges(x_i, x_j)).rotations
+            rotations["Kneip eigen"] = refine_kneip_eigen(R_init, pg.pack_edges(x_i, x_j)).rotations
         seconds["Kneip eigen"] = (time.perf_counter() - start) / trials
     if "TRRM" in methods:
         start = time.perf_counter()

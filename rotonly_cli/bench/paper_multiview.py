@@ -2,7 +2,7 @@
 Fig. GRRM_eval): circular / square / linear / outward set-ups × noise levels ×
 (Chatterjee, ROBA, GRRM, pycolmap rotation averaging).
 
-Per trial: :func:`rotonly_cli.simulation.multiview.simulate_multiview` (initial relative poses by
+Per trial: :func:`rotonly_cli.simulation.layout_scenes.simulate_multiview` (initial relative poses by
 5-point RANSAC on the noisy matches, the paper's initialiser); edges = pairs whose RANSAC
 succeeded. Chatterjee = ℓ½ L1RA + IRLS on those relative rotations; ROBA and GRRM start from
 Chatterjee's rotations, as in the paper ("following ROBA"); pycolmap rotation averaging is an
@@ -25,7 +25,7 @@ METHODS = ("Chatterjee", "ROBA", "GRRM", "pycolmap RA")
 def scene_arrays(scene, view_ids: list[int] | None = None, keys: list | None = None):
     """(view_ids, edge_views (E, 2), EdgeBatch, obs_ids (M, 2), R_j_from_i (E, 3, 3), counts (E,)) of the
     pairs of an SfMScene that carry a relative rotation (and ≥ 6 matches)."""
-    from rotonly_cli.geometry import twoview as tv
+    from rotonly_cli.geometry import pairwise as pg
 
     if view_ids is None:
         view_ids = sorted(scene.views)
@@ -42,7 +42,7 @@ def scene_arrays(scene, view_ids: list[int] | None = None, keys: list | None = N
         xs_j.append(scene.normalized[j][pair.matches[:, 1]])
         ids.append(np.column_stack([offset[index[i]] + pair.matches[:, 0], offset[index[j]] + pair.matches[:, 1]]))
         R_rel.append(pair.R_j_from_i)
-    batch = tv.pack_edges(xs_i, xs_j)
+    batch = pg.pack_edges(xs_i, xs_j)
     edge_views = np.array([[index[i], index[j]] for i, j in keys], dtype=np.int64).reshape(-1, 2)
     obs_ids = np.concatenate(ids) if ids else np.zeros((0, 2), dtype=np.int64)
     return (view_ids, edge_views, batch, obs_ids, np.asarray(R_rel, dtype=float).reshape(-1, 3, 3),
@@ -106,7 +106,7 @@ def aligned_errors(R_est: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
 
 
 def run_trial(args: tuple) -> dict:
-    from rotonly_cli.simulation.multiview import simulate_multiview
+    from rotonly_cli.simulation.layout_scenes import simulate_multiview
 
     setup, noise_px, seed, sizes = args
     problem = simulate_multiview(setup, noise_px=noise_px, rng=seed, init="ransac", **sizes)
