@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from rotonly_cli.simulation.street import StreetScene, make_street_scene, similarity_align_error  # noqa: F401
+
+REPOSITORY = Path(__file__).resolve().parents[1]
+DATA_FIXTURES = REPOSITORY / "data_fixtures"  #: the bundled fixtures (never /work/shared)
 
 
 def grrm_problem(setup="circular", noise=1.0, seed=1, views=10, points=400, window=3, init="ransac", corrupt=0.0):

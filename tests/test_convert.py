@@ -15,8 +15,9 @@ from scipy.spatial.transform import Rotation
 from rotonly_cli.cli import main
 from rotonly_cli.io import colmap, openmvg
 from rotonly_cli.scene.types import Intrinsics, PairMatches, Pose, SfMScene, View
+from helpers import DATA_FIXTURES
 
-FIXTURES = Path(__file__).resolve().parents[1] / "data_fixtures"
+FIXTURES = DATA_FIXTURES
 HJ = FIXTURES / "herzjesu_p8"
 
 

@@ -8,8 +8,9 @@ import sys
 from pathlib import Path
 
 import pytest
+from helpers import REPOSITORY
 
-PACKAGE = Path(__file__).resolve().parents[1] / "rotonly_cli"
+PACKAGE = REPOSITORY / "rotonly_cli"
 
 #: what each part of the package may import from rotonly_cli (besides itself); compat, errors
 #: and options are leaves (they import nothing of rotonly but each other)

@@ -13,8 +13,9 @@ from rotonly_cli.evaluation import quality
 from rotonly_cli.evaluation.report import format_table, write_report
 from rotonly_cli.geometry import so3
 from rotonly_cli.scene.types import Intrinsics, Pose, SfMScene, View
+from helpers import DATA_FIXTURES
 
-FIXTURES = Path(__file__).resolve().parent.parent / "data_fixtures" / "evalquality"
+FIXTURES = DATA_FIXTURES / "evalquality"
 SCENES = ["fountain-P11", "Herz-Jesus-P8", "entry-P10"]
 
 

@@ -13,9 +13,10 @@ import pytest
 
 from rotonly_cli.geometry import so3
 from rotonly_cli.scene.types import Pose, SfMScene, View
+from helpers import DATA_FIXTURES, REPOSITORY
 
-ROOT = Path(__file__).resolve().parents[1]
-FIXTURES = ROOT / "data_fixtures"
+ROOT = REPOSITORY
+FIXTURES = DATA_FIXTURES
 
 
 def _load_script(name: str):

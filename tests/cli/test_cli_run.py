@@ -12,8 +12,9 @@ import pytest
 
 from rotonly_cli.cli import main
 from rotonly_cli.io import colmap
+from helpers import DATA_FIXTURES
 
-FIXTURES = Path(__file__).resolve().parent.parent / "data_fixtures"
+FIXTURES = DATA_FIXTURES
 HERZ_JESU = FIXTURES / "herzjesu_p8"
 FOUNTAIN = FIXTURES / "fountain_p11"
 

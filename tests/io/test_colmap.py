@@ -14,8 +14,9 @@ from rotonly_cli.errors import InputError
 from rotonly_cli.io import colmap, openmvg
 from rotonly_cli.io.strecha import read_strecha_dir
 from rotonly_cli.scene.types import Intrinsics, PairMatches, Pose, SfMScene, Structure, View
+from helpers import DATA_FIXTURES
 
-FIXTURES = Path(__file__).resolve().parents[1] / "data_fixtures"
+FIXTURES = DATA_FIXTURES
 HJ = FIXTURES / "herzjesu_p8"
 
 

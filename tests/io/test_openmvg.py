@@ -13,8 +13,9 @@ import pytest
 from rotonly_cli.errors import InputError
 from rotonly_cli.io import openmvg
 from rotonly_cli.scene.types import Intrinsics, PairMatches, Pose, SfMScene, Structure, View
+from helpers import DATA_FIXTURES
 
-FIXTURES = Path(__file__).resolve().parent.parent / "data_fixtures" / "openmvg_real"
+FIXTURES = DATA_FIXTURES / "openmvg_real"
 CUT_PROJECT = FIXTURES / "cut_project"
 
 # One intrinsic of every supported type: [focal, ppx, ppy (COLMAP convention), k...].

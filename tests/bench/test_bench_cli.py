@@ -12,8 +12,9 @@ import pytest
 from click.testing import CliRunner
 
 from rotonly_cli.cli import cli
+from helpers import DATA_FIXTURES
 
-FIXTURES = Path(__file__).resolve().parent.parent / "data_fixtures"
+FIXTURES = DATA_FIXTURES
 
 
 def _run(args: list[str]) -> str:
