@@ -11,8 +11,8 @@ view j]}. Returns the GRRM-optimised rotations (paper Alg. 3-4).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Mapping
 
 import numpy as np
 

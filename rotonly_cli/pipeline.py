@@ -24,15 +24,21 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.errors import AlgorithmError, InputError, RotonlyError
-from rotonly_cli.io.detect import InputKind
-from rotonly_cli.runtime.startup import collector_paused
 from rotonly_cli.io.atomic import check_replaceable, make_staging_dir, replace_dir
+from rotonly_cli.io.detect import InputKind
+from rotonly_cli.io.workspace import (
+    STATE_FILE,
+    WorkspaceState,
+    load_state,
+    save_state,
+    write_report,
+    write_view_graph_json,
+)
+from rotonly_cli.options import RunOptions
+from rotonly_cli.runtime.startup import collector_paused
 from rotonly_cli.scene.tracks import TrackCache
 from rotonly_cli.scene.types import SfMScene, Structure
 from rotonly_cli.scene.view_graph import ViewGraph, largest_component
-from rotonly_cli.io.workspace import (STATE_FILE, WorkspaceState, load_state, save_state, write_report,
-                                      write_view_graph_json)
-from rotonly_cli.options import RunOptions
 
 logger = logging.getLogger(__name__)
 STAGES = ("load", "identify", "refine", "average", "optimize", "translate", "triangulate")

@@ -14,9 +14,9 @@ Bad input raises ``ValueError`` naming the argument.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import partial
-from typing import Sequence
 
 import numpy as np
 
@@ -120,7 +120,8 @@ def _quiet():
 
 
 def identify_scenes(R_j_from_i, xs_i: Sequence, xs_j: Sequence,
-                    options: IdentificationOptions = IdentificationOptions(), jobs: int = 1) -> list[SceneIdentification]:
+                    options: IdentificationOptions = IdentificationOptions(),
+                    jobs: int = 1) -> list[SceneIdentification]:
     """Identify many edges at once (batched), each at the rotation given for it. ``jobs`` > 1
     splits the edges over that many forked processes (rotonly_cli.runtime.parallel: Linux, large
     batches; same numbers).
@@ -139,7 +140,8 @@ def identify_scenes(R_j_from_i, xs_i: Sequence, xs_j: Sequence,
             for e in range(batch.num_edges)]
 
 
-def identify_scene(R_j_from_i, x_i, x_j, options: IdentificationOptions = IdentificationOptions()) -> SceneIdentification:
+def identify_scene(R_j_from_i, x_i, x_j,
+                   options: IdentificationOptions = IdentificationOptions()) -> SceneIdentification:
     """Scene kind of one edge: REGULAR, PURE_ROTATION (PR/B/I) or ROTATION_SINGULAR, at the
     given rotation (see ``identify_scenes``)."""
     R = _pg.as_rotations(R_j_from_i, "R_j_from_i")

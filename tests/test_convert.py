@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 from rotonly_cli.cli import main
 from rotonly_cli.io import colmap, openmvg
 from rotonly_cli.scene.types import Intrinsics, PairMatches, Pose, SfMScene, View
+
 from helpers import DATA_FIXTURES
 
 FIXTURES = DATA_FIXTURES

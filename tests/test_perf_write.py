@@ -12,9 +12,9 @@ import pytest
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.io import openmvg
-from rotonly_cli.scene.types import Intrinsics, Pose, SfMScene, Structure, View
 from rotonly_cli.io.colmap import colmap_to_openmvg
 from rotonly_cli.scene.ids import observation_lists, renumber_views_by_name
+from rotonly_cli.scene.types import Intrinsics, Pose, SfMScene, Structure, View
 from rotonly_cli.stages.triangulate import keypoint_colors, start_keypoint_colors
 
 

@@ -12,9 +12,9 @@ from rotonly_cli.errors import AlgorithmError, InputError
 from rotonly_cli.evaluation.quality import evaluate
 from rotonly_cli.geometry import so3
 from rotonly_cli.io import colmap, openmvg
+from rotonly_cli.pipeline import RunOptions, run_pipeline
 from rotonly_cli.scene.types import View
 from rotonly_cli.scene.view_graph import Edge, ViewGraph
-from rotonly_cli.pipeline import RunOptions, run_pipeline
 from rotonly_cli.simulation.layout_scenes import simulate_multiview
 from rotonly_cli.stages.average import OUTLIER_REASON, AverageOptions, average_graph
 

@@ -10,9 +10,9 @@ import pytest
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.io import openmvg
-from rotonly_cli.scene.types import Intrinsics, Pose, SfMScene, Structure, View
 from rotonly_cli.io.colmap import colmap_to_openmvg
 from rotonly_cli.scene.ids import renumber_views_by_name
+from rotonly_cli.scene.types import Intrinsics, Pose, SfMScene, Structure, View
 
 
 def _openmvg_ids_scene(scene: SfMScene) -> SfMScene:

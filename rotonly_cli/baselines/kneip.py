@@ -30,8 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rotonly_cli.geometry import so3
 from rotonly_cli.geometry import pairwise as pg
+from rotonly_cli.geometry import so3
 
 #: Levi-Civita symbol ε_abc
 EPS3 = np.zeros((3, 3, 3))

@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rotonly_cli.baselines.kneip import EPS3, kneip_sums
-from rotonly_cli.geometry import so3
 from rotonly_cli.geometry import pairwise as pg
+from rotonly_cli.geometry import so3
 
 
 @dataclass(frozen=True)

@@ -7,14 +7,14 @@ import json
 import multiprocessing as mp
 import os
 import sys
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from rotonly_cli.io.atomic import staging_dir
 from rotonly_cli.geometry import so3
+from rotonly_cli.io.atomic import staging_dir
 
 
 def error_deg(R_est: np.ndarray, R_true: np.ndarray) -> np.ndarray:

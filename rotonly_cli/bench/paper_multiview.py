@@ -132,7 +132,7 @@ def run(out_dir, setups=SETUPS, noise_levels=(0.1, 1.0, 2.0, 5.0, 10.0), trials:
     tasks = [(setup, noise, base + 1_000_003 * t, sz) for setup, noise, base, sz in tasks for t in range(trials)]
     results = parallel_map(run_trial, tasks, jobs, "multiview", progress)
     rows = []
-    for s, setup in enumerate(setups):
+    for _s, setup in enumerate(setups):
         for noise in noise_levels:
             cell = [r for (st, nz, _, _), r in zip(tasks, results) if st == setup and nz == float(noise)]
             rows.append(dict(setup=setup, noise_px=float(noise), trials=len(cell),

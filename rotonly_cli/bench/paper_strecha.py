@@ -23,8 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rotonly_cli.bench.common import (
-    error_deg, fmt, markdown_table, parallel_map, result_dir, stats, write_json)
+from rotonly_cli.bench.common import error_deg, fmt, markdown_table, parallel_map, result_dir, stats, write_json
 from rotonly_cli.bench.paper_twoview import METHODS as TWOVIEW_METHODS
 from rotonly_cli.bench.paper_twoview import refine_per_edge
 from rotonly_cli.errors import InputError
@@ -105,8 +104,8 @@ def run_scene(folder: Path, jobs: int, progress: bool, with_mapper: bool, max_pa
     if max_pairs is not None:  # neighbours first (by view-index gap): keeps the graph connected
         keys = sorted(sorted(keys, key=lambda k: (index[k[1]] - index[k[0]], k))[:max_pairs])
     focal = float(np.mean(scene.intrinsics[scene.views[view_ids[0]].intrinsics_id].params[:2]))
-    tasks = [(k, scene.normalized[k[0]][scene.pairs[k].matches[:, 0]], scene.normalized[k[1]][scene.pairs[k].matches[:, 1]],
-              focal, seed + n) for n, k in enumerate(keys)]
+    tasks = [(k, scene.normalized[k[0]][scene.pairs[k].matches[:, 0]],
+              scene.normalized[k[1]][scene.pairs[k].matches[:, 1]], focal, seed + n) for n, k in enumerate(keys)]
     results = [r for r in parallel_map(_pair_task, tasks, jobs, f"{folder.name} pairs", progress) if r["ok"]]
     keys = [r["key"] for r in results]
     R_init = np.stack([r["R_init"] for r in results])
@@ -172,10 +171,11 @@ def format_tables(rows: list[dict]) -> str:
     for m in GLOBAL_METHODS:
         if not any(m in r["global_"] for r in rows):
             continue
-        t2.append([m] + [_with_published(r["global_"][m]["mean"], PUBLISHED_GLOBAL.get(r["published_key"] or "", {}).get(m))
+        t2.append([m] + [_with_published(r["global_"][m]["mean"],
+                                         PUBLISHED_GLOBAL.get(r["published_key"] or "", {}).get(m))
                          if m in r["global_"] else "–" for r in rows])
-    t2.append(["best of Chatterjee/ROBA/GRRM"] + [min(("Chatterjee", "ROBA", "GRRM"), key=lambda m: r["global_"][m]["mean"])
-                                                  for r in rows])
+    t2.append(["best of Chatterjee/ROBA/GRRM"]
+              + [min(("Chatterjee", "ROBA", "GRRM"), key=lambda m: r["global_"][m]["mean"]) for r in rows])
     t2t = [[m] + [f"{r['global_'][m]['seconds']:.2f}" if m in r["global_"] else "–" for r in rows]
            for m in GLOBAL_METHODS if any(m in r["global_"] for r in rows)]
     return ("## Table 1: two-view relative-rotation error (deg), mean over verified pairs "

@@ -21,7 +21,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rotonly_cli.bench.common import CellCheckpoint, error_deg, fmt, markdown_table, parallel_map, plot_curves, stats, write_json
+from rotonly_cli.bench.common import (
+    CellCheckpoint,
+    error_deg,
+    fmt,
+    markdown_table,
+    parallel_map,
+    plot_curves,
+    stats,
+    write_json,
+)
 
 SCENES = ("standard", "planar", "holoplane", "rankregular_line", "pure_rotation")
 EXPECTED_KIND = {"standard": "REGULAR", "planar": "REGULAR", "holoplane": "ROTATION_SINGULAR",
@@ -134,7 +143,8 @@ def format_table(rows: list[dict]) -> str:
     head = ["scene", "noise px", "trials"] + [f"{m} mean/median" for m in methods] + ["best", "ident. acc."]
     lines = []
     for r in rows:
-        means = {m: r["methods"][m]["mean"] for m in methods if m != "initial"} or {"initial": r["methods"]["initial"]["mean"]}
+        means = ({m: r["methods"][m]["mean"] for m in methods if m != "initial"}
+                 or {"initial": r["methods"]["initial"]["mean"]})
         best = min(means, key=lambda m: means[m] if np.isfinite(means[m]) else np.inf)
         cells = [r["scene"], f"{r['noise_px']:g}", str(r["trials"])]
         cells += [f"{fmt(r['methods'][m]['mean'])} / {fmt(r['methods'][m]['median'])}" for m in methods]
@@ -172,7 +182,8 @@ def run(out_dir, scenes=SCENES, noise_levels=(0.5, 1.0, 2.0, 5.0), trials: int =
         write_json(tmp / "results.json", payload)
         for stat in ("mean", "median"):
             panels = {scene: {m: ([r["noise_px"] for r in rows if r["scene"] == scene],
-                                  [r["methods"][m][stat] for r in rows if r["scene"] == scene]) for m in _methods_of(rows)}
+                                  [r["methods"][m][stat] for r in rows if r["scene"] == scene])
+                              for m in _methods_of(rows)}
                       for scene in scenes}
             plot_curves(tmp / f"error_vs_noise_{stat}.png", panels, "noise (px)", f"{stat} rotation error (deg)",
                         f"Two-view rotation error ({stat}) vs noise")

@@ -101,16 +101,14 @@ def main(argv: list[str] | None = None) -> None:
 def console_main() -> None:
     """The ``rotonly`` console script: :func:`main` in a process that ends right after it.
 
-    Before the interpreter shuts down, every object the run left is frozen (``gc.freeze``).
-    Otherwise shutdown runs one full garbage collection over all of them and over the
-    imported numpy/scipy/pycolmap modules: 0.15-0.2 s of a 2.3 s Herz-Jesus-P8 run (measured
-    from the end of ``main`` to the process exit: 0.14-0.24 s, frozen 0.045-0.053 s). Exit
-    handlers (``logging.shutdown``, atexit) still run, and outputs are closed by then (atomic
-    writes); the operating system takes the memory back. In-process callers (the tests) use
+    Before the interpreter shuts down, every object the run left is frozen (``gc.freeze``):
+    otherwise shutdown runs one full garbage collection over all of them and over the imported
+    modules, a noticeable part of a small run (docs/tuning.md). Exit handlers still run, and
+    outputs are closed by then (atomic writes). In-process callers (the tests) use
     :func:`main`, which freezes nothing.
 
     Before ``main``, numpy submodules that no command needs at start-up are registered as
-    lazily loaded (:mod:`rotonly_cli.runtime.startup`: about 0.09 s of scipy's import)."""
+    lazily loaded (:mod:`rotonly_cli.runtime.startup`)."""
     from rotonly_cli.runtime.startup import defer_unused_numpy_submodules
 
     defer_unused_numpy_submodules()

@@ -85,8 +85,10 @@ def format_table(row: dict) -> str:
         "",
         "| quantity                     | initial    | TRRM       |",
         "|------------------------------|------------|------------|",
-        f"| rotation error (deg)         | {row['initial_rotation_error_deg']:10.5f} | {row['refined_rotation_error_deg']:10.5f} |",
-        f"| translation dir. error (deg) | {row['initial_translation_error_deg']:10.5f} | {row['refined_translation_error_deg']:10.5f} |",
+        f"| rotation error (deg)         | {row['initial_rotation_error_deg']:10.5f} "
+        f"| {row['refined_rotation_error_deg']:10.5f} |",
+        f"| translation dir. error (deg) | {row['initial_translation_error_deg']:10.5f} "
+        f"| {row['refined_translation_error_deg']:10.5f} |",
         "",
         f"iterations {row['iterations']}, cost {row['cost']:.3e}, "
         f"time identify {row['time_identify_ms']:.2f} ms, refine {row['time_refine_ms']:.2f} ms",

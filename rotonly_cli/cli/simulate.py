@@ -28,7 +28,8 @@ def command() -> None:
 
 @command.command("twoview")
 @click.option("--scene", type=click.Choice(["standard", "planar", "holoplane", "rankregular_line", "pure_rotation"]),
-              default="standard", show_default=True, help="Scene structure (paper §Default Settings / §Scene Identification).")
+              default="standard", show_default=True,
+              help="Scene structure (paper §Default Settings / §Scene Identification).")
 @noise
 @noise_model
 @click.option("--points", "num_points", type=click.IntRange(min=6), default=1000, show_default=True)
@@ -50,7 +51,8 @@ def twoview(scene: str, noise_px: float, noise_model: str, num_points: int, seed
 
 
 @command.command("multiview")
-@click.option("--setup", type=click.Choice(["circular", "square", "linear", "outward"]), default="circular", show_default=True)
+@click.option("--setup", type=click.Choice(["circular", "square", "linear", "outward"]), default="circular",
+              show_default=True)
 @click.option("--views", "num_views", type=click.IntRange(min=3), default=100, show_default=True)
 @click.option("--points", "num_points", type=click.IntRange(min=1), default=10_000, show_default=True)
 @noise

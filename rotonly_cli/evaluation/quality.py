@@ -121,7 +121,7 @@ def _posed_names(scene: SfMScene) -> dict[str, int]:
 def match_views(gt: SfMScene, estimate: SfMScene) -> tuple[list[tuple[str, int, int]], list[str], list[str]]:
     """Pair GT and estimated posed views by image file name.
 
-    evalQuality pairs them by pose id (formats.md §3.4); rotonly pairs by name as issue 4 asks.
+    evalQuality pairs them by pose id (formats.md §3.4); rotonly pairs by name (architecture.md "CLI contract").
     On Strecha both agree, because OpenMVG's pose ids are the indices of the sorted names on both
     sides. Exact names first; if none match (e.g. ``images/0000.jpg`` vs ``0000.jpg``), base
     names. Returns ``([(name, gt_view_id, estimate_view_id)] sorted by GT view id, missing, extra)``.

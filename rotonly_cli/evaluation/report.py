@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rotonly_cli.io.atomic import check_replaceable, staging_dir
 from rotonly_cli.evaluation.quality import QualityReport, Stats
+from rotonly_cli.io.atomic import check_replaceable, staging_dir
 
 FIGURES = {
     "per_camera_rotation.png": "Per-camera rotation error",

@@ -62,7 +62,8 @@ def align_rotations_l2(R_est: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
     R_est = np.asarray(R_est, dtype=float).reshape(-1, 3, 3)
     R_gt = np.asarray(R_gt, dtype=float).reshape(-1, 3, 3)
     if R_est.shape != R_gt.shape or R_est.shape[0] == 0:
-        raise ValueError(f"align_rotations_l2 needs two equal non-empty (n, 3, 3) stacks, got {R_est.shape}, {R_gt.shape}")
+        raise ValueError(f"align_rotations_l2 needs two equal non-empty (n, 3, 3) stacks, got {R_est.shape}, "
+                         f"{R_gt.shape}")
     mean_gt_to_est = np.einsum("nji,njk->ik", R_gt, R_est)  # Σ R_gt_iᵀ R_est_i
     return so3.project_to_so3(mean_gt_to_est)
 

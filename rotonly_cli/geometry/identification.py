@@ -21,9 +21,9 @@ real baseline f_pure grows with the parallax while f_TRRM stays at the noise lev
 ρ ≈ (parallax / noise)² ≫ 1. The test is scale-free: it needs neither the focal length nor
 the noise level. Both costs are per-match *medians* (robust to wrong matches), R* is a
 Cauchy-reweighted Procrustes and t comes from unit-length θ. Threshold:
-``pure_rotation_ratio_threshold`` = 3, between the populations measured in the OpenGV
-set-up over 100 scenes each (PureRotation: ρ in [0.66, 0.95] at 0.5-5 px; Standard: ρ ≥ 87
-at 1 px and ≥ 6.8 at 5 px; PlanarScene ≥ 4.0 at 5 px; tests/test_twoview.py pins the bands).
+``pure_rotation_ratio_threshold`` = 3, between the pure-rotation (ρ < 1) and regular
+populations of the OpenGV set-up (docs/tuning.md; tests/geometry/test_pairwise.py pins the
+bands).
 """
 
 from __future__ import annotations

@@ -20,14 +20,13 @@ concatenated, edges delimited by ``offsets``; per-edge sums are segment sums
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
 from rotonly_cli.geometry import so3
 from rotonly_cli.options import MIN_MATCHES  # noqa: F401 (re-exported)
-
 
 
 # ----------------------------------------------------------------------------- packing
@@ -59,7 +58,7 @@ class EdgeBatch:
     def edge_of_match(self) -> np.ndarray:
         return np.repeat(np.arange(self.num_edges), self.counts)
 
-    def subset(self, edges: np.ndarray) -> "EdgeBatch":
+    def subset(self, edges: np.ndarray) -> EdgeBatch:
         """The batch restricted to ``edges`` (indices, in the given order)."""
         edges = np.asarray(edges, dtype=np.int64)
         counts = self.counts[edges]
@@ -71,13 +70,13 @@ class EdgeBatch:
         return EdgeBatch(self.x_i[idx], self.x_j[idx], new_offsets,
                          None if self.weights is None else self.weights[idx])
 
-    def edge_range(self, e0: int, e1: int) -> "EdgeBatch":
+    def edge_range(self, e0: int, e1: int) -> EdgeBatch:
         """Edges [e0, e1) as views of this batch's arrays (no copy, unlike :meth:`subset`)."""
         m0, m1 = int(self.offsets[e0]), int(self.offsets[e1])
         return EdgeBatch(self.x_i[m0:m1], self.x_j[m0:m1], self.offsets[e0:e1 + 1] - m0,
                          None if self.weights is None else self.weights[m0:m1])
 
-    def with_weights(self, weights: np.ndarray | None) -> "EdgeBatch":
+    def with_weights(self, weights: np.ndarray | None) -> EdgeBatch:
         return EdgeBatch(self.x_i, self.x_j, self.offsets, weights)
 
     def segment_sum(self, values: np.ndarray) -> np.ndarray:

@@ -18,9 +18,16 @@ import numpy as np
 
 from rotonly_cli.geometry import kernels, so3
 from rotonly_cli.geometry import pairwise as pg
+from rotonly_cli.geometry.identification import (
+    Identification,
+    IdentificationOptions,
+    SceneKind,
+    classify,
+    detection_values,
+    kind_mask,
+    ratios_and_ps,
+)
 from rotonly_cli.options import TRRMOptions
-from rotonly_cli.geometry.identification import (Identification, IdentificationOptions, SceneKind, ratios_and_ps, classify,
-                                        detection_values, kind_mask)
 
 
 @dataclass

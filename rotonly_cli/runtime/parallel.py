@@ -22,7 +22,7 @@ import multiprocessing as mp
 import os
 import sys
 import threading
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 

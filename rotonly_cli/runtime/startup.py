@@ -1,13 +1,10 @@
-"""Start-up cost of the ``rotonly`` process: numpy submodules that no run uses, loaded lazily.
+"""Start-up and garbage-collector costs of the ``rotonly`` process (docs/tuning.md has the numbers).
 
-scipy (1.17) builds its array-API namespace by cloning every public attribute of numpy
+scipy builds its array-API namespace by cloning every public attribute of numpy
 (``scipy._lib.array_api_compat.numpy``, imported by ``scipy.sparse`` and ``scipy.linalg``).
 numpy 2 loads its optional submodules on first attribute access, so that clone imports
 ``numpy.f2py`` (with its Fortran parser), ``numpy.testing``, ``numpy.ma``,
-``numpy.polynomial`` and a few more: measured on this machine type, importing
-``scipy.sparse.csgraph``, ``scipy.sparse.linalg``, ``scipy.linalg`` and
-``scipy.spatial.transform`` after numpy takes 0.27-0.30 s, and 0.18-0.19 s with these
-submodules deferred, about 6 % of a Herz-Jesus-P8 run.
+``numpy.polynomial`` and a few more that no command needs: a third of scipy's import time.
 
 :func:`defer_unused_numpy_submodules` puts each of them into ``sys.modules`` (and on the
 ``numpy`` package) as a module object created by the standard library's
@@ -59,12 +56,11 @@ def defer_unused_numpy_submodules(names: tuple[str, ...] = DEFERRED_NUMPY_SUBMOD
 def collector_paused() -> Iterator[None]:
     """CPython's cyclic garbage collector off for the block (restored after).
 
-    A run allocates ~10⁵ small containers per 10⁴ points (tuples, lists, dicts); every
-    700 of them trigger a collection, and the older generations re-scan all live objects,
-    the imported numpy/scipy/pycolmap modules included: 0.07-0.15 s of a Herz-Jesus-P8 run
-    (measured with gc.callbacks). The stages build no reference cycles per point or per
-    iteration, so reference counting alone frees what they drop; the few cycles left
-    (thread pools, loggers) are collected once the collector is back on."""
+    A run allocates ~10⁵ small containers per 10⁴ points; every 700 of them trigger a
+    collection, whose older generations re-scan every live object, the imported modules
+    included. The stages build no reference cycles per point or per iteration, so reference
+    counting alone frees what they drop; the few cycles left (thread pools, loggers) are
+    collected once the collector is back on."""
     enabled = gc.isenabled()
     gc.disable()
     try:

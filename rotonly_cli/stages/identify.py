@@ -15,8 +15,8 @@ from functools import partial
 import numpy as np
 
 from rotonly_cli.geometry.identification import IdentificationOptions, identify
-from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, filter_rotation_singular, kind_counts
 from rotonly_cli.runtime.parallel import map_edges, plan
+from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, filter_rotation_singular, kind_counts
 
 logger = logging.getLogger(__name__)
 

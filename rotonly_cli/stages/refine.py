@@ -15,8 +15,8 @@ import numpy as np
 from rotonly_cli.geometry import so3
 from rotonly_cli.geometry.identification import IdentificationOptions
 from rotonly_cli.geometry.trrm import TRRMOptions, refine
-from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, filter_rotation_singular, kind_counts
 from rotonly_cli.runtime.parallel import map_edges, plan
+from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, filter_rotation_singular, kind_counts
 
 logger = logging.getLogger(__name__)
 

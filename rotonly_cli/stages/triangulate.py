@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.geometry.triangulation import TriangulationOptions, triangulate_tracks
-from rotonly_cli.scene.types import SfMScene, Structure
-from rotonly_cli.scene.view_graph import ViewGraph
 from rotonly_cli.scene.ids import observation_lists
 from rotonly_cli.scene.tracks import TrackCache, graph_tracks
+from rotonly_cli.scene.types import SfMScene, Structure
+from rotonly_cli.scene.view_graph import ViewGraph
 
 logger = logging.getLogger(__name__)
 GREY = 128

@@ -58,9 +58,9 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -203,8 +203,7 @@ def run_rotonly_subprocess(method: str, input_path: Path, gt: SfMScene, work: Pa
 def run_rotonly_stages(label: str, input_path: Path, gt: SfMScene) -> tuple[list[MethodResult], dict]:
     """load..optimize in-process: the averaged (GRRM start) and GRRM rotations, and pycolmap
     rotation averaging on the same active edges after TRRM."""
-    from rotonly_cli.pipeline import (RunOptions, average_stage, identify_stage, load_stage, optimize_stage,
-                                      refine_stage)
+    from rotonly_cli.pipeline import RunOptions, average_stage, identify_stage, load_stage, optimize_stage, refine_stage
     from rotonly_cli.scene.view_graph import view_index
 
     times: dict[str, float] = {}
@@ -404,7 +403,8 @@ def openmvg_global_command(openmvg_bin: Path, project: Path, out: Path, hold_int
             "--output_dir", str(out)] + (["-f", "NONE"] if hold_intrinsics else [])
 
 
-def alternating_runs(commands: dict[str, Callable[[int], list[str]]], rounds: int) -> dict[str, list[tuple[float, str]]]:
+def alternating_runs(commands: dict[str, Callable[[int], list[str]]],
+                     rounds: int) -> dict[str, list[tuple[float, str]]]:
     """(process wall time in s, stdout) of every command in ``rounds`` rounds, the order
     rotated each round (round k starts with command k mod n), so that a slow stretch of the
     shared machine falls on all of them alike. ``commands[name](k)`` is the argv of round k.
@@ -645,8 +645,9 @@ def ratio_lines(results: list[MethodResult]) -> list[str]:
             out.append(f"- alternating wall times of {ours} failed: {timing['error']}")
         elif timing:
             ratios = np.array(timing["rotonly_s"]) / np.array(timing["reference_s"])
-            text = (f"- {timing['rounds']} alternating rounds, {ours} / {timing['reference']} ({timing['reference_time']}"
-                    f", medians): {timing['median_rotonly_s']:.2f} / {timing['median_reference_s']:.2f} s = "
+            text = (f"- {timing['rounds']} alternating rounds, {ours} / {timing['reference']} "
+                    f"({timing['reference_time']}, medians): {timing['median_rotonly_s']:.2f} / "
+                    f"{timing['median_reference_s']:.2f} s = "
                     f"**{timing['ratio_of_medians']:.2f}x** (per round {ratios.min():.2f}-{ratios.max():.2f}x)")
             if "ratio_to_process_medians" in timing:
                 text += f"; {timing['ratio_to_process_medians']:.2f}x of its process wall"

@@ -44,12 +44,13 @@ def main(argv: list[str] | None = None) -> int:
 
     logging.basicConfig(level=logging.WARNING)  # the stages log at INFO; this prints a table
 
-    from strecha_gt import gt_poses_for, gt_track_residuals
     from rotonly_cli.geometry.alignment import rotation_errors_after_alignment
     from rotonly_cli.io.detect import read_ground_truth
     from rotonly_cli.pipeline import STAGE_FUNCTIONS, Run, RunOptions, load_stage
     from rotonly_cli.scene.view_graph import view_index
     from rotonly_cli.stages.load import focal_length
+
+    from strecha_gt import gt_poses_for, gt_track_residuals
 
     scene_dir = args.root / args.scene
     input_path = scene_dir / ("openmvg/sfm_data.json" if args.input == "openmvg" else "database.db")

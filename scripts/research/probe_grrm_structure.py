@@ -71,7 +71,8 @@ def completed_graph(graph, edges: list[int], new_edge_min: int | None = None, qu
                 new_edges.append((i, j, len(implied)))
             continue
         width = int(max(implied.max(), edge.matches.max())) + 1
-        extra = implied[~np.isin(implied[:, 0] * width + implied[:, 1], edge.matches[:, 0] * width + edge.matches[:, 1])]
+        known = edge.matches[:, 0] * width + edge.matches[:, 1]
+        extra = implied[~np.isin(implied[:, 0] * width + implied[:, 1], known)]
         if quantile is not None and len(extra):
             angle = epipolar_angles(edge, normalized, extra)
             extra = extra[angle <= np.quantile(epipolar_angles(edge, normalized, edge.matches), quantile)]
@@ -129,18 +130,17 @@ def main(argv: list[str] | None = None) -> int:
 
     logging.basicConfig(level=logging.WARNING)  # the stages log at INFO; this prints tables
 
-    from strecha_gt import gt_poses_for, gt_track_residuals
-    from rotonly_cli.geometry import so3
+    from rotonly_cli.geometry import kernels, so3
     from rotonly_cli.geometry.alignment import rotation_errors_after_alignment
     from rotonly_cli.io.detect import read_ground_truth
     from rotonly_cli.pipeline import STAGE_FUNCTIONS, RunOptions, load_stage
+    from rotonly_cli.scene.view_graph import edge_batch, regular_edges
     from rotonly_cli.stages.load import focal_length
-    from rotonly_cli.geometry import kernels
-    from rotonly_cli.scene.view_graph import edge_batch
-    from rotonly_cli.scene.view_graph import regular_edges
-    from grrm_fixed_translations import optimize_graph_with_translations
     from rotonly_cli.stages.optimize import optimize_graph
     from rotonly_cli.stages.translate import translate_graph
+
+    from grrm_fixed_translations import optimize_graph_with_translations
+    from strecha_gt import gt_poses_for, gt_track_residuals
 
     scene_dir = args.root / args.scene
     input_path = scene_dir / ("openmvg/sfm_data.json" if args.input == "openmvg" else "database.db")
@@ -227,7 +227,8 @@ def main(argv: list[str] | None = None) -> int:
         print("| per-edge t_ij in GRRM | t_ij error against the GT direction (deg): mean / median / max | GRRM (deg) "
               "| GRRM per camera (deg) |")
         print("|---|---|---|---|")
-        print(line("Pˢ null vector (the paper)", R_grrm, f"{angle.mean():.3f} / {np.median(angle):.3f} / {angle.max():.3f}"))
+        print(line("Pˢ null vector (the paper)", R_grrm,
+                   f"{angle.mean():.3f} / {np.median(angle):.3f} / {angle.max():.3f}"))
         print(line("held at the GT direction", grrm(graph, t_gt), "0"), flush=True)
         def ligt_centres(R: np.ndarray) -> np.ndarray:
             return translate_graph(graph, scene.normalized, R)[0]

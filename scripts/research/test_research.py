@@ -15,11 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import grrm_fixed_translations as fixed
 from rotonly_cli import multiview
 from rotonly_cli.geometry import alignment, averaging, grrm, so3
 from rotonly_cli.scene.view_graph import Edge
 from rotonly_cli.simulation.layout_scenes import simulate_multiview
+
+import grrm_fixed_translations as fixed
 
 ROOT = Path(__file__).resolve().parents[2]
 FIXTURES = ROOT / "data_fixtures"

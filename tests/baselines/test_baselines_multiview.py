@@ -7,8 +7,8 @@ import pytest
 
 from rotonly_cli.baselines.references import chatterjee, pycolmap_rotation_averaging
 from rotonly_cli.baselines.roba import ROBAOptions, ROBAProblem, roba
-from rotonly_cli.geometry import so3
 from rotonly_cli.geometry import pairwise as pg
+from rotonly_cli.geometry import so3
 from rotonly_cli.geometry.alignment import rotation_errors_after_alignment
 from rotonly_cli.simulation.layout_scenes import simulate_multiview
 

@@ -7,12 +7,21 @@ import numpy as np
 import pytest
 
 from rotonly_cli.baselines.kneip import (
-    cayley_to_rotation, kneip_matrices, kneip_sums, refine_kneip_eigen, smallest_eigenvalue_and_gradient, unit_rows)
+    cayley_to_rotation,
+    kneip_matrices,
+    kneip_sums,
+    refine_kneip_eigen,
+    smallest_eigenvalue_and_gradient,
+    unit_rows,
+)
 from rotonly_cli.baselines.opengv_nonlinear import (
-    optimize_nonlinear_twoview, rotation_to_cayley, triangulate_midpoint_frame1)
+    optimize_nonlinear_twoview,
+    rotation_to_cayley,
+    triangulate_midpoint_frame1,
+)
 from rotonly_cli.baselines.pa import pa_residuals, pose_adjust_twoview
-from rotonly_cli.geometry import so3
 from rotonly_cli.geometry import pairwise as pg
+from rotonly_cli.geometry import so3
 from rotonly_cli.simulation.fivepoint import perturbed_rotation
 from rotonly_cli.simulation.pair_scenes import simulate_twoview
 

@@ -12,6 +12,7 @@ import pytest
 from click.testing import CliRunner
 
 from rotonly_cli.cli import cli
+
 from helpers import DATA_FIXTURES
 
 FIXTURES = DATA_FIXTURES

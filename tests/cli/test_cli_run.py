@@ -12,6 +12,7 @@ import pytest
 
 from rotonly_cli.cli import main
 from rotonly_cli.io import colmap
+
 from helpers import DATA_FIXTURES
 
 FIXTURES = DATA_FIXTURES

@@ -13,6 +13,7 @@ from rotonly_cli.evaluation import quality
 from rotonly_cli.evaluation.report import format_table, write_report
 from rotonly_cli.geometry import so3
 from rotonly_cli.scene.types import Intrinsics, Pose, SfMScene, View
+
 from helpers import DATA_FIXTURES
 
 FIXTURES = DATA_FIXTURES / "evalquality"
@@ -346,7 +347,8 @@ def test_cli_bad_input_exits_2_with_one_line_and_no_output(tmp_path, capsys, min
     elif case == "no_common":
         data = json.loads(estimate.read_text())
         for entry in data["views"]:
-            entry["value"]["ptr_wrapper"]["data"]["filename"] = "other_" + entry["value"]["ptr_wrapper"]["data"]["filename"]
+            data_of_view = entry["value"]["ptr_wrapper"]["data"]
+            data_of_view["filename"] = "other_" + data_of_view["filename"]
         estimate = tmp_path / "renamed.json"
         estimate.write_text(json.dumps(data))
     elif case == "bad_folder":

@@ -45,7 +45,7 @@ def test_umeyama_is_least_squares_optimum_under_noise():
     s_hat, R_hat, t_hat = alignment.umeyama(src, dst)
     cost = np.sum((dst - alignment.apply_similarity(src, s_hat, R_hat, t_hat)) ** 2)
     # any small perturbation of the parameters increases the cost
-    for k in range(20):
+    for _k in range(20):
         dR = so3.exp(rng.normal(scale=1e-3, size=3))
         ds = 1.0 + rng.normal(scale=1e-3)
         dt = rng.normal(scale=1e-3, size=3)
@@ -95,7 +95,7 @@ def test_rotation_alignment_is_gauge_invariant_and_zero_on_itself():
     assert np.all(errors_a > 0.0)
     # S is the chordal L2 optimum: the cost at S is below the cost at nearby rotations
     cost = np.sum((R_est @ B - R_gt @ S_b) ** 2)
-    for k in range(10):
+    for _k in range(10):
         S_near = S_b @ so3.exp(rng.normal(scale=1e-3, size=3))
         assert np.sum((R_est @ B - R_gt @ S_near) ** 2) > cost
 

@@ -8,8 +8,7 @@ import pytest
 from rotonly_cli.baselines.references import pycolmap_rotation_averaging
 from rotonly_cli.errors import AlgorithmError
 from rotonly_cli.geometry import so3
-from rotonly_cli.geometry.averaging import (AveragingOptions, RobustWeight, average_rotations,
-                                            spanning_tree_rotations)
+from rotonly_cli.geometry.averaging import AveragingOptions, RobustWeight, average_rotations, spanning_tree_rotations
 
 
 def make_graph(num_views: int, seed: int, noise_deg: float, outlier_fraction: float,

@@ -8,6 +8,7 @@ import pytest
 from rotonly_cli.errors import AlgorithmError
 from rotonly_cli.geometry import so3
 from rotonly_cli.geometry.ligt import LiGTOptions, ligt_normal_matrix, ligt_translations
+
 from helpers import make_street_scene, similarity_align_error
 
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from rotonly_cli import twoview
-from rotonly_cli.geometry import so3
 from rotonly_cli.geometry import pairwise as pg
+from rotonly_cli.geometry import so3
 from rotonly_cli.geometry.identification import SceneKind
 from rotonly_cli.geometry.trrm import TRRMOptions, optimize_rotations
 from rotonly_cli.simulation.pair_scenes import simulate_twoview

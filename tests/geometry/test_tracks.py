@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from rotonly_cli.geometry.tracks import build_tracks, gather_observations, pairs_within_tracks
+
 from helpers import make_street_scene
 
 

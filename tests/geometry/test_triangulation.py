@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from rotonly_cli.geometry.triangulation import TriangulationOptions, max_ray_angle_deg, triangulate_tracks
+
 from helpers import make_street_scene
 
 

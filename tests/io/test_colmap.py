@@ -14,6 +14,7 @@ from rotonly_cli.errors import InputError
 from rotonly_cli.io import colmap, openmvg
 from rotonly_cli.io.strecha import read_strecha_dir
 from rotonly_cli.scene.types import Intrinsics, PairMatches, Pose, SfMScene, Structure, View
+
 from helpers import DATA_FIXTURES
 
 FIXTURES = DATA_FIXTURES

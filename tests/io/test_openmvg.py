@@ -13,6 +13,7 @@ import pytest
 from rotonly_cli.errors import InputError
 from rotonly_cli.io import openmvg
 from rotonly_cli.scene.types import Intrinsics, PairMatches, Pose, SfMScene, Structure, View
+
 from helpers import DATA_FIXTURES
 
 FIXTURES = DATA_FIXTURES / "openmvg_real"

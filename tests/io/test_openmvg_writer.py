@@ -33,7 +33,8 @@ def test_float_and_integer_texts_equal_python_repr():
     assert openmvg.sfm_data_writer._float_reprs(values.reshape(-1, 1)[:6]) == [repr(v) for v in values[:6].tolist()]
     integers = np.array([0, 1, 9, 10, 4294967295, 123456789012, -3], dtype=np.int64)
     assert openmvg.sfm_data_writer._integer_texts(integers) == ["0", "1", "9", "10", "4294967295", "123456789012", "-3"]
-    assert openmvg.sfm_data_writer._float_reprs(np.zeros(0)) == [] and openmvg.sfm_data_writer._integer_texts(np.zeros(0)) == []
+    assert openmvg.sfm_data_writer._float_reprs(np.zeros(0)) == []
+    assert openmvg.sfm_data_writer._integer_texts(np.zeros(0)) == []
 
 
 def _reference_structure(scene: SfMScene) -> list:

@@ -12,6 +12,7 @@ from rotonly_cli.errors import InputError
 from rotonly_cli.io import colmap, openmvg
 from rotonly_cli.io.detect import read_ground_truth
 from rotonly_cli.io.strecha import read_camera_file, read_strecha_dir
+
 from helpers import DATA_FIXTURES
 
 FIXTURES = DATA_FIXTURES

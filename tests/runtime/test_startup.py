@@ -6,8 +6,6 @@ import subprocess
 import sys
 import textwrap
 
-import pytest
-
 PROBE = textwrap.dedent("""
     import sys
     from rotonly_cli.runtime.startup import defer_unused_numpy_submodules, DEFERRED_NUMPY_SUBMODULES

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 
 from rotonly_cli.geometry.tracks import build_tracks
+from rotonly_cli.scene.tracks import TrackCache, graph_tracks
 from rotonly_cli.scene.types import View
 from rotonly_cli.scene.view_graph import Edge, ViewGraph
-from rotonly_cli.scene.tracks import TrackCache, graph_tracks
 
 
 def _graph(rng: np.random.Generator) -> tuple[ViewGraph, dict[int, np.ndarray]]:

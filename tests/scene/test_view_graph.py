@@ -9,10 +9,9 @@ import pytest
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.geometry import so3
+from rotonly_cli.io.workspace import WorkspaceState, load_state, save_state, write_view_graph_json
 from rotonly_cli.scene.types import View
-from rotonly_cli.io.workspace import write_view_graph_json
 from rotonly_cli.scene.view_graph import Edge, ViewGraph, largest_component
-from rotonly_cli.io.workspace import WorkspaceState, load_state, save_state
 
 
 def _graph(pairs: list[tuple[int, int]], num_views: int, seed: int = 0) -> ViewGraph:

@@ -13,6 +13,7 @@ import pytest
 
 from rotonly_cli.geometry import so3
 from rotonly_cli.scene.types import Pose, SfMScene, View
+
 from helpers import DATA_FIXTURES, REPOSITORY
 
 ROOT = REPOSITORY

@@ -19,8 +19,13 @@ above.
 """
 
 from rotonly_cli.geometry.grrm.problem import GRRMSystem, chain_matrix
-from rotonly_cli.geometry.grrm.solve import (GRRMResult, epipolar_phase, grrm_residuals, optimize_global_rotations,
-                                            validate_inputs)
+from rotonly_cli.geometry.grrm.solve import (
+                                            GRRMResult,
+                                            epipolar_phase,
+                                            grrm_residuals,
+                                            optimize_global_rotations,
+                                            validate_inputs,
+)
 from rotonly_cli.options import GRRMOptions, ResidualForm, RobustLoss
 
 __all__ = ["GRRMOptions", "GRRMResult", "GRRMSystem", "ResidualForm", "RobustLoss", "chain_matrix", "epipolar_phase",

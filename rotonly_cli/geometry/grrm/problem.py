@@ -11,7 +11,6 @@ from rotonly_cli.geometry import kernels
 from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry.robust import radial_excess, robust_curvature, robust_rho
 
-
 #: contributions per block in GRRMSystem (blocks of ~1 MB arrays stay in cache, and no
 #: per-iteration temporary grows with the problem: arrays above glibc's 32 MB mmap
 #: threshold would be page-faulted afresh on every allocation)

@@ -34,7 +34,8 @@ class GRRMResult:
     loss_scale: float = 0.0
 
 
-def validate_inputs(R_cam_from_world, edge_views, batch: pg.EdgeBatch, obs_ids) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def validate_inputs(R_cam_from_world, edge_views, batch: pg.EdgeBatch,
+                    obs_ids) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     R = pg.as_rotations(R_cam_from_world, "R_cam_from_world").reshape(-1, 3, 3).astype(float)
     n = R.shape[0]
     edge_views = np.asarray(edge_views)
@@ -42,7 +43,8 @@ def validate_inputs(R_cam_from_world, edge_views, batch: pg.EdgeBatch, obs_ids) 
         raise ValueError(f"edge_views: expected shape ({batch.num_edges}, 2), got {edge_views.shape}")
     if not np.issubdtype(edge_views.dtype, np.integer):
         raise ValueError("edge_views: must be integer view indices")
-    if edge_views.size and (edge_views.min() < 0 or edge_views.max() >= n or np.any(edge_views[:, 0] == edge_views[:, 1])):
+    if edge_views.size and (edge_views.min() < 0 or edge_views.max() >= n
+                            or np.any(edge_views[:, 0] == edge_views[:, 1])):
         raise ValueError(f"edge_views: view indices must be distinct and in [0, {n})")
     obs_ids = np.asarray(obs_ids)
     if obs_ids.shape != (batch.x_i.shape[0], 2) or not np.issubdtype(obs_ids.dtype, np.integer):
@@ -274,6 +276,7 @@ def grrm_residuals(R_cam_from_world, edge_views, batch: pg.EdgeBatch, obs_ids, w
     blocks = B.T.reshape(nc, 3, 3)
     rows = (3 * problem.group_sorted)[:, None, None] + np.arange(3)[None, :, None]
     cols = (3 * problem.edge_sorted)[:, None, None] + np.arange(3)[None, None, :]
-    J_e = sp.csr_matrix((blocks.ravel(), (np.broadcast_to(rows, (nc, 3, 3)).ravel(), np.broadcast_to(cols, (nc, 3, 3)).ravel())),
+    J_e = sp.csr_matrix((blocks.ravel(), (np.broadcast_to(rows, (nc, 3, 3)).ravel(),
+                                          np.broadcast_to(cols, (nc, 3, 3)).ravel())),
                         shape=(3 * problem.num_groups, 3 * problem.E))
     return V, (J_e @ problem.chain_matrix(R)).tocsr()

@@ -5,12 +5,23 @@ their per-edge sums (GRRM, tests); ``match_table`` + ``lean``: the lean per-edge
 TRRM's LM; ``moments``: moment-based λ_min(Pˢ), medians, the pure-rotation fit.
 """
 
-from rotonly_cli.geometry.kernels.forward import (epipolar_normal_equations, trrm_chunk_terms, trrm_match_terms,
-                                                  trrm_normal_equations)
+from rotonly_cli.geometry.kernels.forward import (
+                                                  epipolar_normal_equations,
+                                                  trrm_chunk_terms,
+                                                  trrm_match_terms,
+                                                  trrm_normal_equations,
+)
 from rotonly_cli.geometry.kernels.lean import COST, GRADIENT, NORMAL, smallest_eigenpair_lean, trrm_evaluate
 from rotonly_cli.geometry.kernels.match_table import LEAN_CHUNK, TABLE_ROWS, MatchTable
-from rotonly_cli.geometry.kernels.moments import (best_pure_rotation, bearing_cross_moment, epipolar_from_moments,
-                                                  epipolar_moments, point_moments, rotated_bearing_sq, segment_median)
+from rotonly_cli.geometry.kernels.moments import (
+                                                  bearing_cross_moment,
+                                                  best_pure_rotation,
+                                                  epipolar_from_moments,
+                                                  epipolar_moments,
+                                                  point_moments,
+                                                  rotated_bearing_sq,
+                                                  segment_median,
+)
 from rotonly_cli.geometry.kernels.soa import CHUNK_MATCHES, dot, edge_chunks
 
 __all__ = [

@@ -13,8 +13,17 @@ from __future__ import annotations
 import numpy as np
 
 from rotonly_cli.geometry import pairwise as pg
-from rotonly_cli.geometry.kernels.soa import (CHUNK_MATCHES, axpy, cross, dot, edge_chunks, pinv_shifted, rep,
-                                                rotate, seg)
+from rotonly_cli.geometry.kernels.soa import (
+    CHUNK_MATCHES,
+    axpy,
+    cross,
+    dot,
+    edge_chunks,
+    pinv_shifted,
+    rep,
+    rotate,
+    seg,
+)
 
 
 def _ps_from(theta, starts, w=None):

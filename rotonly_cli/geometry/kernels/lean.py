@@ -97,9 +97,8 @@ COST, GRADIENT, NORMAL = 0, 1, 2  #: what _lean_group computes: cost; + Jᵀr; +
 
 
 #: edge groups whose Pˢ eigenproblems are solved in one call (the closed form is ~200 numpy
-#: calls whatever the number of edges, so per group it was ~8 % of a pass); their heads (13
-#: rows of matches each) stay alive meanwhile. Measured (CPU time, 1M matches): 4-8 best,
-#: 16 and more slower again (the heads leave the cache before their second use)
+#: calls whatever the number of edges); their heads stay alive meanwhile, so more groups
+#: than this fall out of the cache before their second use
 EIGEN_BATCH_GROUPS = 4
 
 
@@ -287,9 +286,8 @@ def _dot3_into(dst: np.ndarray, a, b, tmp: np.ndarray) -> np.ndarray:
 
 
 #: matches per block of the Jacobian stage of a NORMAL pass (its ~60 live rows are one scratch
-#: block reused by every block). Measured on 1000 x 1000 Standard edges (CPU time, best of
-#: 11, loaded machine): 4k and 8k blocks were 5-15 % slower than whole 16k groups (numpy call
-#: overhead outweighs the L2 fit), and 64k groups twice as slow (L3 overflow)
+#: block reused by every block): smaller blocks pay numpy call overhead, larger ones
+#: overflow the cache
 NORMAL_BLOCK = 1 << 14
 _NORMAL_INPUTS = ("u0", "u1", "u2", "xj0", "xj1", "xj2", "t0", "t1", "t2", "th0", "th1", "th2", "hj0", "hj1", "hj2",
                   "hi0", "hi1", "hi2", "uh0", "uh1", "uh2", "ri0", "ri1", "ri2", "rj0", "rj1", "rj2",

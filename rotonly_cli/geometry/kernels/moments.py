@@ -11,7 +11,6 @@ from rotonly_cli.geometry.kernels.lean import smallest_eigenpair_lean
 from rotonly_cli.geometry.kernels.match_table import INV_NXI, LEAN_CHUNK, XI, XJH, MatchTable
 from rotonly_cli.geometry.kernels.soa import edge_groups, pinv_shifted
 
-
 # ----------------------------------------------------------------------------- λ_min(Pˢ) from moments
 _LEVI = np.zeros((3, 3, 3))
 _LEVI[0, 1, 2] = _LEVI[1, 2, 0] = _LEVI[2, 0, 1] = 1.0

@@ -9,7 +9,6 @@ import numpy as np
 
 from rotonly_cli.geometry import pairwise as pg
 
-
 CHUNK_MATCHES = 1 << 15
 
 

@@ -22,8 +22,13 @@ reads follow (measured: the md5 of a Strecha DB changed), so inputs are read thr
 temporary copy and are never touched.
 """
 
-from rotonly_cli.io.colmap.cameras import (colmap_to_openmvg, normalize_keypoints, pycolmap_camera,
-                                           to_colmap_intrinsics, to_openmvg_scene)
+from rotonly_cli.io.colmap.cameras import (
+                                           colmap_to_openmvg,
+                                           normalize_keypoints,
+                                           pycolmap_camera,
+                                           to_colmap_intrinsics,
+                                           to_openmvg_scene,
+)
 from rotonly_cli.io.colmap.database import REQUIRED_TABLES, check_database, id_offset, read_database, write_database
 from rotonly_cli.io.colmap.model import read_model, write_model
 

@@ -10,8 +10,14 @@ Pixel convention: OpenMVG puts the centre of the top-left pixel at (0, 0), roton
 and -0.5 when written, here and nowhere else (architecture.md "Conventions").
 """
 
-from rotonly_cli.io.openmvg.cameras import (INTRINSIC_DISTORTION_FIELDS, PIXEL_OFFSET, add_distortion,
-                                            distort_project, remove_distortion, undistort_normalize)
+from rotonly_cli.io.openmvg.cameras import (
+                                            INTRINSIC_DISTORTION_FIELDS,
+                                            PIXEL_OFFSET,
+                                            add_distortion,
+                                            distort_project,
+                                            remove_distortion,
+                                            undistort_normalize,
+)
 from rotonly_cli.io.openmvg.features import read_feature_table, read_features, write_features
 from rotonly_cli.io.openmvg.matches import matches_bytes, read_matches, read_pairs, write_matches, write_pairs
 from rotonly_cli.io.openmvg.project import read_project, write_project
