@@ -62,6 +62,17 @@ REESTIMATE_MODES = tuple(mode.value for mode in Reestimate)
 
 # ============================================================================ geometry
 
+def _require_non_negative(options, *names: str, none_allowed: bool = False) -> None:
+    """ValueError naming the first of ``names`` that is negative (or NaN; or None unless
+    ``none_allowed``)."""
+    for name in names:
+        value = getattr(options, name)
+        if none_allowed and value is None:
+            continue
+        if not value >= 0:
+            raise ValueError(f"{name}: must be >= 0 or None" if none_allowed else f"{name}: must be >= 0")
+
+
 @dataclass(frozen=True)
 class IdentificationOptions:
     """Scene identification (geometry/identification.py)."""
@@ -134,14 +145,11 @@ class TRRMOptions:
             raise ValueError(f"loss: must be 'cauchy' or 'none', got {self.loss!r}")
         if self.max_iterations < 0:
             raise ValueError("max_iterations: must be >= 0")
-        for name in ("function_tolerance", "step_tolerance", "gradient_tolerance", "initial_damping",
-                     "contraction_stop_below", "frozen_hessian_below"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name}: must be >= 0")
+        _require_non_negative(self, "function_tolerance", "step_tolerance", "gradient_tolerance", "initial_damping",
+                              "contraction_stop_below", "frozen_hessian_below")
         if not self.inlier_threshold_sigmas > 0:
             raise ValueError("inlier_threshold_sigmas: must be > 0")
-        if self.irls_step_tolerance is not None and not self.irls_step_tolerance >= 0:
-            raise ValueError("irls_step_tolerance: must be >= 0 or None")
+        _require_non_negative(self, "irls_step_tolerance", none_allowed=True)
         return self
 
 
@@ -229,10 +237,8 @@ class GRRMOptions:
             raise ValueError("max_iterations: must be >= 0")
         if self.loss_scale is not None and not self.loss_scale > 0:
             raise ValueError("loss_scale: must be > 0")
-        if not self.exact_curvature_below >= 0:
-            raise ValueError("exact_curvature_below: must be >= 0")
-        if self.epipolar_trigger is not None and not self.epipolar_trigger >= 0:
-            raise ValueError("epipolar_trigger: must be >= 0 or None")
+        _require_non_negative(self, "exact_curvature_below")
+        _require_non_negative(self, "epipolar_trigger", none_allowed=True)
         return self
 
 

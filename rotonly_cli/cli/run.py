@@ -41,19 +41,38 @@ def echo_summary(summary: dict, out_dir: Path) -> None:
     click.echo(", ".join(parts))
 
 
-@click.command("run")
-@click.argument("input_path", metavar="INPUT", type=click.Path(path_type=Path))
-@click.option("-o", "--output", "out_dir", required=True, type=click.Path(path_type=Path),
-              help="Workspace folder (new, empty, or a previous rotonly workspace: replaced atomically).")
-@cli_options.gt
-@cli_options.load_options
-@cli_options.max_residual_deg
-@click.option("--no-grrm", is_flag=True, help="Skip GRRM (keep the averaged rotations).")
-@cli_options.jobs
-@click.pass_context
-def command(ctx: click.Context, input_path: Path, out_dir: Path, gt_path: Path | None, no_grrm: bool,
-            jobs: int, **load_options) -> None:
-    """Reconstruct camera poses and 3D points from feature matches.
+def chain_command(name: str, summary: str, stages: tuple[str, ...] | None, *options) -> click.Command:
+    """A command that runs the chain on INPUT into the workspace OUT: ``rotonly run`` (every
+    stage: ``stages`` None) and ``rotonly identify`` (the first two). ``options``: the
+    command's own click options, in --help order, between -o and --jobs."""
+
+    def callback(ctx: click.Context, input_path: Path, out_dir: Path, jobs: int, gt_path: Path | None = None,
+                 no_grrm: bool = False, **load_options) -> None:
+        collecting = gc.isenabled()
+        gc.disable()  # from the imports on: see runtime.startup.collector_paused
+        try:
+            from rotonly_cli.pipeline import run_pipeline
+
+            options = run_options(ctx, grrm=not no_grrm, gt=None if gt_path is None else str(gt_path),
+                                  jobs=jobs, **load_options)
+            summary = (run_pipeline(input_path, out_dir, options) if stages is None
+                       else run_pipeline(input_path, out_dir, options, stages=stages))
+        finally:
+            if collecting:
+                gc.enable()
+        echo_summary(summary, out_dir)
+
+    decorators = [click.argument("input_path", metavar="INPUT", type=click.Path(path_type=Path)),
+                  click.option("-o", "--output", "out_dir", required=True, type=click.Path(path_type=Path),
+                               help="Workspace folder (new, empty, or a previous rotonly workspace: replaced "
+                                    "atomically)."),
+                  *options, cli_options.jobs, click.pass_context]
+    for decorator in reversed(decorators):
+        callback = decorator(callback)
+    return click.command(name, help=summary)(callback)
+
+
+command = chain_command("run", """Reconstruct camera poses and 3D points from feature matches.
 
     INPUT is a COLMAP database (.db) or an OpenMVG sfm_data.json (with --matches-dir).
     Chain: relative poses (stored E-based ones kept, others re-estimated) -> scene
@@ -61,16 +80,5 @@ def command(ctx: click.Context, input_path: Path, out_dir: Path, gt_path: Path |
     triangulation. OUT receives sfm_data.json (OpenMVG), sparse/ (COLMAP model),
     view_graph.json, reports/<stage>.json, run.log and state.npz (for the stage commands).
     Views outside the largest connected view graph component are reported, not registered.
-    """
-    collecting = gc.isenabled()
-    gc.disable()  # from the imports on: see runtime.startup.collector_paused
-    try:
-        from rotonly_cli.pipeline import run_pipeline
-
-        options = run_options(ctx, grrm=not no_grrm, gt=None if gt_path is None else str(gt_path),
-                              jobs=jobs, **load_options)
-        summary = run_pipeline(input_path, out_dir, options)
-    finally:
-        if collecting:
-            gc.enable()
-    echo_summary(summary, out_dir)
+    """, None, cli_options.gt, cli_options.load_options, cli_options.max_residual_deg,
+                        click.option("--no-grrm", is_flag=True, help="Skip GRRM (keep the averaged rotations)."))

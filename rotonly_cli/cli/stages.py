@@ -17,23 +17,11 @@ from pathlib import Path
 import click
 
 from rotonly_cli.cli import options as cli_options
-from rotonly_cli.cli.run import echo_summary, run_options
+from rotonly_cli.cli.run import chain_command, echo_summary
 
-
-@click.command("identify")
-@click.argument("input_path", metavar="INPUT", type=click.Path(path_type=Path))
-@click.option("-o", "--output", "out_dir", required=True, type=click.Path(path_type=Path),
-              help="Workspace folder to create (or a previous workspace to replace).")
-@cli_options.load_options
-@cli_options.jobs
-@click.pass_context
-def identify(ctx: click.Context, input_path: Path, out_dir: Path, jobs: int, **load_options) -> None:
-    """Load INPUT (COLMAP .db or OpenMVG sfm_data.json), estimate the view graph and identify
-    every edge's scene kind (REGULAR / PURE_ROTATION / ROTATION_SINGULAR) into OUT."""
-    from rotonly_cli.pipeline import run_pipeline
-
-    options = run_options(ctx, jobs=jobs, **load_options)
-    echo_summary(run_pipeline(input_path, out_dir, options, stages=("load", "identify")), out_dir)
+identify = chain_command("identify", """Load INPUT (COLMAP .db or OpenMVG sfm_data.json), estimate the view graph and
+    identify every edge's scene kind (REGULAR / PURE_ROTATION / ROTATION_SINGULAR) into OUT.""",
+                         ("load", "identify"), cli_options.load_options)
 
 
 def _stage_command(stage: str, summary: str, *options):

@@ -138,34 +138,91 @@ def _brown_displacement(k1: float, k2: float, k3: float, t1: float, t2: float,
     return np.stack([dx, dy], axis=1)
 
 
+def _add_radial(points: np.ndarray, distortion: np.ndarray) -> np.ndarray:
+    r2 = np.einsum("ij,ij->i", points, points)
+    coefficient = np.ones_like(r2)
+    r_power = np.ones_like(r2)
+    for k in distortion:  # 1 + k1 r^2 + k2 r^4 + k3 r^6
+        r_power = r_power * r2
+        coefficient = coefficient + k * r_power
+    return points * coefficient[:, None]
+
+
+def _add_fisheye(points: np.ndarray, distortion: np.ndarray) -> np.ndarray:
+    # theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8), theta = atan(r); identity for
+    # r <= 1e-8 ([MVG] Camera_Pinhole_Fisheye.cpp add_disto).
+    r = np.hypot(points[:, 0], points[:, 1])
+    theta = np.arctan(r)
+    theta2 = theta * theta
+    theta_d = theta * (1.0 + theta2 * (distortion[0] + theta2 * (
+        distortion[1] + theta2 * (distortion[2] + theta2 * distortion[3]))))
+    scale = np.ones_like(r)
+    far = r > 1e-8
+    scale[far] = theta_d[far] / r[far]
+    return points * scale[:, None]
+
+
+def _remove_radial(points: np.ndarray, distortion: np.ndarray) -> np.ndarray:
+    r2 = np.einsum("ij,ij->i", points, points)
+    scale = np.ones_like(r2)
+    nonzero = r2 != 0
+    if nonzero.any():
+        k = np.asarray(distortion, dtype=np.float64)
+        r2_undistorted = _newton_polish_radius(
+            k, r2[nonzero], _bisection_radius_solve(k, r2[nonzero]))
+        scale[nonzero] = np.sqrt(r2_undistorted / r2[nonzero])
+    return points * scale[:, None]
+
+
+def _remove_brown(points: np.ndarray, distortion: np.ndarray) -> np.ndarray:
+    undistorted = points.copy()
+    displacement = _brown_displacement(*distortion, undistorted)
+    active = np.abs(undistorted + displacement - points).sum(axis=1) > 1e-10
+    for _ in range(1000):  # OpenMVG loops unbounded; 1000 only guards divergence
+        if not active.any():
+            break
+        undistorted[active] = points[active] - displacement[active]
+        displacement[active] = _brown_displacement(*distortion, undistorted[active])
+        active[active] = np.abs(undistorted[active] + displacement[active]
+                                - points[active]).sum(axis=1) > 1e-10
+    return undistorted
+
+
+def _remove_fisheye(points: np.ndarray, distortion: np.ndarray) -> np.ndarray:
+    theta_d = np.hypot(points[:, 0], points[:, 1])
+    scale = np.ones_like(theta_d)
+    far = theta_d > 1e-8
+    if far.any():
+        k1, k2, k3, k4 = distortion
+        theta = theta_d[far].copy()
+        for _ in range(10):  # exactly OpenMVG's 10 fixed-point steps
+            theta2 = theta * theta
+            theta = theta_d[far] / (1.0 + theta2 * (k1 + theta2 * (k2 + theta2 * (
+                k3 + theta2 * k4))))
+        scale[far] = np.tan(theta) / theta_d[far]
+    return points * scale[:, None]
+
+
+#: per OpenMVG intrinsic type: (add_disto, remove_disto) on (n, 2) normalized coordinates
+_DISTORTION = {
+    "pinhole": (lambda points, _: points.copy(), lambda points, _: points.copy()),
+    "pinhole_radial_k1": (_add_radial, _remove_radial),
+    "pinhole_radial_k3": (_add_radial, _remove_radial),
+    "pinhole_brown_t2": (lambda points, d: points + _brown_displacement(*d, points), _remove_brown),
+    "fisheye": (_add_fisheye, _remove_fisheye),
+}
+
+
+def _distortion_functions(model: str):
+    if model not in _DISTORTION:
+        raise InputError(f"unsupported OpenMVG intrinsic type {model!r}", field="model")
+    return _DISTORTION[model]
+
+
 def add_distortion(model: str, distortion: np.ndarray, normalized: np.ndarray) -> np.ndarray:
     """OpenMVG ``add_disto`` on (n, 2) undistorted normalized coordinates."""
     points = np.asarray(normalized, dtype=np.float64).reshape(-1, 2)
-    if model == "pinhole":
-        return points.copy()
-    if model in ("pinhole_radial_k1", "pinhole_radial_k3"):
-        r2 = np.einsum("ij,ij->i", points, points)
-        coefficient = np.ones_like(r2)
-        r_power = np.ones_like(r2)
-        for k in distortion:  # 1 + k1 r^2 + k2 r^4 + k3 r^6
-            r_power = r_power * r2
-            coefficient = coefficient + k * r_power
-        return points * coefficient[:, None]
-    if model == "pinhole_brown_t2":
-        return points + _brown_displacement(*distortion, points)
-    if model == "fisheye":
-        # theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8), theta = atan(r); identity for
-        # r <= 1e-8 ([MVG] Camera_Pinhole_Fisheye.cpp add_disto).
-        r = np.hypot(points[:, 0], points[:, 1])
-        theta = np.arctan(r)
-        theta2 = theta * theta
-        theta_d = theta * (1.0 + theta2 * (distortion[0] + theta2 * (
-            distortion[1] + theta2 * (distortion[2] + theta2 * distortion[3]))))
-        scale = np.ones_like(r)
-        far = r > 1e-8
-        scale[far] = theta_d[far] / r[far]
-        return points * scale[:, None]
-    raise InputError(f"unsupported OpenMVG intrinsic type {model!r}", field="model")
+    return _distortion_functions(model)[0](points, distortion)
 
 
 def remove_distortion(model: str, distortion: np.ndarray, distorted: np.ndarray) -> np.ndarray:
@@ -175,44 +232,7 @@ def remove_distortion(model: str, distortion: np.ndarray, distorted: np.ndarray)
     <= 1e-10), exactly 10 fixed-point steps on theta (fisheye: like OpenMVG, not converged for
     strong distortion near the image border)."""
     points = np.asarray(distorted, dtype=np.float64).reshape(-1, 2)
-    if model == "pinhole":
-        return points.copy()
-    if model in ("pinhole_radial_k1", "pinhole_radial_k3"):
-        r2 = np.einsum("ij,ij->i", points, points)
-        scale = np.ones_like(r2)
-        nonzero = r2 != 0
-        if nonzero.any():
-            k = np.asarray(distortion, dtype=np.float64)
-            r2_undistorted = _newton_polish_radius(
-                k, r2[nonzero], _bisection_radius_solve(k, r2[nonzero]))
-            scale[nonzero] = np.sqrt(r2_undistorted / r2[nonzero])
-        return points * scale[:, None]
-    if model == "pinhole_brown_t2":
-        undistorted = points.copy()
-        displacement = _brown_displacement(*distortion, undistorted)
-        active = np.abs(undistorted + displacement - points).sum(axis=1) > 1e-10
-        for _ in range(1000):  # OpenMVG loops unbounded; 1000 only guards divergence
-            if not active.any():
-                break
-            undistorted[active] = points[active] - displacement[active]
-            displacement[active] = _brown_displacement(*distortion, undistorted[active])
-            active[active] = np.abs(undistorted[active] + displacement[active]
-                                    - points[active]).sum(axis=1) > 1e-10
-        return undistorted
-    if model == "fisheye":
-        theta_d = np.hypot(points[:, 0], points[:, 1])
-        scale = np.ones_like(theta_d)
-        far = theta_d > 1e-8
-        if far.any():
-            k1, k2, k3, k4 = distortion
-            theta = theta_d[far].copy()
-            for _ in range(10):  # exactly OpenMVG's 10 fixed-point steps
-                theta2 = theta * theta
-                theta = theta_d[far] / (1.0 + theta2 * (k1 + theta2 * (k2 + theta2 * (
-                    k3 + theta2 * k4))))
-            scale[far] = np.tan(theta) / theta_d[far]
-        return points * scale[:, None]
-    raise InputError(f"unsupported OpenMVG intrinsic type {model!r}", field="model")
+    return _distortion_functions(model)[1](points, distortion)
 
 
 def undistort_normalize(intrinsics: Intrinsics, pixels: np.ndarray) -> np.ndarray:
