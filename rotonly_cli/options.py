@@ -268,9 +268,9 @@ class TriangulationOptions:
     #: Gauss-Newton iterations of the reprojection error (3 is plenty from the linear start)
     num_refinement_iterations: int = 5
     #: mean reprojection error threshold in normalized units (≈ pixels / f): OpenMVG's 4th-BA
-    #: outlier rule of 4 px (algorithms.md §7a) at f = 1000
+    #: outlier rule of 4 px (algorithms.md §7 (a)) at f = 1000
     max_reprojection_error: float = 4e-3
-    #: minimum over-track max ray angle: OpenMVG's 4th BA drops < 2° (algorithms.md §7a); 1°
+    #: minimum over-track max ray angle: OpenMVG's 4th BA drops < 2° (algorithms.md §7 (a)); 1°
     #: keeps more points, COLMAP's min_tri_angle-like default (1.5°) rounded down
     min_parallax_deg: float = 1.0
     #: points must have positive depth in every observing camera

@@ -1,5 +1,5 @@
 """Two-view pose-only adjustment (PA, Cai et al. TPAMI 2023) as restated in the paper,
-eq:PA1-eq:PAtotal2. Benchmark baseline only (algorithms.md §5).
+eq:PA1 to eq:PAtotal2. Benchmark baseline only (algorithms.md §5).
 
 For an edge (i, j), with u_k = R_ij X_ik and θ_k = u_k × X_jk (z = 1 coordinates):
 

@@ -1,5 +1,5 @@
 """The ``OUT/`` workspace files shared by ``rotonly run`` and the stage subcommands:
-``state.npz``, ``view_graph.json`` and ``reports/<stage>.json`` (formats: docs/formats.md §5).
+``state.npz``, ``view_graph.json`` and ``reports/<stage>.json`` (formats: docs/formats.md §7).
 
 ``OUT/state.npz`` holds what a later stage needs and cannot cheaply recompute: the input it
 came from (re-read for keypoints, intrinsics and images), the view graph (every edge's pose,

@@ -9,7 +9,7 @@ the TRRM driver only needs per-edge sums, so it uses this leaner evaluator:
   products: with u = R x_i (‖u‖ = ‖x_i‖), unit t and the three dots x_j·t, u·t, u·x_j,
     ‖x_j × t‖² = ‖x_j‖² - (x_j·t)²,   ‖u × t‖² = ‖x_i‖² - (u·t)²,
     θ·(x_j × t) = (u·x_j)(x_j·t) - ‖x_j‖²(u·t),  θ·(u × t) = ‖x_i‖²(x_j·t) - (u·x_j)(u·t)
-  (chirality depths, eq:crosspruduct1-2), and because t·dt = 0 (unit t; the shifted
+  (chirality depths, eq:crosspruduct1 and eq:crosspruduct2), and because t·dt = 0 (unit t; the shifted
   pseudo-inverse maps into t's complement) the depth derivatives are scalars times
   x_j·dt and u·dt;
 * the sign of t enters only through ‖θ‖ t, so it is carried as a per-match sign of ‖θ‖;
