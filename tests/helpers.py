@@ -9,7 +9,7 @@ import numpy as np
 from rotonly_cli.simulation.street import StreetScene, make_street_scene, similarity_align_error  # noqa: F401
 
 REPOSITORY = Path(__file__).resolve().parents[1]
-DATA_FIXTURES = REPOSITORY / "data_fixtures"  #: the bundled fixtures (never /work/shared)
+DATA_FIXTURES = REPOSITORY / "data_fixtures"  #: the bundled fixtures: the only data the tests read
 
 
 def grrm_problem(setup="circular", noise=1.0, seed=1, views=10, points=400, window=3, init="ransac", corrupt=0.0):

@@ -269,7 +269,7 @@ def _writer(module: str, name: str):
 
 def as_openmvg_camera(scene: SfMScene) -> SfMScene:
     """Shallow copy of ``scene`` whose COLMAP ``PINHOLE`` (fx = fy) cameras become OpenMVG
-    ``pinhole`` [focal, ppx, ppy] (both in COLMAP's pixel convention, types.py)."""
+    ``pinhole`` [focal, ppx, ppy] (both in COLMAP's pixel convention, scene/types.py)."""
     out = copy.copy(scene)
     out.intrinsics = {}
     for key, intr in scene.intrinsics.items():

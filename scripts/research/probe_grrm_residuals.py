@@ -19,7 +19,7 @@ L1-IRLS start and of GRRM for every row, and GRRM's per-camera errors. A large g
 images, not from their size. README "Known limits" uses this to explain Herz-Jesus-P8 from
 OpenMVG's matches, and GRRM against its start on fountain-P11.
 
-    python scripts/research/probe_grrm_residuals.py --root ../shared/data/strecha --scene Herz-Jesus-P8 --input openmvg
+    python scripts/research/probe_grrm_residuals.py --root DATA/strecha --scene Herz-Jesus-P8 --input openmvg
 """
 
 from __future__ import annotations

@@ -23,7 +23,7 @@ averaged rotations (load, identify, refine, average), then prints four tables:
   averaged from Pˢ's own directions (:func:`average_directions`), each re-computed for three
   rounds.
 
-    python scripts/research/probe_grrm_structure.py --root ../shared/data/strecha --scene Herz-Jesus-P8 --input openmvg
+    python scripts/research/probe_grrm_structure.py --root DATA/strecha --scene Herz-Jesus-P8 --input openmvg
 """
 
 from __future__ import annotations

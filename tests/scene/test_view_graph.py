@@ -1,4 +1,4 @@
-"""io.viewgraph / io.workspace: components, filters with reasons, deterministic JSON, state round trip."""
+"""scene.view_graph / io.workspace: components, filters with reasons, deterministic JSON, state round trip."""
 
 from __future__ import annotations
 

@@ -24,7 +24,7 @@ MatchesDict = dict[tuple[int, int], np.ndarray]
 
 def _add_pair(matches: MatchesDict, view_i: int, view_j: int, pair_matches: np.ndarray,
               path: PathLike, where: str) -> None:
-    """Store with key (min, max) and columns swapped accordingly (types.py convention)."""
+    """Store with key (min, max) and columns swapped accordingly (scene/types.py convention)."""
     if view_i == view_j:
         raise InputError(f"pair ({view_i}, {view_j}) matches a view with itself",
                          path=str(path), field=where)
