@@ -42,10 +42,15 @@ def machine() -> str:
     return f"{cpus} CPUs ({processor}){load}"
 
 
+def demote_headings(body: str) -> str:
+    """The body's own ``#`` / ``##`` headings as ``###``: they sit under the section's title."""
+    return re.sub(r"^#{1,2} ", "### ", body, flags=re.M)
+
+
 def section(key: str, title: str, command: str, body: str, date: datetime.date | None = None) -> str:
     date = date or datetime.date.today()
     return (f"<!-- results:{key} -->\n## {title}\n\n`{command}`  \n{date.isoformat()}, {machine()}\n\n"
-            f"{body.strip()}\n<!-- /results:{key} -->\n")
+            f"{demote_headings(body.strip())}\n<!-- /results:{key} -->\n")
 
 
 def replace_section(document: str, key: str, new_section: str) -> str:

@@ -21,6 +21,12 @@ def test_record_writes_replaces_and_keeps_the_other_sections(tmp_path: Path):
     assert "`rotonly bench a --more`" in text and "## Table A" in text
 
 
+def test_section_headings_sit_under_the_title():
+    text = results_md.section("k", "Title", "cmd", "## Table 1\n| a |\n# Other\n### Kept")
+    assert "### Table 1" in text and "### Other" in text and "### Kept" in text
+    assert text.count("\n## ") == 1
+
+
 def test_strip_title_and_command_line():
     assert results_md.strip_title("# rotonly bench x\n\nsome text\n| t |") == "some text\n| t |"
     assert results_md.command_line("python s.py", ["--root", "a b"]) == "python s.py --root 'a b'"
