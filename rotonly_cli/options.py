@@ -28,6 +28,8 @@ class RobustLoss(StrEnum):
     NONE = "none"  #: plain least squares (the paper's)
     HUBER = "huber"  #: ρ(s) = s inside the scale, linear in √s beyond
     CAUCHY = "cauchy"  #: ρ(s) = c² log(1 + s/c²)
+    #: ρ(s) = c² s / (c² + s): redescending, a residual far beyond c has no pull at all
+    GEMAN_MCCLURE = "geman_mcclure"
 
 
 class ResidualForm(StrEnum):
@@ -200,13 +202,13 @@ class GRRMOptions:
     step_tolerance: float = 1e-5
     initial_damping: float = 1e-4  #: μ relative to diag(JᵀJ)
     max_damping: float = 1e10
-    #: robust loss on ‖V_ik‖ (bearing chord units ≈ radians): bounds the pull of the wrong
-    #: correspondences that survive two-view RANSAC
-    loss: RobustLoss = RobustLoss.CAUCHY
+    #: robust loss on ‖V_ik‖ (bearing chord units ≈ radians). Redescending: the wrong
+    #: correspondences that survive two-view RANSAC (repeated structure, a few px off their
+    #: epipolar lines) keep pulling under Cauchy, whose influence only decays as 1/r
+    loss: RobustLoss = RobustLoss.GEMAN_MCCLURE
     #: loss scale; None = loss_scale_factor x 1.4826 x median ‖V_ik‖ at the start
     loss_scale: float | None = None
-    #: a tight Cauchy: the Strecha inlier sets hold wrong matches (repeated structure) that a
-    #: wider loss lets pull the rotations
+    #: a tight scale: the wrong matches lie a few noise sigmas out
     loss_scale_factor: float = 1.5
     #: first phase on Σ_edges λ_min(Pˢ_ij(R_j R_i^T)) (smooth, like TRRM's first phase):
     #: brings starts a degree or more off into GRRM's basin; 0 disables it
@@ -259,6 +261,19 @@ class LiGTOptions:
     max_base_search_views: int = 64
     #: views needing at least this many constraint rows to be solved
     min_constraints_per_view: int = 1
+    #: robust LiGT (ligt.robust_ligt_translations): rounds of solve -> triangulate -> drop the
+    #: observations that reproject badly; 0 = the plain linear solve over every observation.
+    #: LiGT is a least-squares solve: a few wrong tracks (repeated structure) wreck it
+    robust_rounds: int = 10
+    #: an observation is an outlier beyond this many robust sigmas of the reprojection errors
+    outlier_sigmas: float = 4.0
+    #: ... and never within this many pixels (the sigma is measured, this is its floor)
+    min_outlier_threshold_px: float = 1.0
+    #: at most this fraction of the observations is dropped per round, so that a first solve
+    #: wrecked by outliers leaves most of the data to the next one
+    max_drop_fraction: float = 0.3
+    #: the rounds stop once fewer than this fraction of observations change status
+    min_change_fraction: float = 1e-3
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -292,13 +307,26 @@ class TriangulationOptions:
 class LoadOptions:
     """The load stage (stages/load.py)."""
 
-    reestimate: Reestimate = Reestimate.AUTO
-    #: RANSAC threshold in pixels (Sampson error at the view's focal length): half of COLMAP's
-    #: verification default, since the inputs are already verified at 4 px
-    ransac_max_error_px: float = 2.0
+    #: every edge by default: COLMAP's stored poses come from verification at 4 px, loose
+    #: enough to let repeated-structure matches pull them (docs/tuning.md)
+    reestimate: Reestimate = Reestimate.ALL
+    #: RANSAC inlier threshold in pixels (Sampson error at the view's focal length); None:
+    #: ``inlier_threshold_sigmas`` x the matches' noise sigma, measured on the input
+    ransac_max_error_px: float | None = None
+    inlier_threshold_sigmas: float = 2.5
+    #: the loose threshold (px) of the RANSAC that measures the noise sigma
+    noise_ransac_max_error_px: float = 2.0
+    #: the largest edges whose RANSAC inliers give the noise sigma
+    noise_sample_edges: int = 30
+    #: seeded RANSAC runs per edge; an edge keeps the matches that are inliers of all of them
+    #: (the stable consensus) and the pose of the run closest to the others
+    consensus_runs: int = 3
     #: the matches are verified inliers already, so the adaptive trial count stops early;
     #: pycolmap's default floor of 1000 trials would dominate the load time
     ransac_min_trials: int = 20
+    #: enough for an inlier ratio of 1/3 at the confidence below; pairs with fewer inliers
+    #: (unverified raw matches) would otherwise run pycolmap's 100 000 trials
+    ransac_max_trials: int = 2000
     ransac_confidence: float = 0.9999
     seed: int = 0
     min_inliers: int = 30  #: edges with fewer inlier matches are filtered
@@ -307,8 +335,12 @@ class LoadOptions:
     def validate(self) -> LoadOptions:
         if self.reestimate not in REESTIMATE_MODES:
             raise InputError(f"must be one of {', '.join(REESTIMATE_MODES)}", field="reestimate")
-        if not self.ransac_max_error_px > 0:
+        if self.ransac_max_error_px is not None and not self.ransac_max_error_px > 0:
             raise InputError("must be > 0", field="ransac_max_error_px")
+        if not (self.inlier_threshold_sigmas > 0 and self.noise_ransac_max_error_px > 0):
+            raise InputError("must be > 0", field="inlier_threshold_sigmas")
+        if self.consensus_runs < 1 or self.noise_sample_edges < 1:
+            raise InputError("must be >= 1", field="consensus_runs")
         if self.min_inliers < MIN_MATCHES:
             raise InputError(f"must be >= {MIN_MATCHES}", field="min_inliers")
         return self

@@ -125,8 +125,9 @@ def optimize_stage(run: Run) -> None:
 def translate_stage(run: Run) -> None:
     from rotonly_cli.stages.translate import translate_graph
 
-    run.centers, run.reports["translate"] = translate_graph(run.graph, run.scene.normalized, run.rotations,
-                                                            run.options.translate, track_cache=run.tracks)
+    run.centers, run.reports["translate"] = translate_graph(
+        run.graph, run.scene.normalized, run.rotations, run.options.translate, track_cache=run.tracks,
+        focal_px=run.scene.focal_px(run.graph.view_ids()))
 
 
 def image_root(run: Run) -> Path | None:
@@ -151,7 +152,8 @@ def triangulate_stage(run: Run) -> None:
     run.structure, run.reports["triangulate"] = triangulate_graph(run.graph, run.scene, run.rotations, run.centers,
                                                                   image_root(run), run.options.triangulate,
                                                                   keypoint_rgb=run.keypoint_rgb,
-                                                                  track_cache=run.tracks)
+                                                                  track_cache=run.tracks,
+                                                                  outliers=run.options.translate)
 
 
 STAGE_FUNCTIONS = {"identify": identify_stage, "refine": refine_stage, "average": average_stage,

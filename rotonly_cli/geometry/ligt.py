@@ -37,7 +37,8 @@ from rotonly_cli.geometry.so3 import hat
 from rotonly_cli.geometry.tracks import pairs_within_tracks, segment_sums
 from rotonly_cli.options import LiGTOptions
 
-__all__ = ["LiGTOptions", "LiGTResult", "ligt_translations", "ligt_normal_matrix"]
+__all__ = ["LiGTOptions", "LiGTResult", "RobustLiGTResult", "ligt_translations", "ligt_normal_matrix",
+           "observation_errors", "outlier_threshold_px", "robust_ligt_translations"]
 
 
 @dataclass
@@ -283,3 +284,109 @@ def ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_v
     centers[solved] = solved_centers / mean_distance
     return LiGTResult(centers, solved, fixed_view, np.asarray(eigenvalues), constraints_per_view,
                       int(extras["sign_row"].shape[0]), (positive, negative))
+
+
+@dataclass
+class RobustLiGTResult:
+    result: LiGTResult  # the last solve
+    keep: np.ndarray  # (N_obs,) bool: observations of that solve
+    error_px: np.ndarray  # (N_obs,) reprojection error at the last solve (inf: no point / no centre)
+    threshold_px: float  # outlier threshold of the last round (inf without rounds)
+    rounds: list[dict]  # per round: observations used, sigma, threshold, dropped, re-admitted
+
+
+def _renumber(track: np.ndarray) -> np.ndarray:
+    return np.unique(track, return_inverse=True)[1].astype(np.int64)
+
+
+def observation_errors(R: np.ndarray, centers: np.ndarray, obs_track: np.ndarray, obs_view: np.ndarray,
+                       obs_xy: np.ndarray, used: np.ndarray) -> np.ndarray:
+    """Normalized reprojection error of every observation against its track's point,
+    triangulated (linear + Gauss-Newton, no rejection) from the ``used`` observations of
+    views with a centre; inf where the track has no point or the point lies behind the camera."""
+    from rotonly_cli.geometry.triangulation import TriangulationOptions, triangulate_tracks
+
+    posed = np.all(np.isfinite(centers), axis=1)
+    used = used & posed[obs_view]
+    counts = np.bincount(obs_track[used], minlength=int(obs_track.max()) + 1 if obs_track.size else 0)
+    used &= counts[obs_track] >= 2
+    error = np.full(obs_track.size, np.inf)
+    if not used.any():
+        return error
+    tracks_used = np.unique(obs_track[used])
+    loose = TriangulationOptions(max_reprojection_error=np.inf, min_parallax_deg=0.0)
+    C = np.where(posed[:, None], centers, 0.0)
+    solved = triangulate_tracks(R, C, _renumber(obs_track[used]), obs_view[used], obs_xy[used],
+                                tracks_used.size, loose)
+    point = np.full((int(obs_track.max()) + 1, 3), np.nan)
+    point[tracks_used] = solved.points_in_world
+    X = point[obs_track]
+    camera = np.einsum("nij,nj->ni", R[obs_view], X - C[obs_view])
+    with np.errstate(all="ignore"):
+        projected = camera[:, :2] / camera[:, 2:3]
+        error = np.linalg.norm(projected - obs_xy, axis=1)
+    error[~(camera[:, 2] > 0) | ~np.isfinite(error) | ~posed[obs_view]] = np.inf
+    return error
+
+
+def outlier_threshold_px(error_px: np.ndarray, options: LiGTOptions) -> tuple[float, float]:
+    """(sigma, threshold) of reprojection errors (px, finite): sigma = 1.4826 x the median;
+    threshold = max(outlier_sigmas x sigma, min_outlier_threshold_px, the error that keeps
+    1 - max_drop_fraction of them)."""
+    sigma = 1.4826 * float(np.median(error_px))
+    threshold = max(options.outlier_sigmas * sigma, options.min_outlier_threshold_px,
+                    float(np.quantile(error_px, 1.0 - options.max_drop_fraction)))
+    return sigma, threshold
+
+
+def robust_ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_view: np.ndarray,
+                             obs_xy: np.ndarray, obs_focal_px: np.ndarray, view_mask: np.ndarray | None = None,
+                             options: LiGTOptions | None = None) -> RobustLiGTResult:
+    """LiGT with outlier rejection by reprojection: solve, triangulate every track with the
+    centres, and solve again without the observations whose error exceeds
+    max(``outlier_sigmas`` x sigma, ``min_outlier_threshold_px``) (sigma = 1.4826 x the median
+    error in pixels, ``obs_focal_px`` per observation). Each round judges every observation
+    afresh (one dropped by a wrecked first solve comes back), drops at most
+    ``max_drop_fraction`` of the used ones, and the rounds stop when the set settles.
+
+    A wrong match along the epipolar line (repeated structure) is consistent in its own pair
+    but not with the rest of its track, so it shows as a reprojection error once the centres
+    are right; the linear solve itself weighs it like any other (docs/tuning.md)."""
+    options = options or LiGTOptions()
+    obs_track = np.asarray(obs_track, dtype=np.int64)
+    obs_view = np.asarray(obs_view, dtype=np.int64)
+    obs_xy = np.asarray(obs_xy, dtype=float)
+    obs_focal_px = np.broadcast_to(np.asarray(obs_focal_px, dtype=float), obs_track.shape)
+    R = np.asarray(R_cam_from_world, dtype=float)
+    keep = np.ones(obs_track.size, dtype=bool)
+    rounds: list[dict] = []
+    threshold = np.inf
+    last = None
+    while True:
+        counts = np.bincount(obs_track[keep], minlength=int(obs_track.max()) + 1 if obs_track.size else 0)
+        used = keep & (counts[obs_track] >= 2)
+        try:
+            result = ligt_translations(R, _renumber(obs_track[used]), obs_view[used], obs_xy[used], view_mask,
+                                       options=options)
+        except AlgorithmError:
+            if last is None:
+                raise
+            rounds[-1]["failed"] = "the solve without the dropped observations failed; the previous one is kept"
+            result, used, error = last
+            break
+        error = observation_errors(R, result.centers, obs_track, obs_view, obs_xy, used) * obs_focal_px
+        last = (result, used, error)
+        if len(rounds) >= options.robust_rounds:
+            break
+        finite = used & np.isfinite(error)
+        if not finite.any():
+            break
+        sigma, threshold = outlier_threshold_px(error[finite], options)
+        new_keep = error <= threshold
+        dropped, readmitted = int(np.count_nonzero(used & ~new_keep)), int(np.count_nonzero(~keep & new_keep))
+        rounds.append({"observations": int(used.sum()), "sigma_px": sigma, "threshold_px": threshold,
+                       "dropped": dropped, "readmitted": readmitted})
+        if dropped + readmitted <= options.min_change_fraction * max(int(used.sum()), 1):
+            break
+        keep = new_keep
+    return RobustLiGTResult(result, used, error, threshold, rounds)

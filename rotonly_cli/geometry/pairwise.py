@@ -442,6 +442,19 @@ def epipolar_residuals(R_j_from_i: np.ndarray, batch: EdgeBatch, with_jacobian: 
 
 
 # ----------------------------------------------------------------------------- pure rotation
+def sampson_errors(R_j_from_i: np.ndarray, t: np.ndarray, x_i: np.ndarray, x_j: np.ndarray) -> np.ndarray:
+    """First-order geometric distance of each match to the epipolar geometry E = [t]x R_ij
+    (Sampson), in normalized image units (x pixels / focal length): (m,)."""
+    E = so3.hat(np.asarray(t, dtype=float)) @ np.asarray(R_j_from_i, dtype=float)
+    a = _as_points(x_i, "x_i")
+    b = _as_points(x_j, "x_j")
+    Ea = a @ E.T  # epipolar lines in view j
+    Etb = b @ E  # epipolar lines in view i
+    algebraic = np.einsum("ma,ma->m", b, Ea)
+    gradient = Ea[:, 0] ** 2 + Ea[:, 1] ** 2 + Etb[:, 0] ** 2 + Etb[:, 1] ** 2
+    return np.abs(algebraic) / np.sqrt(np.maximum(gradient, 1e-300))
+
+
 def pure_rotation_residuals(R_j_from_i: np.ndarray, batch: EdgeBatch) -> np.ndarray:
     """eq:PureRotationReprojBearingError for both views: per-edge cost Σ ‖x̂_j - R x̂_i‖² · 2."""
     xi_hat, _ = _unit(batch.x_i)

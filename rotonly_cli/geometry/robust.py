@@ -23,16 +23,20 @@ def robust_curvature(sq_norm: np.ndarray, loss: str, scale: float) -> np.ndarray
     u = sq_norm / (scale * scale)
     if loss == "huber":
         return (u > 1.0).astype(float)
+    if loss == "geman_mcclure":
+        return np.minimum(4.0 * u / (1.0 + u), 1.0)
     return np.minimum(2.0 * u / (1.0 + u), 1.0)  # cauchy
 
 
 def radial_excess(sq_norm: np.ndarray, loss: str, scale: float) -> np.ndarray:
     """(β - 1)₊ of the unclamped β = -2 s ρ''(s) / ρ'(s) (see robust_curvature): Cauchy's
-    β = 2u / (1 + u) exceeds 1 beyond the loss scale (u > 1); Huber's is at most 1."""
-    if loss != "cauchy":
+    β = 2u / (1 + u) exceeds 1 beyond the loss scale (u > 1), Geman-McClure's 4u / (1 + u)
+    beyond u = 1/3; Huber's is at most 1."""
+    if loss not in ("cauchy", "geman_mcclure"):
         return np.zeros_like(sq_norm)
     u = sq_norm / (scale * scale)
-    return np.maximum((u - 1.0) / (1.0 + u), 0.0)
+    factor = 4.0 if loss == "geman_mcclure" else 2.0
+    return np.maximum(factor * u / (1.0 + u) - 1.0, 0.0)
 
 
 def robust_rho(sq_norm: np.ndarray, loss: str, scale: float) -> tuple[np.ndarray, np.ndarray]:
@@ -46,6 +50,9 @@ def robust_rho(sq_norm: np.ndarray, loss: str, scale: float) -> tuple[np.ndarray
         rho = np.where(small, sq_norm, 2.0 * scale * root - c2)
         drho = np.where(small, 1.0, scale / np.where(small, 1.0, root))
         return rho, drho
+    if loss == "geman_mcclure":
+        inv = c2 / (c2 + sq_norm)
+        return sq_norm * inv, inv * inv
     rho = c2 * np.log1p(sq_norm / c2)  # cauchy
     drho = 1.0 / (1.0 + sq_norm / c2)
     return rho, drho

@@ -24,7 +24,7 @@ from rotonly_cli.scene.view_graph import Edge, ViewGraph
 STATE_FILE = "state.npz"
 _EDGE_FIELDS = ("pose_source", "config", "scene_kind", "detection_value", "pure_rotation_ratio", "status",
                 "reason", "residual_deg", "trrm_initial_cost", "trrm_cost", "trrm_iterations",
-                "trrm_rotation_change_deg")
+                "trrm_rotation_change_deg", "dropped_matches")
 
 
 @dataclass

@@ -25,6 +25,10 @@ import numpy as np
 
 from rotonly_cli.errors import InputError
 
+#: COLMAP models whose first two parameters are fx, fy (every other model: f first)
+TWO_FOCAL_MODELS = ("PINHOLE", "OPENCV", "OPENCV_FISHEYE", "FULL_OPENCV", "FOV", "THIN_PRISM_FISHEYE",
+                    "RAD_TAN_THIN_PRISM_FISHEYE")
+
 
 @dataclass
 class Intrinsics:
@@ -37,6 +41,12 @@ class Intrinsics:
     width: int
     height: int
     params: np.ndarray
+
+    @property
+    def focal_px(self) -> float:
+        """Focal length in pixels (mean of fx, fy for two-focal COLMAP models)."""
+        params = np.asarray(self.params, dtype=float).ravel()
+        return float(params[:2].mean()) if self.model in TWO_FOCAL_MODELS else float(params[0])
 
 
 @dataclass
@@ -132,3 +142,11 @@ class SfMScene:
     structure: Structure | None = None
     root_path: str = ""  # image root (OpenMVG ``root_path``)
     source: str = ""  # "colmap-db", "openmvg", "colmap-model", "strecha", "simulation"
+
+    def focal_px(self, view_ids) -> np.ndarray:
+        """Focal length (px) of each of ``view_ids``; NaN for a view without intrinsics."""
+        def focal(view_id: int) -> float:
+            intrinsics = self.intrinsics.get(self.views[view_id].intrinsics_id) if view_id in self.views else None
+            return intrinsics.focal_px if intrinsics is not None else float("nan")
+
+        return np.array([focal(v) for v in view_ids], dtype=float)

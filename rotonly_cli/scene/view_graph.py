@@ -51,6 +51,8 @@ class Edge:
     trrm_cost: float = math.nan
     trrm_iterations: int = 0
     trrm_rotation_change_deg: float = math.nan
+    #: matches removed from this edge, per reason (the input's matches minus ``matches``)
+    dropped_matches: dict[str, int] = field(default_factory=dict)
 
     @property
     def num_inliers(self) -> int:
@@ -65,6 +67,16 @@ class Edge:
         if self.status == ACTIVE:
             self.status, self.reason = FILTERED, reason
 
+    def drop_matches(self, keep: np.ndarray, reason: str) -> int:
+        """Keep the matches where ``keep`` (m,) is True; the others are counted under ``reason``.
+        Returns how many were dropped."""
+        keep = np.asarray(keep, dtype=bool)
+        dropped = int(keep.size - np.count_nonzero(keep))
+        if dropped:
+            self.matches = self.matches[keep]
+            self.dropped_matches[reason] = self.dropped_matches.get(reason, 0) + dropped
+        return dropped
+
     def diagnostics(self) -> dict:
         def number(x: float) -> float | None:  # JSON has no NaN
             return None if x is None or not np.isfinite(x) else float(x)
@@ -78,6 +90,7 @@ class Edge:
             "trrm_initial_cost": number(self.trrm_initial_cost), "trrm_cost": number(self.trrm_cost),
             "trrm_iterations": int(self.trrm_iterations),
             "trrm_rotation_change_deg": number(self.trrm_rotation_change_deg),
+            "dropped_matches": dict(sorted(self.dropped_matches.items())),
             "R_j_from_i": np.asarray(self.R_j_from_i, dtype=float).tolist(),
             "t_dir": np.asarray(self.t_dir, dtype=float).tolist(),
         }

@@ -1,12 +1,17 @@
 """Stage `load`: INPUT (COLMAP database or OpenMVG project) -> SfMScene -> ViewGraph.
 
-Relative poses (architecture.md "CLI contract"): a stored pose is kept only when it comes
-from an essential matrix (COLMAP ``CALIBRATED``). Poses decomposed from a homography or a
-fundamental matrix (``PLANAR``, ``UNCALIBRATED``, ``PLANAR_OR_PANORAMIC`` ...) are several
-times less accurate (data/strecha/README.md), and OpenMVG stores none: those edges are
-re-estimated from their inlier matches with pycolmap's calibrated LO-RANSAC
-(``estimate_relative_pose``, formats.md §4.7) on normalized coordinates, seeded, keeping the
-RANSAC inliers only. It is per-edge C++ work, so a loop over edges is fine here.
+Relative poses: every edge is re-estimated from its matches by default (``--reestimate``:
+``auto`` keeps COLMAP's E-based stored poses, ``none`` keeps every stored pose). Poses
+decomposed from a homography or a fundamental matrix are several times less accurate
+(data/strecha/README.md), OpenMVG stores none, and COLMAP verifies at 4 px, loose enough for
+repeated-structure matches to pull its E.
+
+The estimate is pycolmap's calibrated LO-RANSAC (``estimate_relative_pose``, formats.md §4.7)
+on normalized coordinates at a threshold measured on the input: ``inlier_threshold_sigmas``
+x the noise sigma of the matches (Sampson errors of a loose RANSAC on the largest pairs).
+Each edge runs ``consensus_runs`` seeded RANSACs and keeps the stable consensus: the matches
+that every run accepts (:func:`stable_consensus`). Dropped matches are counted per edge and
+reason. It is per-edge C++ work, so a loop over edges is fine here.
 """
 
 from __future__ import annotations
@@ -19,6 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.errors import InputError
+from rotonly_cli.geometry import pairwise as pg
+from rotonly_cli.geometry import so3
 from rotonly_cli.io.detect import InputKind, detect_input
 from rotonly_cli.options import LoadOptions, Reestimate
 from rotonly_cli.scene.types import Intrinsics, SfMScene
@@ -50,24 +57,20 @@ def read_input(input_path: str | Path, matches_dir: str | Path | None = None) ->
 
 def focal_length(intrinsics: Intrinsics) -> float:
     """Focal length in pixels (mean of fx, fy for two-focal COLMAP models)."""
-    params = np.asarray(intrinsics.params, dtype=float).ravel()
-    two_focal = ("PINHOLE", "OPENCV", "OPENCV_FISHEYE", "FULL_OPENCV", "FOV", "THIN_PRISM_FISHEYE",
-                 "RAD_TAN_THIN_PRISM_FISHEYE")
-    if intrinsics.model in two_focal:
-        return float(params[:2].mean())
-    return float(params[0])
+    return intrinsics.focal_px
 
 
-def _relative_pose_ransac(x_i: np.ndarray, x_j: np.ndarray, focal_i: float, focal_j: float,
-                          options: LoadOptions):
+def _relative_pose_ransac(x_i: np.ndarray, x_j: np.ndarray, focal_i: float, focal_j: float, max_error_px: float,
+                          seed: int, options: LoadOptions):
     """pycolmap LO-RANSAC on normalized points through SIMPLE_PINHOLE(f, 0, 0) cameras, so
     the threshold is in pixels. Returns (R_j_from_i, unit t, inlier mask) or None."""
     import pycolmap
 
     cameras = [pycolmap.Camera(model=pycolmap.CameraModelId.SIMPLE_PINHOLE, width=2, height=2,
                                params=np.array([f, 0.0, 0.0])) for f in (focal_i, focal_j)]
-    ransac = pycolmap.RANSACOptions(max_error=options.ransac_max_error_px, random_seed=options.seed,
-                                    min_num_trials=options.ransac_min_trials, confidence=options.ransac_confidence)
+    ransac = pycolmap.RANSACOptions(max_error=max_error_px, random_seed=seed, min_num_trials=options.ransac_min_trials,
+                                    max_num_trials=max(options.ransac_max_trials, options.ransac_min_trials),
+                                    confidence=options.ransac_confidence)
     result = pycolmap.estimate_relative_pose(cameras[0], np.ascontiguousarray(x_i * focal_i), cameras[1],
                                              np.ascontiguousarray(x_j * focal_j), ransac)
     if result is None:
@@ -77,6 +80,64 @@ def _relative_pose_ransac(x_i: np.ndarray, x_j: np.ndarray, focal_i: float, foca
     norm = np.linalg.norm(t)
     return (np.array(pose.rotation.matrix(), dtype=float), t / norm if norm > 0 else t,
             np.asarray(result["inlier_mask"], dtype=bool).ravel())
+
+
+def _pool_map(function, items: list, progress: bool, desc: str) -> list:
+    """``function`` over ``items`` on one thread per core (pycolmap releases the GIL inside
+    RANSAC; every call is seeded, so the results do not depend on the scheduling)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1)) as pool:
+        results = pool.map(function, items)
+        if progress:
+            from rotonly_cli.runtime.progress import progress_bar
+
+            results = progress_bar(results, total=len(items), desc=desc, unit="run")
+        return list(results)
+
+
+#: the noise sigma needs this many inlier residuals to be trusted; below, the loose threshold is used
+MIN_NOISE_SAMPLES = 50
+#: the measured threshold never goes below this (px): noise-free input would otherwise ask
+#: RANSAC for a zero threshold
+MIN_THRESHOLD_PX = 0.05
+
+
+def noise_sigma_px(pairs: list[tuple[np.ndarray, np.ndarray, float, float]], options: LoadOptions) -> float | None:
+    """Noise sigma (px) of the matches: 1.4826 x the median Sampson error of the inliers of a
+    loose RANSAC (``options.noise_ransac_max_error_px``) on the largest ``noise_sample_edges``
+    pairs ``(x_i, x_j, focal_i, focal_j)``; None with too few inliers."""
+    order = sorted(range(len(pairs)), key=lambda k: -len(pairs[k][0]))[:options.noise_sample_edges]
+
+    def residuals(k: int) -> np.ndarray:
+        x_i, x_j, focal_i, focal_j = pairs[k]
+        estimate = _relative_pose_ransac(x_i, x_j, focal_i, focal_j, options.noise_ransac_max_error_px,
+                                         options.seed, options)
+        if estimate is None:
+            return np.zeros(0)
+        R, t, inliers = estimate
+        return pg.sampson_errors(R, t, x_i[inliers], x_j[inliers]) * 0.5 * (focal_i + focal_j)
+
+    errors = np.concatenate([np.zeros(0)] + _pool_map(residuals, order, False, ""))
+    return 1.4826 * float(np.median(errors)) if errors.size >= MIN_NOISE_SAMPLES else None
+
+
+def stable_consensus(estimates: list) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """One edge's seeded RANSAC results (R, t, inlier mask) -> (R, t, stable mask): the
+    matches that are inliers of every run, with the pose of the run whose rotation is closest
+    to the others' (least sum of geodesic angles). None if a run failed.
+
+    Near-degenerate pairs (a dominant plane, repeated structure) let RANSAC settle on
+    different models from different samples; matches near the threshold then swing in and out
+    of the inlier set, and the ones that swing pull the rotation (measured on castle-P19,
+    docs/tuning.md). Those that every run accepts do not."""
+    if not estimates or any(estimate is None for estimate in estimates):
+        return None
+    stable = np.logical_and.reduce([estimate[2] for estimate in estimates])
+    R = np.stack([estimate[0] for estimate in estimates])
+    spread = so3.geodesic_angle(R[:, None], R[None, :]).sum(axis=1)
+    best = estimates[int(np.argmin(spread))]
+    return best[0], best[1], stable
 
 
 def build_view_graph(scene: SfMScene, options: LoadOptions = LoadOptions()) -> tuple[ViewGraph, dict]:
@@ -104,35 +165,40 @@ def build_view_graph(scene: SfMScene, options: LoadOptions = LoadOptions()) -> t
             to_estimate.append(len(graph.edges) - 1)
         elif not has_pose:
             edge.filter("no relative pose")
+
+    def edge_data(k: int) -> tuple[np.ndarray, np.ndarray, float, float]:
+        edge = graph.edges[k]
+        return (scene.normalized[edge.i][edge.matches[:, 0]], scene.normalized[edge.j][edge.matches[:, 1]],
+                focal_length(scene.intrinsics[scene.views[edge.i].intrinsics_id]),
+                focal_length(scene.intrinsics[scene.views[edge.j].intrinsics_id]))
+
+    pairs = [edge_data(k) for k in to_estimate]
+    sigma = None
+    threshold = options.ransac_max_error_px
+    if threshold is None:
+        sigma = noise_sigma_px(pairs, options) if pairs else None
+        threshold = options.noise_ransac_max_error_px if sigma is None else \
+            float(np.clip(options.inlier_threshold_sigmas * sigma, MIN_THRESHOLD_PX, options.noise_ransac_max_error_px))
+    runs = [(n, options.seed + r) for n in range(len(pairs)) for r in range(options.consensus_runs)]
+
+    def estimate_run(run: tuple[int, int]):
+        x_i, x_j, focal_i, focal_j = pairs[run[0]]
+        return _relative_pose_ransac(x_i, x_j, focal_i, focal_j, threshold, run[1], options)
+
+    estimates = _pool_map(estimate_run, runs, options.progress, "relative poses (RANSAC)")
     num_failed = 0
-
-    def estimate_edge(k: int):
+    for n, k in enumerate(to_estimate):
         edge = graph.edges[k]
-        x_i = scene.normalized[edge.i][edge.matches[:, 0]]
-        x_j = scene.normalized[edge.j][edge.matches[:, 1]]
-        focal_i = focal_length(scene.intrinsics[scene.views[edge.i].intrinsics_id])
-        focal_j = focal_length(scene.intrinsics[scene.views[edge.j].intrinsics_id])
-        return _relative_pose_ransac(x_i, x_j, focal_i, focal_j, options)
-
-    # pycolmap releases the GIL inside RANSAC: one thread per core; every edge has its own
-    # seeded RANSAC, so the results do not depend on the scheduling
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1)) as pool:
-        estimated = pool.map(estimate_edge, to_estimate)
-        if options.progress:
-            from rotonly_cli.runtime.progress import progress_bar
-
-            estimated = progress_bar(estimated, total=len(to_estimate), desc="relative poses (RANSAC)", unit="edge")
-        estimates = list(estimated)
-    for k, estimate in zip(to_estimate, estimates):
-        edge = graph.edges[k]
-        if estimate is None:
+        consensus = stable_consensus(estimates[n * options.consensus_runs:(n + 1) * options.consensus_runs])
+        if consensus is None:
             num_failed += 1
             edge.filter("relative pose estimation failed")
             continue
-        edge.R_j_from_i, edge.t_dir, inliers = estimate
-        edge.matches = edge.matches[inliers]
+        edge.R_j_from_i, edge.t_dir, stable = consensus
+        inliers = estimates[n * options.consensus_runs + 0][2] if options.consensus_runs == 1 else \
+            np.logical_or.reduce([e[2] for e in estimates[n * options.consensus_runs:(n + 1) * options.consensus_runs]])
+        edge.drop_matches(inliers, "RANSAC outlier")
+        edge.drop_matches(stable[inliers], "unstable consensus")
         edge.pose_source = "ransac"
     num_before = len(graph.active_edges())
     for k in graph.active_edges():
@@ -140,16 +206,22 @@ def build_view_graph(scene: SfMScene, options: LoadOptions = LoadOptions()) -> t
             graph.edges[k].filter("too few inliers")
     num_few = num_before - len(graph.active_edges())
     component = largest_component(graph)
+    dropped: dict[str, int] = {}
+    for edge in graph.edges:
+        for reason, count in edge.dropped_matches.items():
+            dropped[reason] = dropped.get(reason, 0) + count
     report = {
         "num_views": len(scene.views), "num_pairs": len(scene.pairs), "num_reestimated": len(to_estimate),
         "num_ransac_failed": num_failed, "num_too_few_inliers_after_ransac": num_few,
         "num_active_edges": len(graph.active_edges()), "largest_component_views": len(component),
         "unregistered_views": list(graph.unregistered_views),
         "num_inlier_matches": int(sum(graph.edges[k].num_inliers for k in graph.active_edges())),
-        "ransac_max_error_px": options.ransac_max_error_px, "min_inliers": options.min_inliers,
+        "noise_sigma_px": sigma, "ransac_max_error_px": threshold, "consensus_runs": options.consensus_runs,
+        "dropped_matches": dict(sorted(dropped.items())), "min_inliers": options.min_inliers,
         "time_s": time.perf_counter() - start,
     }
-    logger.info("view graph: %d views, %d pairs, %d re-estimated (%d failed), %d active edges, "
+    logger.info("view graph: %d views, %d pairs, %d re-estimated (%d failed) at %.2f px%s, %d active edges, "
                 "largest component %d views", len(scene.views), len(scene.pairs), len(to_estimate), num_failed,
-                report["num_active_edges"], len(component))
+                threshold, "" if sigma is None else f" (noise sigma {sigma:.3f} px)", report["num_active_edges"],
+                len(component))
     return graph, report

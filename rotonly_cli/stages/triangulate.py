@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rotonly_cli.geometry.ligt import LiGTOptions, observation_errors, outlier_threshold_px
+from rotonly_cli.geometry.tracks import Tracks, tracks_from_arrays
 from rotonly_cli.geometry.triangulation import TriangulationOptions, triangulate_tracks
 from rotonly_cli.scene.ids import observation_lists
 from rotonly_cli.scene.tracks import TrackCache, graph_tracks
@@ -112,18 +114,36 @@ def start_keypoint_colors(scene: SfMScene, image_root: str | Path | None) -> Fut
     return future
 
 
+def _keep_observations(tracks: Tracks, obs_xy: np.ndarray, keep: np.ndarray) -> tuple[Tracks, np.ndarray]:
+    """The tracks without the observations where ``keep`` is False; tracks left with fewer
+    than two observations go."""
+    counts = np.bincount(tracks.track_id[keep], minlength=tracks.num_tracks)
+    keep = keep & (counts[tracks.track_id] >= 2)
+    if keep.all():
+        return tracks, obs_xy
+    track_id = np.unique(tracks.track_id[keep], return_inverse=True)[1]
+    return (tracks_from_arrays(track_id, tracks.view[keep], tracks.feature[keep], tracks.num_inconsistent),
+            obs_xy[keep])
+
+
 def triangulate_graph(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.ndarray, centers: np.ndarray,
                       image_root: str | Path | None = None,
                       options: TriangulationOptions | None = None,
                       keypoint_rgb: Future | dict[int, np.ndarray | None] | None = None,
-                      track_cache: TrackCache | None = None) -> tuple[Structure, dict]:
+                      track_cache: TrackCache | None = None,
+                      outliers: LiGTOptions | None = None) -> tuple[Structure, dict]:
     """Structure (valid points only, observations as (view id, keypoint)) and report.
 
+    ``outliers``: the outlier test (outlier_sigmas, min_outlier_threshold_px,
+    max_drop_fraction) of the robust LiGT rounds, applied once to every observation.
     ``keypoint_rgb``: keypoint colours already being computed (:func:`start_keypoint_colors`)
     or computed; without them the images are decoded here, beside the triangulation.
     ``track_cache``: the run's, shared with translate (scene/tracks)."""
     start = time.perf_counter()
+    outliers = outliers or LiGTOptions()
     view_ids = graph.view_ids()
+    focal = scene.focal_px(view_ids)
+    focal = np.where(np.isfinite(focal), focal, 1000.0)
     row_of = {v: r for r, v in enumerate(view_ids)}
     posed = np.all(np.isfinite(R_cam_from_world.reshape(len(view_ids), -1)), axis=1) & \
         np.all(np.isfinite(centers), axis=1)
@@ -140,6 +160,14 @@ def triangulate_graph(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.nd
             colors_future = pool.submit(keypoint_colors, scene, image_root, edge_views, 1)
         tracks, obs_xy = graph_tracks(graph, scene.normalized, edges, R, cache=track_cache)
         C = np.where(posed[:, None], centers, 0.0)
+        # the outlier test of the robust LiGT rounds (stages/translate): observations that
+        # reproject badly against the rest of their track leave it before the final solve
+        num_observations = tracks.num_observations
+        error = observation_errors(R, np.where(posed[:, None], centers, np.nan), tracks.track_id, tracks.view,
+                                   obs_xy, np.ones(num_observations, dtype=bool)) * focal[tracks.view]
+        finite = np.isfinite(error)
+        sigma, threshold = outlier_threshold_px(error[finite], outliers) if finite.any() else (np.nan, np.inf)
+        tracks, obs_xy = _keep_observations(tracks, obs_xy, error <= threshold)
         result = triangulate_tracks(R, C, tracks.track_id, tracks.view, obs_xy, tracks.num_tracks, options)
         valid = result.valid
         kept = tracks.subset(valid)
@@ -154,7 +182,9 @@ def triangulate_graph(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.nd
                           observations=observation_lists(track_lengths, view_feature),
                           observation_arrays=(track_lengths, view_feature))
     error = result.mean_reprojection_error[valid]
-    report = {"num_edges": len(edges), "num_tracks": tracks.num_tracks, "num_points": int(valid.sum()),
+    report = {"num_edges": len(edges), "num_observations_dropped": int(num_observations - tracks.num_observations),
+              "outlier_sigma_px": sigma, "outlier_threshold_px": threshold,
+              "num_tracks": tracks.num_tracks, "num_points": int(valid.sum()),
               "num_rejected": int(tracks.num_tracks - valid.sum()),
               "num_behind_camera": int((~result.in_front).sum()),
               "track_length_mean": float(kept.length.mean()) if kept.num_tracks else 0.0,

@@ -28,7 +28,8 @@ def setup():
 
 @pytest.mark.parametrize("chunk", [1 << 15, 97])
 @pytest.mark.parametrize("dense", [True, False])
-def test_linearize_equals_explicit_jacobian(setup, chunk, dense, monkeypatch):
+@pytest.mark.parametrize("loss", ["cauchy", "geman_mcclure"])
+def test_linearize_equals_explicit_jacobian(setup, chunk, dense, loss, monkeypatch):
     """Cost, JᵀWJ (with Triggs' clamped radial term), JᵀWV and the exact-curvature remainder
     from the block-by-block linearisation equal the products of the explicit Jacobian, for the
     dense and the sparse view-block assembly and blocks cut every 97 contributions."""
@@ -36,12 +37,12 @@ def test_linearize_equals_explicit_jacobian(setup, chunk, dense, monkeypatch):
     monkeypatch.setattr(grrm.problem, "_DENSE_MAX_VIEWS", 200 if dense else 0)
     p, prob, R, V, J, sq, scale = setup
     problem = grrm.GRRMSystem(8, prob.edge_views, prob.batch, prob.obs_ids)
-    cost, H, g, remainder = problem.linearize(R, "cauchy", scale, True, True, exact_radial_curvature=True)
+    cost, H, g, remainder = problem.linearize(R, loss, scale, True, True, exact_radial_curvature=True)
     assert isinstance(H, np.ndarray) == dense
-    rho, drho = robust.robust_rho(sq, "cauchy", scale)
-    beta = robust.robust_curvature(sq, "cauchy", scale)
+    rho, drho = robust.robust_rho(sq, loss, scale)
+    beta = robust.robust_curvature(sq, loss, scale)
     u = sq / scale**2
-    excess = np.maximum(2 * u / (1 + u) - 1, 0)
+    excess = np.maximum((4 if loss == "geman_mcclure" else 2) * u / (1 + u) - 1, 0)
     assert 0.05 < np.mean(excess > 0) < 0.5  # the remainder is really exercised
     v_hat = V / np.sqrt(sq)[:, None]
     # per observation: ρ' (I - β v̂v̂ᵀ) and the remainder's ρ' (β_exact - 1)₊ v̂v̂ᵀ as 3x3 blocks
@@ -59,7 +60,7 @@ def test_linearize_equals_explicit_jacobian(setup, chunk, dense, monkeypatch):
     assert np.max(np.abs(rem_dense - X_ref)) <= 1e-12 * np.abs(X_ref).max()
     assert np.max(np.abs(g - g_ref)) <= 1e-12 * np.abs(g_ref).max()
     # without the Jacobian: the cost only
-    cost_only = problem.linearize(R, "cauchy", scale, True, False)
+    cost_only = problem.linearize(R, loss, scale, True, False)
     assert cost_only[1:] == (None, None, None) and abs(cost_only[0] - cost) <= 1e-13 * cost
 
 
@@ -93,14 +94,16 @@ def test_epipolar_trigger_skips_the_phase_only_near_the_optimum(caplog):
     """Start 0.05 deg off: GRRM's first step is small, the λ_min phase is skipped, and the
     result equals the flow that always runs it first (epipolar_trigger=None) when that flow
     keeps the start. Start 3 deg off: the first step exceeds the trigger and the phase runs,
-    exactly as with epipolar_trigger=None."""
+    exactly as with epipolar_trigger=None. (Cauchy loss: its first step from near the optimum
+    is a plain Gauss-Newton step; Geman-McClure's may need damping, which runs the phase.)"""
     p, prob, R_gt = _problem(seed=11, views=8, noise=1.0)
     args = (prob.edge_views, prob.batch, prob.obs_ids)
     rng = np.random.default_rng(7)
     near = so3.exp(rng.normal(scale=np.deg2rad(0.05), size=(8, 3))) @ R_gt
-    res, msg = _grrm_log(caplog, near, *args)
+    cauchy = grrm.GRRMOptions(loss="cauchy")
+    res, msg = _grrm_log(caplog, near, *args, options=cauchy)
     assert "skipped" in msg
-    ref, ref_msg = _grrm_log(caplog, near, *args, options=grrm.GRRMOptions(epipolar_trigger=None))
+    ref, ref_msg = _grrm_log(caplog, near, *args, options=grrm.GRRMOptions(loss="cauchy", epipolar_trigger=None))
     if "kept" in ref_msg:
         assert np.max(so3.geodesic_angle(res.R_cam_from_world, ref.R_cam_from_world)) < 1e-12
         assert res.iterations == ref.iterations and res.initial_cost == pytest.approx(ref.initial_cost, rel=1e-12)
@@ -109,9 +112,9 @@ def test_epipolar_trigger_skips_the_phase_only_near_the_optimum(caplog):
         assert abs(err[0] - err[1]) < 1e-3, err
     far = so3.exp(rng.normal(scale=np.deg2rad(3.0), size=(8, 3))) @ R_gt
     far[0] = R_gt[0]
-    res, msg = _grrm_log(caplog, far, *args)
+    res, msg = _grrm_log(caplog, far, *args, options=cauchy)
     assert "skipped" not in msg
-    ref, ref_msg = _grrm_log(caplog, far, *args, options=grrm.GRRMOptions(epipolar_trigger=None))
+    ref, ref_msg = _grrm_log(caplog, far, *args, options=grrm.GRRMOptions(loss="cauchy", epipolar_trigger=None))
     assert msg == ref_msg
     assert np.max(so3.geodesic_angle(res.R_cam_from_world, ref.R_cam_from_world)) < 1e-12
     assert res.initial_cost == pytest.approx(ref.initial_cost, rel=1e-12)
