@@ -15,8 +15,9 @@ from rotonly_cli.compat import StrEnum
 from rotonly_cli.errors import InputError
 
 __all__ = [
-    "AverageOptions", "AveragingOptions", "GRRMOptions", "IdentificationOptions", "LiGTOptions", "LoadOptions",
-    "Reestimate", "ResidualForm", "RobustLoss", "RobustWeight", "RunOptions", "TRRMOptions", "TriangulationOptions",
+    "AverageOptions", "AveragingOptions", "GRRMOptions", "IdentificationOptions", "Intrinsics", "IntrinsicsOptions",
+    "LiGTOptions", "LoadOptions", "Reestimate", "ResidualForm", "RobustLoss", "RobustWeight", "RunOptions",
+    "TRRMOptions", "TriangulationOptions",
 ]
 
 
@@ -55,11 +56,25 @@ class Reestimate(StrEnum):
     NONE = "none"  #: none: edges without a usable stored pose are filtered
 
 
+class Intrinsics(StrEnum):
+    """What ``rotonly run`` does with the camera intrinsics it is given (stages/intrinsics.py)."""
+
+    FIXED = "fixed"  #: used as given
+    #: every camera calibrated: focal lengths from the view graph, then focal, principal point
+    #: and radial terms estimated from the reconstruction
+    REFINE = "refine"
+    #: cameras the input marks as a guess (COLMAP ``prior_focal_length = 0``) calibrated as
+    #: ``refine`` does, and cameras whose reprojection error shows them wrong; the others
+    #: stay as given
+    AUTO = "auto"
+
+
 #: fewest matches an edge may have (five-point minimum + one to over-determine Pˢ)
 MIN_MATCHES = 6
 LOSSES = tuple(loss.value for loss in RobustLoss)
 RESIDUALS = tuple(form.value for form in ResidualForm)
 REESTIMATE_MODES = tuple(mode.value for mode in Reestimate)
+INTRINSICS_MODES = tuple(mode.value for mode in Intrinsics)
 
 
 # ============================================================================ geometry
@@ -347,6 +362,41 @@ class LoadOptions:
 
 
 @dataclass(frozen=True)
+class IntrinsicsOptions:
+    """Camera calibration (stages/intrinsics.py; docs/tuning.md "Intrinsics")."""
+
+    mode: Intrinsics = Intrinsics.AUTO
+    #: auto: a camera whose mean reprojection error (px) after the first reconstruction is
+    #: above this is calibrated too (calibrated Strecha inputs: 0.17-0.23 px)
+    suspect_reprojection_px: float = 0.5
+    #: F re-fit on each pair's verified matches before the view-graph calibration (pixels)
+    fundamental_max_error_px: float = 2.0
+    fundamental_min_trials: int = 20
+    #: the bundle adjustment that estimates the intrinsics uses the longest tracks only
+    max_points: int = 5000
+    max_rounds: int = 4
+    #: a parameter group (focal, principal point, distortion) changes only when the change
+    #: moves some pixel of the image by more than this fraction of its half diagonal
+    #: (0.5 %: 4.6 px on 1536 x 1024; calibrated inputs move by <= 4.2 px)
+    min_shift: float = 0.005
+    #: rounds stop when the intrinsics moved by less than this fraction of the half diagonal;
+    #: the relative poses of the load stage are re-estimated when they moved by more
+    converged_shift: float = 0.02
+    #: warnings: final mean reprojection error above this (px) ...
+    warn_reprojection_px: float = 1.0
+    #: ... or the focal of a camera not marked as a guess moved by more than this fraction
+    warn_focal_change: float = 0.02
+    seed: int = 0
+
+    def validate(self) -> IntrinsicsOptions:
+        if self.mode not in INTRINSICS_MODES:
+            raise InputError(f"must be one of {', '.join(INTRINSICS_MODES)}", field="intrinsics")
+        if self.max_points < 100 or self.max_rounds < 1:
+            raise InputError("max_points >= 100 and max_rounds >= 1 needed", field="intrinsics")
+        return self
+
+
+@dataclass(frozen=True)
 class AverageOptions:
     """The average stage (stages/average.py)."""
 
@@ -364,6 +414,7 @@ class RunOptions:
     matches_dir: str | None = None  #: OpenMVG input: features + matches folder
     image_path: str | None = None  #: images for the point colours (default: beside the input)
     gt: str | None = None  #: ground truth for the final evaluation
+    intrinsics: IntrinsicsOptions = IntrinsicsOptions()
     load: LoadOptions = LoadOptions()
     identification: IdentificationOptions = IdentificationOptions()
     trrm: TRRMOptions = TRRMOptions()

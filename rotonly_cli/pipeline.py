@@ -14,6 +14,7 @@ renames it at the end, so a failed run leaves no partial OUT.
 
 from __future__ import annotations
 
+import copy
 import logging
 import shutil
 import time
@@ -39,6 +40,7 @@ from rotonly_cli.runtime.startup import collector_paused
 from rotonly_cli.scene.tracks import TrackCache
 from rotonly_cli.scene.types import SfMScene, Structure
 from rotonly_cli.scene.view_graph import ViewGraph, largest_component
+from rotonly_cli.stages.intrinsics import Calibration
 
 logger = logging.getLogger(__name__)
 STAGES = ("load", "identify", "refine", "average", "optimize", "translate", "triangulate")
@@ -63,6 +65,8 @@ class Run:
     keypoint_rgb: Future | None = None
     #: tracks built by translate and reused by triangulate (scene/tracks)
     tracks: TrackCache = field(default_factory=TrackCache)
+    #: the camera calibration of this run (stages/intrinsics.Calibration)
+    calibration: Calibration | None = None
 
 
 # ============================================================================ stages in memory
@@ -76,16 +80,26 @@ def _ensure_two_views(graph: ViewGraph, after: str) -> None:
 
 
 def load_stage(input_path: str | Path, options: RunOptions) -> Run:
-    from rotonly_cli.stages.load import build_view_graph, read_input
+    """Read INPUT, calibrate the focal lengths the input marks as guesses (--intrinsics),
+    build the view graph."""
+    from rotonly_cli.stages.intrinsics import start_calibration
+    from rotonly_cli.stages.load import read_input
 
     start = time.perf_counter()
     scene, kind = read_input(input_path, options.matches_dir)
     read_time = time.perf_counter() - start
+    calibration = start_calibration(scene, options.intrinsics)
+    run = _build_graph(str(input_path), kind, calibration.scene, options)
+    run.calibration = calibration
+    run.reports["load"].update(read_time_s=read_time, input=str(input_path), input_kind=kind)
+    return run
+
+
+def _build_graph(input_path: str, kind: InputKind, scene: SfMScene, options: RunOptions) -> Run:
+    from rotonly_cli.stages.load import build_view_graph
+
     graph, report = build_view_graph(scene, replace(options.load, progress=options.progress))
-    report["read_time_s"] = read_time
-    report["input"] = str(input_path)
-    report["input_kind"] = kind
-    run = Run(str(input_path), kind, scene, graph, options, reports={"load": report})
+    run = Run(input_path, kind, scene, graph, options, reports={"load": report})
     _ensure_two_views(graph, "loading")
     return run
 
@@ -160,6 +174,68 @@ STAGE_FUNCTIONS = {"identify": identify_stage, "refine": refine_stage, "average"
                    "optimize": optimize_stage, "translate": translate_stage, "triangulate": triangulate_stage}
 
 
+# ============================================================================ intrinsics
+
+def _chain(run: Run, stages: tuple[str, ...] | list[str]) -> Run:
+    for stage in stages:
+        STAGE_FUNCTIONS[stage](run)
+    return run
+
+
+#: a pass whose reconstruction only serves to estimate the intrinsics: the bundle adjustment
+#: that follows moves every pose and point, so the RANSAC poses stand in for TRRM's, GRRM
+#: and LiGT's robust rounds are left out (the estimates agree to 0.1 px: docs/tuning.md)
+ESTIMATION_STAGES = ("identify", "average", "translate", "triangulate")
+
+
+def _rerun(loaded: Run, scene: SfMScene, template: Run, estimation: bool = False) -> Run:
+    """The stages after load on ``scene`` (new intrinsics) from a copy of ``loaded``'s view
+    graph: the edges, inlier matches and relative poses of its load stage, as the TRRM starts.
+    ``template``: the run of the load stage (keypoint colours, calibration, load report).
+    ``estimation``: only ESTIMATION_STAGES, with plain LiGT."""
+    report = {**template.reports["load"], **loaded.reports["load"]}
+    options = loaded.options
+    if estimation:
+        options = replace(options, translate=replace(options.translate, robust_rounds=0))
+    run = Run(loaded.input_path, loaded.input_kind, scene, copy.deepcopy(loaded.graph), options,
+              reports={"load": report}, keypoint_rgb=template.keypoint_rgb, calibration=template.calibration)
+    return _chain(run, ESTIMATION_STAGES if estimation else STAGES[1:])
+
+
+def calibrated_chain(loaded: Run) -> Run:
+    """identify ... triangulate with the intrinsics calibrated (stages/intrinsics.py): passes
+    of rotonly's stages, each followed by an estimate of the intrinsics from its
+    reconstruction, until they settle; then the final pass, whose rotations, centres and
+    points are the result. ``loaded``: the run after the load stage (not changed)."""
+    from rotonly_cli.stages import intrinsics
+
+    calibration = loaded.calibration
+    options = loaded.options.intrinsics
+    if calibration is None or options.mode == intrinsics.Mode.FIXED:
+        return _chain(loaded, STAGES[1:])
+    guessed = bool(calibration.calibrate)
+    run = _rerun(loaded, loaded.scene, loaded, estimation=guessed)
+    if options.mode == intrinsics.Mode.AUTO and not calibration.add_suspects(output_scene(run)) and not guessed:
+        return run  # every camera fits: the intrinsics stay as given
+    if not guessed:
+        calibration.fallback = run  # the result if no change turns out significant
+    graph_run = loaded  # the run whose load stage (relative poses) the passes reuse
+    if calibration.moved_from(graph_run.scene):
+        graph_run = _build_graph(loaded.input_path, loaded.input_kind, calibration.scene, loaded.options)
+    if calibration.scene is not run.scene:
+        run = _rerun(graph_run, calibration.scene, loaded, estimation=True)
+    for round_ in range(options.max_rounds):
+        settled = calibration.estimate(output_scene(run))
+        if calibration.back_to_given():
+            return calibration.fallback
+        if calibration.moved_from(graph_run.scene):  # the load stage's RANSAC ran with other intrinsics
+            graph_run = _build_graph(loaded.input_path, loaded.input_kind, calibration.scene, loaded.options)
+        if settled or round_ == options.max_rounds - 1:
+            break
+        run = _rerun(graph_run, calibration.scene, loaded, estimation=True)
+    return _rerun(graph_run, calibration.scene, loaded)
+
+
 # ============================================================================ outputs
 
 def output_scene(run: Run) -> SfMScene:
@@ -185,6 +261,9 @@ def write_workspace(out_dir: Path, run: Run, stages_done: list[str]) -> None:
         write_report(out_dir, stage, report)
     options = {"matches_dir": run.options.matches_dir, "image_path": run.options.image_path,
                "grrm": run.options.grrm}
+    intrinsics = run.calibration.changed() if run.calibration is not None else {}
+    if intrinsics:  # calibrated intrinsics, for the stage commands (absent: the input's)
+        options["intrinsics"] = intrinsics
     save_state(out_dir, WorkspaceState(run.input_path, run.input_kind, run.options.matches_dir,
                                        run.options.image_path, run.graph, run.rotations, run.centers,
                                        stages_done, options))
@@ -278,11 +357,11 @@ def run_pipeline(input_path: str | Path, out_dir: str | Path, options: RunOption
                     from rotonly_cli.stages.triangulate import start_keypoint_colors
 
                     run.keypoint_rgb = start_keypoint_colors(run.scene, image_root(run))
-                done = ["load"]
-                for stage in stages[1:]:
-                    STAGE_FUNCTIONS[stage](run)
-                    done.append(stage)
-                summary = _finish(staging, out_dir, run, done, start, gt)
+                if "triangulate" in stages:
+                    run = calibrated_chain(run)
+                else:
+                    _chain(run, stages[1:])
+                summary = _finish(staging, out_dir, run, list(stages), start, gt)
             except ValueError as exc:
                 raise _as_algorithm_error(exc) from exc
         replace_dir(staging, out_dir)
@@ -306,6 +385,11 @@ def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: fl
             evaluation = evaluate_against(run.options.gt, gt, scene, directory / "eval",
                                           str(out_dir / "sfm_data.json"))
             summary["rotation_error_deg"] = evaluation.get("rotation_error_deg")
+        if run.calibration is not None:
+            run.reports["intrinsics"] = run.calibration.finish(scene)
+            summary.update(run.calibration.summary())
+            for warning in summary["warnings"]:
+                logger.warning("%s", warning)
     summary["num_active_edges"] = len(run.graph.active_edges())
     summary["time_s"] = time.perf_counter() - start
     run.reports["run"] = summary
@@ -316,6 +400,16 @@ def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: fl
 
 
 # ============================================================================ stage subcommands
+
+def _restored_calibration(scene: SfMScene, options: RunOptions, saved: dict) -> Calibration:
+    """The intrinsics an earlier command of this workspace ended with (state.npz), on ``scene``."""
+    from rotonly_cli.options import Intrinsics
+    from rotonly_cli.stages.intrinsics import start_calibration
+
+    mode = saved.get("mode", Intrinsics.FIXED)
+    calibration = start_calibration(scene, replace(options.intrinsics, mode=mode), calibrate_now=False)
+    calibration.restore(saved)
+    return calibration
 
 def resume(out_dir: str | Path, stage: str, options: RunOptions | None = None) -> dict:
     """Run one stage on an existing workspace (``rotonly refine|average|... OUT``) in place.
@@ -341,7 +435,9 @@ def resume(out_dir: str | Path, stage: str, options: RunOptions | None = None) -
     with _RunLog(out_dir), collector_paused():
         try:
             scene, kind = read_input(state.input_path, options.matches_dir)
-            run = Run(state.input_path, kind, scene, state.graph, options, state.rotations, state.centers)
+            calibration = _restored_calibration(scene, options, saved.get("intrinsics", {}))
+            run = Run(state.input_path, kind, calibration.scene, state.graph, options, state.rotations,
+                      state.centers, calibration=calibration)
             if stage == "triangulate" and (run.rotations is None or run.centers is None):
                 raise InputError("no rotations / centres in the workspace", path=str(out_dir))
             STAGE_FUNCTIONS[stage](run)

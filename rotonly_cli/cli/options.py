@@ -13,6 +13,7 @@ option                 commands
 --max-residual-deg     run, average
 --gt (GT_PATH)         run, triangulate
 --jobs                 run, identify, refine
+--intrinsics           run, identify
 =====================  ==============================================================
 """
 
@@ -22,7 +23,7 @@ from pathlib import Path
 
 import click
 
-from rotonly_cli.options import REESTIMATE_MODES, AverageOptions, LoadOptions
+from rotonly_cli.options import INTRINSICS_MODES, REESTIMATE_MODES, AverageOptions, IntrinsicsOptions, LoadOptions
 
 
 def _all(*decorators):
@@ -60,8 +61,14 @@ ransac_max_error = click.option(
     show_default=True, help="RANSAC threshold in pixels.")
 seed = click.option("--seed", type=int, default=LoadOptions.seed, show_default=True,
                     help="RANSAC seed (runs are deterministic).")
+intrinsics = click.option(
+    "--intrinsics", type=click.Choice(INTRINSICS_MODES), default=IntrinsicsOptions.mode.value, show_default=True,
+    help="Camera intrinsics: fixed = used as given; refine = every camera calibrated (focal from the view graph, "
+         "then focal, principal point and radial terms from the reconstruction); auto = cameras the input marks as "
+         "a guess (COLMAP prior_focal_length = 0) and cameras whose reprojection error shows them wrong are "
+         "calibrated, the others stay as given. Poses always come from the rotation-only stages.")
 #: the load stage's options (`run` and `identify`)
-load_options = _all(matches_dir, image_path, min_inliers, reestimate, ransac_max_error, seed)
+load_options = _all(matches_dir, image_path, min_inliers, reestimate, ransac_max_error, seed, intrinsics)
 
 max_residual_deg = click.option(
     "--max-residual-deg", type=click.FloatRange(min=0, min_open=True), default=AverageOptions.max_residual_deg,

@@ -12,8 +12,8 @@ from rotonly_cli.cli import options as cli_options
 
 
 def run_options(ctx: click.Context, matches_dir, image_path, min_inliers, reestimate, ransac_max_error, seed,
-                **extra):
-    from rotonly_cli.options import AverageOptions, LoadOptions, RunOptions
+                intrinsics, **extra):
+    from rotonly_cli.options import AverageOptions, IntrinsicsOptions, LoadOptions, RunOptions
 
     quiet = (ctx.obj or {}).get("verbosity", 0) < 0
     load = LoadOptions(reestimate=reestimate, ransac_max_error_px=ransac_max_error, seed=seed,
@@ -21,6 +21,7 @@ def run_options(ctx: click.Context, matches_dir, image_path, min_inliers, reesti
     average = AverageOptions(max_residual_deg=extra.pop("max_residual_deg", AverageOptions.max_residual_deg))
     return RunOptions(matches_dir=None if matches_dir is None else str(matches_dir),
                       image_path=None if image_path is None else str(image_path), load=load, average=average,
+                      intrinsics=IntrinsicsOptions(mode=intrinsics),
                       progress=sys.stderr.isatty() and not quiet, **extra)
 
 
@@ -38,7 +39,25 @@ def echo_summary(summary: dict, out_dir: Path) -> None:
         parts.append(f"rotation error mean {rotation['mean']:.4f} deg, median {rotation['median']:.4f} deg")
     if summary.get("unregistered_views"):
         parts.append(f"not registered: views {summary['unregistered_views']}")
+    if summary.get("reprojection_error_px") is not None:
+        parts.append(f"reprojection error {summary['reprojection_error_px']:.2f} px")
     click.echo(", ".join(parts))
+    echo_intrinsics(summary)
+
+
+def echo_intrinsics(summary: dict, max_cameras: int = 4) -> None:
+    """Per camera the intrinsics the run started from and ended with (the first
+    ``max_cameras``; all in reports/intrinsics.json), then each warning on its own line."""
+    cameras = summary.get("intrinsics") or {}
+    for camera_id, camera in list(cameras.items())[:max_cameras]:
+        start, end = (" ".join(f"{v:.6g}" for v in params) for params in (camera["start"], camera["end"]))
+        models = camera["model"][0] if camera["model"][0] == camera["model"][1] else " -> ".join(camera["model"])
+        click.echo(f"  camera {camera_id} ({models}): " + (f"[{start}] unchanged" if start == end
+                                                           else f"[{start}] -> [{end}]"))
+    if len(cameras) > max_cameras:
+        click.echo(f"  ... {len(cameras) - max_cameras} more cameras in reports/intrinsics.json")
+    for warning in summary.get("warnings", []):
+        click.echo(f"warning: {warning}")
 
 
 def chain_command(name: str, summary: str, stages: tuple[str, ...] | None, *options) -> click.Command:

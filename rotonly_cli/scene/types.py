@@ -41,6 +41,10 @@ class Intrinsics:
     width: int
     height: int
     params: np.ndarray
+    #: whether the source says the focal length is known: COLMAP's ``prior_focal_length``
+    #: (False: a guess, e.g. 1.2 x the image size from COLMAP's front end); None: the source
+    #: does not say (OpenMVG, simulations)
+    prior_focal: bool | None = None
 
     @property
     def focal_px(self) -> float:

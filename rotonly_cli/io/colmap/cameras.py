@@ -55,7 +55,7 @@ def to_colmap_intrinsics(intrinsics: Intrinsics) -> Intrinsics:
         pycolmap_camera(intrinsics)  # validates a COLMAP model name / param count
         return intrinsics
     return Intrinsics(intrinsics.id, new_model, intrinsics.width, intrinsics.height,
-                      np.asarray(new_params, dtype=np.float64))
+                      np.asarray(new_params, dtype=np.float64), intrinsics.prior_focal)
 
 
 def pycolmap_camera(intrinsics: Intrinsics, camera_id: int | None = None):

@@ -96,7 +96,7 @@ def read_database(path: PathLike, include_unverified: bool = True) -> SfMScene:
         for camera_id, camera in cameras.items():
             scene.intrinsics[camera_id] = Intrinsics(
                 camera_id, camera.model.name, int(camera.width), int(camera.height),
-                np.array(camera.params, dtype=np.float64))
+                np.array(camera.params, dtype=np.float64), prior_focal=bool(camera.has_prior_focal_length))
         for image in database.read_all_images():
             image_id = int(image.image_id)
             if image.camera_id not in cameras:
@@ -214,7 +214,8 @@ def _fill_database(pycolmap, database, scene: SfMScene, view_offset: int,
     for intrinsic_id in sorted(scene.intrinsics):
         intrinsic = to_colmap_intrinsics(scene.intrinsics[intrinsic_id])
         camera = pycolmap_camera(intrinsic, intrinsic_id + camera_offset)
-        camera.has_prior_focal_length = True  # calibrated: COLMAP then keeps E-based geometry
+        # calibrated unless the scene says the focal is a guess: COLMAP then keeps E-based geometry
+        camera.has_prior_focal_length = intrinsic.prior_focal is not False
         camera_ids[intrinsic_id] = database.write_camera(camera, use_camera_id=True)
     next_camera_id = max(camera_ids.values(), default=0) + 1
     for view_id in sorted(scene.views):
@@ -262,3 +263,56 @@ def _fill_database(pycolmap, database, scene: SfMScene, view_offset: int,
             geometry.cam2_from_cam1 = pycolmap.Rigid3d(
                 pycolmap.Rotation3d(np.asarray(pair.R_j_from_i, dtype=np.float64)), translation)
         database.write_two_view_geometry(id1, id2, geometry)
+
+
+# ============================================================================ view-graph calibration
+
+def write_fundamental_database(path: PathLike, scene: SfMScene, fundamentals: dict[tuple[int, int], np.ndarray],
+                               guessed: set[int]) -> None:
+    """A new database at ``path`` for ``pycolmap.calibrate_view_graph``: every camera of
+    ``scene`` (``has_prior_focal_length`` False for the ids in ``guessed``, which it may
+    change; True for the others, which it holds), a trivial rig and frame per view, and per
+    pair of ``fundamentals`` an UNCALIBRATED two-view geometry with that F (pixels, COLMAP
+    convention) and the pair's matches as inliers. No keypoints: calibrate_view_graph reads
+    them only to re-estimate poses, which rotonly does itself."""
+    pycolmap = import_pycolmap()
+    view_offset = id_offset(scene.views)
+    camera_offset = id_offset(scene.intrinsics)
+    database = pycolmap.Database.open(str(path))
+    try:
+        for intrinsic_id in sorted(scene.intrinsics):
+            camera = pycolmap_camera(to_colmap_intrinsics(scene.intrinsics[intrinsic_id]), intrinsic_id + camera_offset)
+            camera.has_prior_focal_length = intrinsic_id not in guessed
+            database.write_camera(camera, use_camera_id=True)
+            rig = pycolmap.Rig(rig_id=intrinsic_id + camera_offset)
+            rig.add_ref_sensor(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, intrinsic_id + camera_offset))
+            database.write_rig(rig, use_rig_id=True)
+        for view_id in sorted(scene.views):
+            camera_id = scene.views[view_id].intrinsics_id + camera_offset
+            image_id = view_id + view_offset
+            database.write_image(pycolmap.Image(name=scene.views[view_id].name, camera_id=camera_id,
+                                                image_id=image_id), use_image_id=True)
+            frame = pycolmap.Frame(frame_id=image_id, rig_id=camera_id)
+            frame.add_data_id(pycolmap.data_t(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, camera_id), image_id))
+            database.write_frame(frame, use_frame_id=True)
+        for (i, j), F in sorted(fundamentals.items()):
+            geometry = pycolmap.TwoViewGeometry()
+            geometry.config = pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED
+            geometry.F = np.asarray(F, dtype=np.float64)
+            geometry.inlier_matches = np.ascontiguousarray(scene.pairs[(i, j)].matches, dtype=np.uint32).reshape(-1, 2)
+            database.write_two_view_geometry(i + view_offset, j + view_offset, geometry)
+    finally:
+        database.close()
+
+
+def read_camera_params(path: PathLike, scene: SfMScene) -> dict[int, np.ndarray]:
+    """Camera parameters (COLMAP model order) of a database written by
+    :func:`write_fundamental_database` for ``scene``, keyed by ``scene``'s intrinsic ids."""
+    pycolmap = import_pycolmap()
+    camera_offset = id_offset(scene.intrinsics)
+    database = pycolmap.Database.open(str(path))
+    try:
+        return {int(camera.camera_id) - camera_offset: np.array(camera.params, dtype=np.float64)
+                for camera in database.read_all_cameras()}
+    finally:
+        database.close()

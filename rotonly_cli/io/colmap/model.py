@@ -193,6 +193,14 @@ def _model_reconstruction(pycolmap, scene: SfMScene, workdir: Path):
     return reconstruction
 
 
+def model_reconstruction(scene: SfMScene):
+    """The sparse model of ``scene`` (its posed views and structure) as an in-memory
+    pycolmap.Reconstruction, e.g. for pycolmap's bundle adjuster."""
+    pycolmap = import_pycolmap()
+    with tempfile.TemporaryDirectory(prefix="rotonly-model-") as workdir:
+        return _model_reconstruction(pycolmap, scene, Path(workdir))
+
+
 def _observation_pixel(scene: SfMScene, point_index: int, row: int) -> np.ndarray:
     structure = scene.structure
     assert structure is not None

@@ -1,0 +1,183 @@
+"""Cameras as users have them: a simulated object-centred capture whose keypoints come from a
+true camera with radial distortion, written the way the front ends leave such projects —
+a COLMAP database with the focal guessed (``prior_focal_length = 0``, k = 0) and pairs
+verified by COLMAP's two-view geometry estimator, and an OpenMVG project with an "EXIF"
+focal and no distortion (``pinhole``) — beside the same inputs with the true intrinsics.
+For issue 20's tests and ``scripts/bench/intrinsics.py``.
+
+Scene (``arc``): ``num_views`` cameras on a ~70° arc of radius 12 around a box of points
+(Strecha-like converging views, with height, look-at and roll jitter), 1536 x 1024 images,
+f = 1380 px, the principal point at the image centre. Parallel optical axes (the paper's
+``circular`` set-up, rotonly_cli.simulation.layout_scenes) are a critical configuration of
+focal self-calibration, so they are not used here.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from rotonly_cli.scene.types import Intrinsics, PairMatches, Pose, SfMScene, View
+
+PathLike = str | os.PathLike
+
+
+@dataclass
+class UserCameraProblem:
+    true: Intrinsics  # SIMPLE_RADIAL f, cx, cy, k1 (COLMAP's model and pixel convention)
+    guessed: Intrinsics  # SIMPLE_RADIAL f (1 + focal_error), image centre, k1 = 0
+    gt_poses: dict[int, Pose]
+    points_in_world: np.ndarray
+    keypoints: dict[int, np.ndarray]  # distorted noisy pixels
+    matches: dict[tuple[int, int], np.ndarray]  # raw matches (with wrong ones)
+    seed: int
+    focal_error: float
+    k1: float
+
+    @property
+    def names(self) -> dict[int, str]:
+        return {view_id: f"sim_{view_id:04d}.jpg" for view_id in self.keypoints}
+
+
+def _look_at(center: np.ndarray, target: np.ndarray, roll: float) -> np.ndarray:
+    z = (target - center) / np.linalg.norm(target - center)
+    x = np.cross(np.array([0.0, -1.0, 0.0]), z)
+    x /= np.linalg.norm(x)
+    rows = np.stack([x, np.cross(z, x), z])
+    c, s = np.cos(roll), np.sin(roll)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ rows
+
+
+def arc_scene(rng: np.random.Generator, num_views: int = 8, num_points: int = 4000, radius: float = 12.0,
+              arc_deg: float = 70.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(R_cam_from_world (n, 3, 3), centres (n, 3), points (N, 3))."""
+    angles = np.deg2rad(np.linspace(-arc_deg / 2, arc_deg / 2, num_views) + rng.uniform(-3, 3, num_views))
+    centers = np.stack([radius * np.sin(angles), rng.uniform(-1.5, 1.5, num_views), -radius * np.cos(angles)], 1)
+    rotations = np.stack([_look_at(c, rng.uniform(-1, 1, 3), np.deg2rad(rng.uniform(-5, 5))) for c in centers])
+    points = np.stack([rng.uniform(-6, 6, num_points), rng.uniform(-4, 4, num_points), rng.uniform(-3, 4, num_points)],
+                      axis=1)
+    return rotations, centers, points
+
+
+def simulate_user_cameras(seed: int, focal_error: float, k1: float, *, num_views: int = 8, num_points: int = 4000,
+                          noise_px: float = 0.5, outlier_fraction: float = 0.05, width: int = 1536,
+                          height: int = 1024, focal: float = 1380.0, min_shared: int = 50) -> UserCameraProblem:
+    """One problem: the true camera SIMPLE_RADIAL(focal, centre, k1); the guess has the focal
+    off by ``focal_error`` (relative) and no distortion. Keypoints: projections through the
+    true camera plus Gaussian noise (``noise_px`` per coordinate); ``outlier_fraction`` of
+    each pair's matches point at a random keypoint."""
+    from rotonly_cli.io.colmap.cameras import pycolmap_camera
+
+    rng = np.random.default_rng(seed)
+    rotations, centers, points = arc_scene(rng, num_views, num_points)
+    true = Intrinsics(1, "SIMPLE_RADIAL", width, height, np.array([focal, width / 2, height / 2, k1]))
+    guessed = Intrinsics(1, "SIMPLE_RADIAL", width, height,
+                         np.array([focal * (1 + focal_error), width / 2, height / 2, 0.0]), prior_focal=False)
+    camera = pycolmap_camera(true)
+    visible = np.zeros((num_views, len(points)), dtype=bool)
+    keypoints = {}
+    for v in range(num_views):
+        in_camera = (points - centers[v]) @ rotations[v].T
+        front = in_camera[:, 2] > 1e-6
+        pixels = np.full((len(points), 2), np.nan)
+        pixels[front] = np.asarray(camera.img_from_cam(in_camera[front]), dtype=np.float64)
+        inside = front & np.all((pixels > 0) & (pixels < [width, height]), axis=1)
+        visible[v] = inside
+        keypoints[v + 1] = pixels[inside] + rng.normal(0.0, noise_px, (int(inside.sum()), 2))
+    index = np.cumsum(visible, axis=1) - 1
+    matches = {}
+    for i in range(num_views):
+        for j in range(i + 1, num_views):
+            shared = np.flatnonzero(visible[i] & visible[j])
+            if len(shared) < min_shared:
+                continue
+            pair = np.column_stack([index[i, shared], index[j, shared]]).astype(np.int64)
+            wrong = rng.choice(len(pair), int(outlier_fraction * len(pair)), replace=False)
+            pair[wrong, 1] = rng.integers(0, len(keypoints[j + 1]), len(wrong))
+            matches[(i + 1, j + 1)] = pair
+    gt_poses = {v + 1: Pose(rotations[v].copy(), centers[v].copy()) for v in range(num_views)}
+    return UserCameraProblem(true, guessed, gt_poses, points, keypoints, matches, seed, focal_error, k1)
+
+
+def verified_pairs(problem: UserCameraProblem) -> dict[tuple[int, int], PairMatches]:
+    """The matches as COLMAP's matcher verifies them with the guessed camera (no prior
+    focal: a fundamental matrix, config UNCALIBRATED, or a homography): inliers and config."""
+    import pycolmap
+
+    from rotonly_cli.io.colmap.cameras import pycolmap_camera
+
+    camera = pycolmap_camera(problem.guessed)
+    camera.has_prior_focal_length = False
+    options = pycolmap.TwoViewGeometryOptions()
+    options.ransac.random_seed = int(problem.seed)
+    pairs = {}
+    for (i, j), matches in problem.matches.items():
+        geometry = pycolmap.estimate_two_view_geometry(camera, problem.keypoints[i], camera, problem.keypoints[j],
+                                                       np.ascontiguousarray(matches, dtype=np.uint32), options)
+        config = pycolmap.TwoViewGeometryConfiguration(int(geometry.config)).name
+        inliers = np.asarray(geometry.inlier_matches, dtype=np.int64).reshape(-1, 2)
+        if config in ("UNDEFINED", "DEGENERATE") or len(inliers) < 30:
+            continue
+        pairs[(i, j)] = PairMatches(i, j, inliers, config=config)
+    return pairs
+
+
+def user_scene(problem: UserCameraProblem, intrinsics: Intrinsics,
+               pairs: dict[tuple[int, int], PairMatches]) -> SfMScene:
+    """The input scene: one camera ``intrinsics``, the keypoints, the verified ``pairs``."""
+    from rotonly_cli.io.cameras import normalize
+
+    scene = SfMScene(source="simulation")
+    scene.intrinsics[intrinsics.id] = intrinsics
+    for view_id, name in problem.names.items():
+        scene.views[view_id] = View(view_id, name, intrinsics.id, width=intrinsics.width, height=intrinsics.height)
+        scene.keypoints[view_id] = problem.keypoints[view_id]
+        scene.normalized[view_id] = normalize(intrinsics, problem.keypoints[view_id])
+    scene.pairs = {key: replace(pair) for key, pair in sorted(pairs.items())}
+    return scene
+
+
+def gt_scene(problem: UserCameraProblem) -> SfMScene:
+    """Ground truth: the true camera and poses (``rotonly eval`` / evaluation.quality)."""
+    scene = user_scene(problem, problem.true, {})
+    scene.poses = {view_id: Pose(pose.R_cam_from_world.copy(), pose.center.copy())
+                   for view_id, pose in problem.gt_poses.items()}
+    return scene
+
+
+def openmvg_intrinsics(intrinsics: Intrinsics) -> Intrinsics:
+    """An OpenMVG camera of a SIMPLE_RADIAL one: ``pinhole`` without distortion (what an
+    EXIF focal gives), ``pinhole_radial_k1`` with."""
+    f, cx, cy, k1 = np.asarray(intrinsics.params, dtype=np.float64)
+    if k1 == 0.0:
+        return replace(intrinsics, id=0, model="pinhole", params=np.array([f, cx, cy]), prior_focal=None)
+    return replace(intrinsics, id=0, model="pinhole_radial_k1", params=np.array([f, cx, cy, k1]), prior_focal=None)
+
+
+def write_inputs(out_dir: PathLike, problem: UserCameraProblem, formats: tuple[str, ...] = ("colmap", "openmvg"),
+                 true_intrinsics: bool = False) -> dict[str, Path]:
+    """``out_dir/database.db`` (COLMAP) and ``out_dir/openmvg/sfm_data.json`` (OpenMVG, with its
+    features and matches) with the guessed intrinsics (or the true ones, marked known),
+    and ``out_dir/gt/sfm_data.json``. Returns the paths by format (and "gt")."""
+    from rotonly_cli.io import colmap, openmvg
+    from rotonly_cli.scene.ids import shift_ids
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    pairs = verified_pairs(problem)
+    intrinsics = replace(problem.true, prior_focal=True) if true_intrinsics else problem.guessed
+    paths = {}
+    if "colmap" in formats:
+        paths["colmap"] = out_dir / "database.db"
+        colmap.write_database(paths["colmap"], user_scene(problem, intrinsics, pairs))
+    if "openmvg" in formats:
+        openmvg.write_project(out_dir / "openmvg", shift_ids(user_scene(problem, openmvg_intrinsics(intrinsics), pairs),
+                                                             -1, 0))
+        paths["openmvg"] = out_dir / "openmvg" / "sfm_data.json"
+    paths["gt"] = out_dir / "gt" / "sfm_data.json"
+    gt = replace(gt_scene(problem), intrinsics={1: replace(openmvg_intrinsics(problem.true), id=1)})
+    openmvg.write_sfm_data(paths["gt"], shift_ids(gt, -1, -1))
+    return paths

@@ -1,0 +1,455 @@
+"""Stage `intrinsics`: cameras as users have them (guessed focal lengths, unknown distortion).
+
+rotonly's rotation stages work on normalized coordinates, so they are only as good as the
+intrinsics that make them. This module holds the pieces that ``pipeline.py`` chains around
+the other stages (``--intrinsics auto|refine``; docs/algorithms.md §8):
+
+1. **Which cameras are guesses** (:func:`cameras_to_calibrate`): COLMAP marks a focal it
+   guessed (1.2 x the image size) with ``prior_focal_length = 0``; OpenMVG marks nothing,
+   so there the data decides after a first reconstruction (:func:`suspect_cameras`: a mean
+   reprojection error well above calibrated cameras' 0.2 px).
+2. **Focal lengths from the view graph** (:func:`view_graph_focals`), before any rotation is
+   estimated: F re-fitted on every verified pair's matches, then
+   ``pycolmap.calibrate_view_graph`` — COLMAP's port of GLOMAP's ViewGraphCalibrator
+   (Fetzer et al., WACV 2020), not a copy of it — on a private database in a temporary
+   folder. The load stage then re-estimates every relative pose with a calibrated E.
+3. **Intrinsics from the reconstruction** (:func:`estimate_intrinsics`): once rotonly has
+   rotations, centres and points, pycolmap's bundle adjuster estimates focal, principal
+   point and radial terms on the longest tracks. It moves poses and points too (with them
+   held, K barely moves: docs/tuning.md "Intrinsics"), but it serves **only as an intrinsics
+   estimator**: its poses and points are discarded, and the pipeline runs rotonly's own
+   stages again on keypoints normalized with the new intrinsics. The poses rotonly writes
+   are always the product of its rotation-only stages.
+4. **Only significant changes** (:func:`gate`): a change of the focal, the principal point
+   or the distortion is kept when it moves some pixel of the image by more than
+   ``min_shift`` of its half diagonal; refining parameters that were right costs accuracy.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from rotonly_cli.errors import InputError
+from rotonly_cli.io import cameras
+from rotonly_cli.io.colmap import id_offset
+from rotonly_cli.io.colmap.database import read_camera_params, write_fundamental_database
+from rotonly_cli.io.colmap.model import model_reconstruction
+from rotonly_cli.options import Intrinsics as Mode
+from rotonly_cli.options import IntrinsicsOptions
+from rotonly_cli.scene.types import Intrinsics, SfMScene
+
+logger = logging.getLogger(__name__)
+
+#: two-view configurations whose matches do not constrain a fundamental matrix (a plane or a
+#: pure rotation: the homography's F family is degenerate), left out of the calibration
+_NO_FUNDAMENTAL = ("PLANAR", "PLANAR_OR_PANORAMIC", "PANORAMIC", "H", "DEGENERATE", "UNDEFINED", "WATERMARK")
+GROUPS = ("focal", "principal_point", "distortion")
+
+
+def half_diagonal(intrinsics: Intrinsics) -> float:
+    return 0.5 * float(np.hypot(intrinsics.width, intrinsics.height))
+
+
+def describe(intrinsics: Intrinsics) -> dict:
+    """JSON form of a camera for the reports."""
+    return {"model": intrinsics.model, "width": int(intrinsics.width), "height": int(intrinsics.height),
+            "params": [float(v) for v in np.asarray(intrinsics.params, dtype=float).ravel()],
+            "focal_px": intrinsics.focal_px}
+
+
+# ============================================================================ 1. which cameras
+
+def cameras_to_calibrate(scene: SfMScene, mode: Mode) -> set[int]:
+    """Cameras whose intrinsics are calibrated from the start: every camera (refine), the
+    ones the input marks as a guess (auto), none (fixed)."""
+    if mode == Mode.REFINE:
+        return set(scene.intrinsics)
+    if mode == Mode.AUTO:
+        return {camera_id for camera_id, intrinsic in scene.intrinsics.items() if intrinsic.prior_focal is False}
+    return set()
+
+
+def reprojection_errors(scene: SfMScene) -> dict[int, np.ndarray]:
+    """Per camera the reprojection errors (px) of every observation of the posed ``scene``'s
+    points, through the camera model with its distortion."""
+    structure = scene.structure
+    if structure is None or not len(structure.points):
+        return {}
+    track_lengths, view_feature = structure.flat_observations()
+    points = np.repeat(np.asarray(structure.points, dtype=np.float64), track_lengths, axis=0)
+    errors: dict[int, list[np.ndarray]] = {}
+    order = np.argsort(view_feature[:, 0], kind="stable")
+    views, starts = np.unique(view_feature[order, 0], return_index=True)
+    for view_id, rows in zip(views.tolist(), np.split(order, starts[1:])):
+        pose = scene.poses[view_id]
+        intrinsic = scene.intrinsics[scene.views[view_id].intrinsics_id]
+        in_camera = (points[rows] - pose.center) @ np.asarray(pose.R_cam_from_world).T
+        pixels = cameras.project(intrinsic, in_camera[:, :2] / in_camera[:, 2:3])
+        observed = np.asarray(scene.keypoints[view_id], dtype=np.float64)[view_feature[rows, 1]]
+        errors.setdefault(intrinsic.id, []).append(np.linalg.norm(pixels - observed, axis=1))
+    return {camera_id: np.concatenate(blocks) for camera_id, blocks in errors.items()}
+
+
+def mean_reprojection_errors(scene: SfMScene) -> tuple[dict[int, float], float | None]:
+    """(per camera mean reprojection error in px, the mean over every observation)."""
+    errors = reprojection_errors(scene)
+    if not errors:
+        return {}, None
+    overall = np.concatenate(list(errors.values()))
+    return {camera_id: float(e.mean()) for camera_id, e in errors.items()}, float(overall.mean())
+
+
+def suspect_cameras(per_camera_px: dict[int, float], options: IntrinsicsOptions) -> set[int]:
+    """Cameras whose mean reprojection error shows their intrinsics wrong."""
+    return {camera_id for camera_id, error in per_camera_px.items() if error > options.suspect_reprojection_px}
+
+
+# ============================================================================ 2. view-graph calibration
+
+def refit_fundamentals(scene: SfMScene, options: IntrinsicsOptions) -> dict[tuple[int, int], np.ndarray]:
+    """F (pixels) of every verified pair that can hold one, from pycolmap's LO-RANSAC with
+    Sampson refinement on the pair's matches. COLMAP 3.8 stores F without that refinement:
+    the view-graph focal of fountain-P11's guessed database was 2.4 % off with the stored F,
+    0.03 % with the re-fitted one (docs/tuning.md)."""
+    import pycolmap
+
+    ransac = pycolmap.RANSACOptions(max_error=options.fundamental_max_error_px, random_seed=options.seed,
+                                    min_num_trials=options.fundamental_min_trials)
+    fundamentals = {}
+    for (i, j), pair in sorted(scene.pairs.items()):
+        if not pair.verified or pair.config in _NO_FUNDAMENTAL or len(pair.matches) < 8:
+            continue
+        if i not in scene.keypoints or j not in scene.keypoints:
+            continue
+        matches = np.asarray(pair.matches, dtype=np.int64)
+        result = pycolmap.estimate_fundamental_matrix(
+            np.ascontiguousarray(scene.keypoints[i][matches[:, 0]], dtype=np.float64),
+            np.ascontiguousarray(scene.keypoints[j][matches[:, 1]], dtype=np.float64), ransac)
+        if result is not None:
+            fundamentals[(i, j)] = np.asarray(result["F"], dtype=np.float64)
+    return fundamentals
+
+
+def view_graph_focals(scene: SfMScene, calibrate: set[int],
+                      options: IntrinsicsOptions) -> tuple[dict[int, Intrinsics], dict]:
+    """New intrinsics (only the focal length changed) of the cameras in ``calibrate``, by
+    ``pycolmap.calibrate_view_graph`` over the re-fitted fundamental matrices; the other
+    cameras are held constant. Runs on a database written for it in a temporary folder
+    (removed on every exit path): calibrate_view_graph rewrites the database it is given."""
+    import pycolmap
+
+    start = time.perf_counter()
+    fundamentals = refit_fundamentals(scene, options)
+    report = {"cameras": sorted(calibrate), "num_pairs": len(fundamentals), "refit_time_s": time.perf_counter() - start}
+    if not fundamentals:
+        report.update(success=False, time_s=time.perf_counter() - start)
+        return {}, report
+    with tempfile.TemporaryDirectory(prefix="rotonly-vgc-") as scratch:
+        path = Path(scratch) / "database.db"
+        write_fundamental_database(path, scene, fundamentals, calibrate)
+        calibration = pycolmap.ViewGraphCalibrationOptions(random_seed=options.seed, reestimate_relative_pose=False)
+        success = bool(pycolmap.calibrate_view_graph(str(path), calibration))
+        params = read_camera_params(path, scene)
+    calibrated = {}
+    for camera_id in sorted(calibrate):
+        given = scene.intrinsics[camera_id]
+        colmap_given = cameras.to_colmap_intrinsics(given)
+        focal_idx = cameras.parameter_groups(colmap_given)["focal"]
+        new_focals = params[camera_id][focal_idx]
+        focal = float(np.mean(new_focals))
+        if not (success and np.isfinite(focal) and focal > 0) or np.allclose(new_focals, np.asarray(
+                colmap_given.params)[focal_idx]):
+            continue  # not calibrated (too few usable pairs): stays as given
+        updated = np.array(given.params, dtype=np.float64)
+        updated[cameras.parameter_groups(given)["focal"]] = focal
+        calibrated[camera_id] = replace(given, params=updated)
+    report.update(success=success, focal_px={str(c): k.focal_px for c, k in calibrated.items()},
+                  time_s=time.perf_counter() - start)
+    logger.info("intrinsics: view-graph calibration over %d pairs: %s (%.2f s)", len(fundamentals),
+                ", ".join(f"camera {c} f {scene.intrinsics[c].focal_px:.1f} -> {k.focal_px:.1f} px"
+                          for c, k in calibrated.items()) or "no camera calibrated", report["time_s"])
+    return calibrated, report
+
+
+# ============================================================================ 3. estimation from a reconstruction
+
+def longest_tracks(scene: SfMScene, max_points: int, seed: int = 0) -> SfMScene:
+    """``scene`` with only its ``max_points`` longest tracks (ties broken at random, seeded)."""
+    structure = scene.structure
+    if structure is None or len(structure.points) <= max_points:
+        return scene
+    lengths, _ = structure.flat_observations()
+    order = np.lexsort((np.random.default_rng(seed).random(len(lengths)), -lengths))[:max_points]
+    keep = np.sort(order)
+    subset = replace(structure, point_ids=np.asarray(structure.point_ids)[keep],
+                     points=np.asarray(structure.points)[keep],
+                     colors=None if structure.colors is None else np.asarray(structure.colors)[keep],
+                     observations=[structure.observations[k] for k in keep.tolist()],
+                     observation_pixels=None, observation_arrays=None)
+    return replace(scene, structure=subset)
+
+
+def estimate_intrinsics(scene: SfMScene, refine: set[int],
+                        options: IntrinsicsOptions) -> tuple[dict[int, Intrinsics], dict]:
+    """Intrinsics of the cameras in ``refine`` (in :func:`io.cameras.refinement_model`
+    terms) estimated by pycolmap's bundle adjuster on the posed ``scene``'s longest tracks,
+    every pose, point and those cameras' parameters free (two cameras fix the gauge). The
+    adjusted poses and points are discarded: only the intrinsics leave this function."""
+    import pycolmap
+
+    start = time.perf_counter()
+    models = {camera_id: cameras.refinement_model(intrinsic) for camera_id, intrinsic in scene.intrinsics.items()}
+    unsupported = sorted(c for c in refine if models.get(c) is None)
+    refine = {c for c in refine if models.get(c) is not None}
+    subset = longest_tracks(scene, options.max_points, options.seed)
+    subset = replace(subset, intrinsics={c: models[c] or cameras.to_colmap_intrinsics(k)
+                                         for c, k in scene.intrinsics.items()})
+    reconstruction = model_reconstruction(subset)
+    offset = id_offset(scene.intrinsics)
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.refine_focal_length = ba.refine_principal_point = ba.refine_extra_params = True
+    ba.refine_rig_from_world = ba.refine_points3D = True
+    ba.print_summary = False
+    ba.ceres.solver_options.max_num_iterations = 100
+    ba.ceres.solver_options.num_threads = 1
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in reconstruction.reg_image_ids():
+        config.add_image(image_id)
+    for camera_id in reconstruction.cameras:
+        if camera_id - offset not in refine:
+            config.set_constant_cam_intrinsics(camera_id)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    error_before = reconstruction.compute_mean_reprojection_error()
+    summary = pycolmap.create_default_bundle_adjuster(ba, config, reconstruction).solve()
+    error_after = reconstruction.compute_mean_reprojection_error()
+    estimated = {}
+    for camera_id in sorted(refine):
+        params = np.array(reconstruction.cameras[camera_id + offset].params, dtype=np.float64)
+        if np.all(np.isfinite(params)):
+            estimated[camera_id] = replace(models[camera_id], params=params)
+    report = {"cameras": sorted(refine), "unsupported_models": unsupported,
+              "num_points": 0 if subset.structure is None else len(subset.structure.points),
+              "num_images": len(reconstruction.reg_image_ids()),
+              "mean_reprojection_error_px": [float(error_before), float(error_after)],
+              "iterations": int(len(summary.iterations)) if hasattr(summary, "iterations") else None,
+              "estimate": {str(c): describe(k) for c, k in estimated.items()},
+              "time_s": time.perf_counter() - start}
+    return estimated, report
+
+
+# ============================================================================ 4. significant changes
+
+def _grid(intrinsic: Intrinsics, steps: int = 7) -> np.ndarray:
+    u, v = np.meshgrid(np.linspace(0, intrinsic.width, steps), np.linspace(0, intrinsic.height, steps))
+    return np.column_stack([u.ravel(), v.ravel()])
+
+
+def shift_px(reference: Intrinsics, other: Intrinsics) -> float:
+    """How far ``other`` moves the image against ``reference``: the largest distance between a
+    pixel of a grid over the image and where ``other`` puts that pixel's ray."""
+    grid = _grid(reference)
+    moved = cameras.project(other, cameras.normalize(reference, grid))
+    distance = np.linalg.norm(moved - grid, axis=1)
+    return float(np.nanmax(distance)) if np.isfinite(distance).any() else float("inf")
+
+
+def gate(reference: Intrinsics, estimate: Intrinsics, options: IntrinsicsOptions) -> tuple[Intrinsics, dict]:
+    """``reference`` with the parameter groups (focal, principal point, distortion) of
+    ``estimate`` whose change alone moves the image by more than ``min_shift`` of its half
+    diagonal; both in refinement-model terms. Returns (camera, {group: shift in px})."""
+    groups = cameras.parameter_groups(reference)
+    limit = options.min_shift * half_diagonal(reference)
+    params = np.array(reference.params, dtype=np.float64)
+    shifts = {}
+    for group in GROUPS:
+        index = groups[group]
+        if not index.size:
+            continue
+        candidate = np.array(reference.params, dtype=np.float64)
+        candidate[index] = np.asarray(estimate.params)[index]
+        shifts[group] = shift_px(reference, replace(reference, params=candidate))
+        if shifts[group] > limit:
+            params[index] = np.asarray(estimate.params)[index]
+    return replace(reference, params=params), shifts
+
+
+def warnings_for(given: dict[int, Intrinsics], final: dict[int, Intrinsics], calibrated: set[int],
+                 reprojection_px: float | None, options: IntrinsicsOptions) -> list[str]:
+    """One line each: final mean reprojection error above ``warn_reprojection_px``; a camera
+    not marked as a guess whose focal moved by more than ``warn_focal_change``."""
+    warnings = []
+    if reprojection_px is not None and reprojection_px > options.warn_reprojection_px:
+        warnings.append(f"mean reprojection error {reprojection_px:.2f} px (> {options.warn_reprojection_px:g} px): "
+                        f"the intrinsics do not fit the matches (--intrinsics {options.mode})")
+    for camera_id in sorted(final):
+        if camera_id in calibrated and given[camera_id].prior_focal is False:
+            continue  # a guess, expected to move
+        change = final[camera_id].focal_px / given[camera_id].focal_px - 1.0
+        if abs(change) > options.warn_focal_change:
+            warnings.append(f"camera {camera_id}: focal moved {100 * change:+.1f} % from the given "
+                            f"{given[camera_id].focal_px:.1f} px to {final[camera_id].focal_px:.1f} px")
+    return warnings
+
+
+# ============================================================================ the calibration of a run
+
+def with_intrinsics(scene: SfMScene, changed: dict[int, Intrinsics]) -> SfMScene:
+    """A copy of ``scene`` (sharing what does not change) with ``changed`` intrinsics and the
+    keypoints of their views normalized again."""
+    copy = replace(scene, intrinsics=dict(scene.intrinsics), normalized=dict(scene.normalized))
+    cameras.renormalize(copy, changed)
+    return copy
+
+
+def _same(a: Intrinsics, b: Intrinsics) -> bool:
+    return a.model == b.model and np.array_equal(np.asarray(a.params), np.asarray(b.params))
+
+
+@dataclass
+class Calibration:
+    """The intrinsics of one ``rotonly run``: as given, as they evolve, and the report.
+    ``scene`` is the input scene with the current intrinsics (a new copy at every change, so
+    runs made with earlier intrinsics keep theirs)."""
+
+    options: IntrinsicsOptions
+    given: dict[int, Intrinsics]
+    scene: SfMScene
+    #: cameras being calibrated, and why: "guess" (the input says so), "suspect" (its
+    #: reprojection error), "refine" (--intrinsics refine)
+    calibrate: dict[int, str] = field(default_factory=dict)
+    #: per calibrated camera, what the estimates are compared with (refinement-model terms):
+    #: the view-graph calibration's result, or the given intrinsics of a suspect
+    reference: dict[int, Intrinsics] = field(default_factory=dict)
+    view_graph: list[dict] = field(default_factory=list)
+    rounds: list[dict] = field(default_factory=list)
+    first_reprojection_px: dict[int, float] = field(default_factory=dict)
+    #: auto, when only suspects are calibrated: the run with the given intrinsics, the result
+    #: if none of their changes is significant
+    fallback: object | None = None
+    settled: bool | None = None  #: whether the last round moved the intrinsics by little (None: no round)
+    result: dict = field(default_factory=dict)
+
+    def _calibrate_focals(self, cameras_: dict[int, str]) -> None:
+        focals, report = view_graph_focals(self.scene, set(cameras_), self.options)
+        self.view_graph.append(report)
+        self.scene = with_intrinsics(self.scene, focals)
+        for camera_id, why in cameras_.items():
+            self.calibrate[camera_id] = why
+            start = self.given[camera_id] if why == "suspect" else self.scene.intrinsics[camera_id]
+            self.reference[camera_id] = cameras.refinement_model(start)
+
+    def add_suspects(self, posed: SfMScene) -> bool:
+        """auto: cameras not yet calibrated whose reprojection error in ``posed`` (the first
+        reconstruction) shows them wrong join the calibration, starting with their focal
+        from the view graph. True if there are any."""
+        per_camera, _ = mean_reprojection_errors(posed)
+        self.first_reprojection_px = per_camera
+        suspects = {c for c in suspect_cameras(per_camera, self.options) if c not in self.calibrate}
+        if suspects:
+            logger.info("intrinsics: camera(s) %s reproject at %s px (> %g px): calibrating them",
+                        sorted(suspects), ", ".join(f"{per_camera[c]:.2f}" for c in sorted(suspects)),
+                        self.options.suspect_reprojection_px)
+            self._calibrate_focals(dict.fromkeys(sorted(suspects), "suspect"))
+        return bool(suspects)
+
+    def estimate(self, posed: SfMScene) -> bool:
+        """One round: the intrinsics estimated from the reconstruction ``posed``, each change
+        kept when significant (:func:`gate`); ``scene`` takes the new intrinsics. True when
+        they moved the image by no more than ``converged_shift`` (settled)."""
+        estimated, report = estimate_intrinsics(posed, set(self.calibrate), self.options)
+        changed, shifts, moved = {}, {}, 0.0
+        for camera_id, estimate in estimated.items():
+            gated, shifts[camera_id] = gate(self.reference[camera_id], estimate, self.options)
+            new = cameras.from_refinement_model(self.given[camera_id], gated)
+            current = self.scene.intrinsics[camera_id]
+            if not _same(new, current):
+                changed[camera_id] = new
+                moved = max(moved, shift_px(current, new) / half_diagonal(current))
+        self.scene = with_intrinsics(self.scene, changed) if changed else self.scene
+        report.update(shifts_px={str(c): v for c, v in shifts.items()}, moved=moved,
+                      result={str(c): describe(self.scene.intrinsics[c]) for c in sorted(self.calibrate)})
+        self.rounds.append(report)
+        logger.info("intrinsics: round %d (%.2f s): %s", len(self.rounds), report["time_s"], "; ".join(
+            f"camera {c} {np.round(self.scene.intrinsics[c].params, 4).tolist()}" for c in sorted(self.calibrate)))
+        self.settled = moved <= self.options.converged_shift
+        return self.settled
+
+    def moved_from(self, scene: SfMScene) -> bool:
+        """True if the current intrinsics moved the image of some camera by more than
+        ``converged_shift`` from ``scene``'s (whose load stage then no longer fits)."""
+        return any(shift_px(scene.intrinsics[c], self.scene.intrinsics[c]) / half_diagonal(scene.intrinsics[c])
+                   > self.options.converged_shift for c in self.calibrate)
+
+    def back_to_given(self) -> bool:
+        """True when there is a fallback run and every camera is back to its given intrinsics."""
+        return self.fallback is not None and all(_same(self.scene.intrinsics[c], k) for c, k in self.given.items())
+
+    def finish(self, posed: SfMScene) -> dict:
+        """The report (reports/intrinsics.json) of the run's final reconstruction ``posed``."""
+        per_camera, overall = mean_reprojection_errors(posed)
+        final = {c: posed.intrinsics[c] for c in self.given}
+        warnings = warnings_for(self.given, final, set(self.calibrate), overall, self.options)
+        for camera_id, intrinsic in self.given.items():
+            if intrinsic.prior_focal is False and camera_id not in self.calibrate:
+                warnings.append(f"camera {camera_id}: its focal length is marked as a guess (prior_focal_length = 0) "
+                                f"and is used as given (--intrinsics {self.options.mode})")
+        self.result = {
+            "mode": str(self.options.mode),
+            "cameras": {str(c): {"start": describe(self.given[c]), "end": describe(final[c]),
+                                 "calibrated": self.calibrate.get(c), "prior_focal": self.given[c].prior_focal,
+                                 "focal_change": final[c].focal_px / self.given[c].focal_px - 1.0,
+                                 "reprojection_error_px": per_camera.get(c),
+                                 "first_reprojection_error_px": self.first_reprojection_px.get(c)}
+                        for c in sorted(self.given)},
+            "reprojection_error_px": overall, "view_graph_calibration": self.view_graph, "rounds": self.rounds,
+            "settled": self.settled,
+            "kept_given_intrinsics": all(_same(final[c], k) for c, k in self.given.items()),
+            "warnings": warnings}
+        return self.result
+
+    def changed(self) -> dict:
+        """For the workspace state: the mode and the cameras whose intrinsics differ from the
+        input's ({id: {"model", "params"}}), so that the stage commands use the same."""
+        cameras_ = {str(c): {"model": k.model, "params": [float(v) for v in np.asarray(k.params).ravel()]}
+                    for c, k in self.scene.intrinsics.items() if c in self.given and not _same(k, self.given[c])}
+        return {"mode": str(self.options.mode), "cameras": cameras_} if cameras_ else {}
+
+    def restore(self, saved: dict) -> None:
+        """The intrinsics of :meth:`changed` (saved by an earlier command) in place of the input's."""
+        restored = {}
+        for key, camera in (saved or {}).get("cameras", {}).items():
+            camera_id = int(key)
+            if camera_id not in self.given:
+                raise InputError("the workspace's intrinsics name a camera the input does not have",
+                                 field=f"state.npz options.intrinsics.cameras[{key}]")
+            restored[camera_id] = replace(self.given[camera_id], model=camera["model"],
+                                          params=np.asarray(camera["params"], dtype=np.float64))
+            self.calibrate[camera_id] = "restored"
+        if restored:
+            self.scene = with_intrinsics(self.scene, restored)
+
+    def summary(self) -> dict:
+        """The run summary's part: intrinsics at start and end per camera, the final mean
+        reprojection error, the warnings."""
+        return {"intrinsics": {c: {"start": v["start"]["params"], "end": v["end"]["params"],
+                                   "model": [v["start"]["model"], v["end"]["model"]]}
+                               for c, v in self.result["cameras"].items()},
+                "reprojection_error_px": self.result["reprojection_error_px"], "warnings": self.result["warnings"]}
+
+
+def start_calibration(scene: SfMScene, options: IntrinsicsOptions, calibrate_now: bool = True) -> Calibration:
+    """The calibration of a run on ``scene`` as read: the cameras to calibrate from the start
+    get their focal length from the view graph (before the load stage) if ``calibrate_now``."""
+    options.validate()
+    calibration = Calibration(options, dict(scene.intrinsics), scene)
+    calibrate = cameras_to_calibrate(scene, options.mode) if calibrate_now else set()
+    if calibrate:
+        why = "refine" if options.mode == Mode.REFINE else "guess"
+        calibration._calibrate_focals(dict.fromkeys(sorted(calibrate), why))
+    return calibration
