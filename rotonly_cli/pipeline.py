@@ -21,6 +21,7 @@ import time
 from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -40,7 +41,9 @@ from rotonly_cli.runtime.startup import collector_paused
 from rotonly_cli.scene.tracks import TrackCache
 from rotonly_cli.scene.types import SfMScene, Structure
 from rotonly_cli.scene.view_graph import ViewGraph, largest_component
-from rotonly_cli.stages.intrinsics import Calibration
+
+if TYPE_CHECKING:
+    from rotonly_cli.stages.intrinsics import Calibration
 
 logger = logging.getLogger(__name__)
 STAGES = ("load", "identify", "refine", "average", "optimize", "translate", "triangulate")
@@ -215,7 +218,9 @@ def calibrated_chain(loaded: Run) -> Run:
         return _chain(loaded, STAGES[1:])
     guessed = bool(calibration.calibrate)
     run = _rerun(loaded, loaded.scene, loaded, estimation=guessed)
-    if options.mode == intrinsics.Mode.AUTO and not calibration.add_suspects(output_scene(run)) and not guessed:
+    suspects = options.mode == intrinsics.Mode.AUTO and calibration.add_suspects(
+        run.reports["triangulate"]["outlier_sigma_px_by_camera"], loaded.reports["load"].get("noise_sigma_px"))
+    if not suspects and not guessed:
         return run  # every camera fits: the intrinsics stay as given
     if not guessed:
         calibration.fallback = run  # the result if no change turns out significant

@@ -105,9 +105,17 @@ def mean_reprojection_errors(scene: SfMScene) -> tuple[dict[int, float], float |
     return {camera_id: float(e.mean()) for camera_id, e in errors.items()}, float(overall.mean())
 
 
-def suspect_cameras(per_camera_px: dict[int, float], options: IntrinsicsOptions) -> set[int]:
+def suspect_threshold_px(noise_sigma_px: float | None, options: IntrinsicsOptions) -> float:
+    """The mean reprojection error above which a camera's intrinsics are wrong: well above
+    the matches' noise (their sigma, measured by the load stage), and never below
+    ``suspect_reprojection_px``."""
+    floor = options.suspect_reprojection_px
+    return floor if noise_sigma_px is None else max(floor, options.suspect_noise_sigmas * noise_sigma_px)
+
+
+def suspect_cameras(per_camera_px: dict[int, float], threshold_px: float) -> set[int]:
     """Cameras whose mean reprojection error shows their intrinsics wrong."""
-    return {camera_id for camera_id, error in per_camera_px.items() if error > options.suspect_reprojection_px}
+    return {camera_id for camera_id, error in per_camera_px.items() if error > threshold_px}
 
 
 # ============================================================================ 2. view-graph calibration
@@ -179,6 +187,15 @@ def view_graph_focals(scene: SfMScene, calibrate: set[int],
 
 # ============================================================================ 3. estimation from a reconstruction
 
+def plausible(intrinsics: Intrinsics) -> bool:
+    """Finite parameters, positive focal lengths, the principal point inside the image."""
+    params = np.asarray(intrinsics.params, dtype=np.float64)
+    groups = cameras.parameter_groups(intrinsics)
+    cx, cy = params[groups["principal_point"]]
+    return bool(np.all(np.isfinite(params)) and np.all(params[groups["focal"]] > 0)
+                and 0 <= cx <= intrinsics.width and 0 <= cy <= intrinsics.height)
+
+
 def longest_tracks(scene: SfMScene, max_points: int, seed: int = 0) -> SfMScene:
     """``scene`` with only its ``max_points`` longest tracks (ties broken at random, seeded)."""
     structure = scene.structure
@@ -228,12 +245,15 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int],
     error_before = reconstruction.compute_mean_reprojection_error()
     summary = pycolmap.create_default_bundle_adjuster(ba, config, reconstruction).solve()
     error_after = reconstruction.compute_mean_reprojection_error()
-    estimated = {}
+    estimated, rejected = {}, []
     for camera_id in sorted(refine):
-        params = np.array(reconstruction.cameras[camera_id + offset].params, dtype=np.float64)
-        if np.all(np.isfinite(params)):
-            estimated[camera_id] = replace(models[camera_id], params=params)
-    report = {"cameras": sorted(refine), "unsupported_models": unsupported,
+        estimate = replace(models[camera_id], params=np.array(reconstruction.cameras[camera_id + offset].params,
+                                                              dtype=np.float64))
+        if plausible(estimate):
+            estimated[camera_id] = estimate
+        else:
+            rejected.append(camera_id)
+    report = {"cameras": sorted(refine), "unsupported_models": unsupported, "implausible_estimates": rejected,
               "num_points": 0 if subset.structure is None else len(subset.structure.points),
               "num_images": len(reconstruction.reg_image_ids()),
               "mean_reprojection_error_px": [float(error_before), float(error_after)],
@@ -329,6 +349,7 @@ class Calibration:
     view_graph: list[dict] = field(default_factory=list)
     rounds: list[dict] = field(default_factory=list)
     first_reprojection_px: dict[int, float] = field(default_factory=dict)
+    suspect_threshold_px: float | None = None
     #: auto, when only suspects are calibrated: the run with the given intrinsics, the result
     #: if none of their changes is significant
     fallback: object | None = None
@@ -344,17 +365,19 @@ class Calibration:
             start = self.given[camera_id] if why == "suspect" else self.scene.intrinsics[camera_id]
             self.reference[camera_id] = cameras.refinement_model(start)
 
-    def add_suspects(self, posed: SfMScene) -> bool:
-        """auto: cameras not yet calibrated whose reprojection error in ``posed`` (the first
-        reconstruction) shows them wrong join the calibration, starting with their focal
-        from the view graph. True if there are any."""
-        per_camera, _ = mean_reprojection_errors(posed)
+    def add_suspects(self, sigma_by_camera: dict[str, float], noise_sigma_px: float | None) -> bool:
+        """auto: cameras not yet calibrated whose reprojection errors in the first
+        reconstruction (``sigma_by_camera``: robust sigma in px of every observation's error
+        before triangulation drops any, the triangulate stage's report) show them wrong join
+        the calibration, starting with their focal from the view graph. True if any did."""
+        per_camera = {int(c): float(v) for c, v in sigma_by_camera.items()}
         self.first_reprojection_px = per_camera
-        suspects = {c for c in suspect_cameras(per_camera, self.options) if c not in self.calibrate}
+        self.suspect_threshold_px = suspect_threshold_px(noise_sigma_px, self.options)
+        suspects = {c for c in suspect_cameras(per_camera, self.suspect_threshold_px) if c not in self.calibrate}
         if suspects:
-            logger.info("intrinsics: camera(s) %s reproject at %s px (> %g px): calibrating them",
+            logger.info("intrinsics: camera(s) %s reproject with sigma %s px (> %.2f px): calibrating them",
                         sorted(suspects), ", ".join(f"{per_camera[c]:.2f}" for c in sorted(suspects)),
-                        self.options.suspect_reprojection_px)
+                        self.suspect_threshold_px)
             self._calibrate_focals(dict.fromkeys(sorted(suspects), "suspect"))
         return bool(suspects)
 
@@ -405,10 +428,10 @@ class Calibration:
                                  "calibrated": self.calibrate.get(c), "prior_focal": self.given[c].prior_focal,
                                  "focal_change": final[c].focal_px / self.given[c].focal_px - 1.0,
                                  "reprojection_error_px": per_camera.get(c),
-                                 "first_reprojection_error_px": self.first_reprojection_px.get(c)}
+                                 "first_reprojection_sigma_px": self.first_reprojection_px.get(c)}
                         for c in sorted(self.given)},
             "reprojection_error_px": overall, "view_graph_calibration": self.view_graph, "rounds": self.rounds,
-            "settled": self.settled,
+            "settled": self.settled, "suspect_threshold_px": self.suspect_threshold_px,
             "kept_given_intrinsics": all(_same(final[c], k) for c, k in self.given.items()),
             "warnings": warnings}
         return self.result

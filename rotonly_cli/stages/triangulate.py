@@ -126,6 +126,15 @@ def _keep_observations(tracks: Tracks, obs_xy: np.ndarray, keep: np.ndarray) -> 
             obs_xy[keep])
 
 
+def _sigma_by_camera(scene: SfMScene, view_ids: list[int], view_rows: np.ndarray, error_px: np.ndarray) -> dict:
+    """Per camera (intrinsics id) the robust sigma (1.4826 x the median) of the reprojection
+    errors (px) of its views' observations, before any is dropped: how well the camera's
+    intrinsics fit (stages/intrinsics.py)."""
+    camera_of_row = np.array([scene.views[v].intrinsics_id for v in view_ids], dtype=np.int64)
+    cameras = camera_of_row[view_rows]
+    return {str(int(c)): 1.4826 * float(np.median(error_px[cameras == c])) for c in np.unique(cameras)}
+
+
 def triangulate_graph(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.ndarray, centers: np.ndarray,
                       image_root: str | Path | None = None,
                       options: TriangulationOptions | None = None,
@@ -167,6 +176,7 @@ def triangulate_graph(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.nd
                                    obs_xy, np.ones(num_observations, dtype=bool)) * focal[tracks.view]
         finite = np.isfinite(error)
         sigma, threshold = outlier_threshold_px(error[finite], outliers) if finite.any() else (np.nan, np.inf)
+        camera_sigma = _sigma_by_camera(scene, view_ids, tracks.view[finite], error[finite])
         tracks, obs_xy = _keep_observations(tracks, obs_xy, error <= threshold)
         result = triangulate_tracks(R, C, tracks.track_id, tracks.view, obs_xy, tracks.num_tracks, options)
         valid = result.valid
@@ -183,7 +193,7 @@ def triangulate_graph(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.nd
                           observation_arrays=(track_lengths, view_feature))
     error = result.mean_reprojection_error[valid]
     report = {"num_edges": len(edges), "num_observations_dropped": int(num_observations - tracks.num_observations),
-              "outlier_sigma_px": sigma, "outlier_threshold_px": threshold,
+              "outlier_sigma_px": sigma, "outlier_threshold_px": threshold, "outlier_sigma_px_by_camera": camera_sigma,
               "num_tracks": tracks.num_tracks, "num_points": int(valid.sum()),
               "num_rejected": int(tracks.num_tracks - valid.sum()),
               "num_behind_camera": int((~result.in_front).sum()),

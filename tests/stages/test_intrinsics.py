@@ -1,0 +1,191 @@
+"""stages/intrinsics.py and the calibrated chain of pipeline.py (issue 20): guessed focal lengths
+and unknown distortion, on simulated user inputs (simulation/user_cameras.py) and the bundled
+calibrated fixtures. The small, fast version of scripts/bench/intrinsics.py is here."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from rotonly_cli.evaluation.quality import evaluate
+from rotonly_cli.io.detect import read_scene
+from rotonly_cli.options import Intrinsics as Mode
+from rotonly_cli.options import IntrinsicsOptions, RunOptions
+from rotonly_cli.pipeline import resume, run_pipeline
+from rotonly_cli.scene.types import Intrinsics, SfMScene, View
+from rotonly_cli.simulation.user_cameras import simulate_user_cameras, write_inputs
+from rotonly_cli.stages import intrinsics as stage
+
+from helpers import DATA_FIXTURES
+
+CAMERA = Intrinsics(1, "SIMPLE_RADIAL", 1536, 1024, np.array([1380.0, 768.0, 512.0, 0.0]))
+
+
+def _options(mode: str = "auto") -> RunOptions:
+    return RunOptions(jobs=1, intrinsics=IntrinsicsOptions(mode=mode))
+
+
+def _rotation_error(out, gt_path) -> float:
+    return evaluate(read_scene(gt_path), read_scene(out / "sfm_data.json")).rotation_error_deg.mean
+
+
+# ============================================================================ pieces
+
+def test_cameras_to_calibrate_by_mode():
+    scene = SfMScene(intrinsics={1: CAMERA, 2: Intrinsics(2, "PINHOLE", 10, 10, np.ones(4), prior_focal=False)})
+    assert stage.cameras_to_calibrate(scene, Mode.FIXED) == set()
+    assert stage.cameras_to_calibrate(scene, Mode.AUTO) == {2}
+    assert stage.cameras_to_calibrate(scene, Mode.REFINE) == {1, 2}
+
+
+def test_shift_px_measures_how_far_a_change_moves_the_image():
+    moved = Intrinsics(1, "SIMPLE_RADIAL", 1536, 1024, np.array([1380.0, 771.0, 508.0, 0.0]))
+    assert stage.shift_px(CAMERA, moved) == pytest.approx(5.0)
+    longer = Intrinsics(1, "SIMPLE_RADIAL", 1536, 1024, np.array([1380.0 * 1.01, 768.0, 512.0, 0.0]))
+    assert stage.shift_px(CAMERA, longer) == pytest.approx(0.01 * stage.half_diagonal(CAMERA), rel=1e-6)
+
+
+def test_gate_keeps_only_significant_groups():
+    options = IntrinsicsOptions()  # 0.5 % of the half diagonal: 4.6 px here
+    estimate = Intrinsics(1, "SIMPLE_RADIAL", 1536, 1024, np.array([1380.0 * 1.002, 760.0, 511.0, 1e-4]))
+    gated, shifts = stage.gate(CAMERA, estimate, options)
+    assert gated.params.tolist() == [1380.0, 760.0, 511.0, 0.0]  # only the principal point moved enough
+    assert shifts["principal_point"] == pytest.approx(np.hypot(8, 1)) and shifts["focal"] < 4.6
+    big = Intrinsics(1, "SIMPLE_RADIAL", 1536, 1024, np.array([1500.0, 768.5, 512.0, -0.2]))
+    assert stage.gate(CAMERA, big, options)[0].params.tolist() == [1500.0, 768.0, 512.0, -0.2]
+
+
+def test_suspect_threshold_follows_the_noise():
+    options = IntrinsicsOptions()
+    assert stage.suspect_threshold_px(None, options) == options.suspect_reprojection_px
+    assert stage.suspect_threshold_px(0.1, options) == options.suspect_reprojection_px
+    assert stage.suspect_threshold_px(1.0, options) == pytest.approx(3.0)
+    assert stage.suspect_cameras({1: 0.2, 2: 4.0}, 1.0) == {2}
+
+
+def test_warnings_name_the_reprojection_error_and_a_given_focal_that_moved():
+    given = {1: CAMERA, 2: Intrinsics(2, "PINHOLE", 10, 10, np.array([100.0, 100.0, 5.0, 5.0]), prior_focal=False)}
+    final = {1: Intrinsics(1, "SIMPLE_RADIAL", 1536, 1024, np.array([1450.0, 768.0, 512.0, 0.0])),
+             2: Intrinsics(2, "PINHOLE", 10, 10, np.array([150.0, 150.0, 5.0, 5.0]))}
+    warnings = stage.warnings_for(given, final, {1, 2}, 1.5, IntrinsicsOptions())
+    assert len(warnings) == 2  # camera 2 was a guess: moving it is the point
+    assert "reprojection error 1.50 px" in warnings[0] and "camera 1: focal moved +5.1 %" in warnings[1]
+    assert stage.warnings_for(given, given, set(), 0.3, IntrinsicsOptions()) == []
+
+
+# ============================================================================ simulated user inputs
+
+@pytest.fixture(scope="module")
+def user_inputs(tmp_path_factory):
+    """A 6-view capture with f 30 % off in the guess and k1 = -0.2, as both front ends leave
+    it, and the same matches with the true intrinsics."""
+    problem = simulate_user_cameras(3, 0.3, -0.2, num_views=6, num_points=2000)
+    root = tmp_path_factory.mktemp("user_cameras")
+    return problem, write_inputs(root / "guessed", problem), write_inputs(root / "true", problem, true_intrinsics=True)
+
+
+@pytest.fixture(scope="module")
+def reference_error(user_inputs, tmp_path_factory):
+    """Rotation error of the run with the true intrinsics, per format."""
+    _, _, true = user_inputs
+    out = tmp_path_factory.mktemp("reference")
+    errors = {}
+    for fmt in ("colmap", "openmvg"):
+        run_pipeline(true[fmt], out / fmt, _options("fixed"))
+        errors[fmt] = _rotation_error(out / fmt, true["gt"])
+    return errors
+
+
+def test_view_graph_focal_of_the_simulated_guess(user_inputs):
+    problem = simulate_user_cameras(5, -0.25, 0.0, num_views=6, num_points=2000)
+    from rotonly_cli.simulation.user_cameras import user_scene, verified_pairs
+
+    scene = user_scene(problem, problem.guessed, verified_pairs(problem))
+    calibrated, report = stage.view_graph_focals(scene, {1}, IntrinsicsOptions())
+    assert report["success"] and report["num_pairs"] >= 10
+    assert calibrated[1].focal_px == pytest.approx(1380.0, rel=0.005)
+    assert calibrated[1].params[1:].tolist() == scene.intrinsics[1].params[1:].tolist()  # only the focal
+
+
+@pytest.mark.parametrize("fmt", ["colmap", "openmvg"])
+def test_guessed_intrinsics_are_calibrated(user_inputs, reference_error, tmp_path, fmt):
+    """COLMAP: prior_focal_length = 0 says the focal is a guess. OpenMVG: a wrong EXIF focal
+    and no distortion, found by the reprojection errors. Both end within 0.5 % of the true
+    focal, with k1 recovered, and as accurate as the run with the true intrinsics."""
+    problem, guessed, _ = user_inputs
+    summary = run_pipeline(guessed[fmt], tmp_path / "out", _options())
+    assert summary["num_registered"] == summary["num_views"] == 6
+    end = next(iter(summary["intrinsics"].values()))["end"]
+    assert end[0] == pytest.approx(1380.0, rel=0.005)
+    assert end[3] == pytest.approx(-0.2, abs=0.01)
+    assert _rotation_error(tmp_path / "out", guessed["gt"]) <= 1.5 * reference_error[fmt]
+    report = json.loads((tmp_path / "out" / "reports" / "intrinsics.json").read_text())
+    camera = next(iter(report["cameras"].values()))
+    assert camera["calibrated"] == ("guess" if fmt == "colmap" else "suspect")
+    assert camera["start"]["params"][0] == pytest.approx(1380.0 * 1.3)
+    if fmt == "colmap":
+        assert summary["warnings"] == []  # a guess is expected to move
+    else:  # the given (EXIF) focal was wrong: said so
+        assert any("focal moved" in w for w in summary["warnings"])
+        assert camera["end"]["model"] == "pinhole_radial_k1"  # OpenMVG's pinhole gained its k1
+
+
+def test_fixed_uses_the_guess_and_warns(user_inputs, tmp_path):
+    _, guessed, _ = user_inputs
+    summary = run_pipeline(guessed["colmap"], tmp_path / "out", _options("fixed"))
+    camera = next(iter(summary["intrinsics"].values()))
+    assert camera["start"] == camera["end"]
+    assert any("marked as a guess" in w for w in summary["warnings"])
+    assert any(w in (tmp_path / "out" / "run.log").read_text() for w in summary["warnings"])
+
+
+def test_stage_commands_keep_the_calibrated_intrinsics(user_inputs, tmp_path):
+    """`rotonly identify` calibrates the guessed focal from the view graph; the stage commands
+    that follow on the workspace use it (state.npz), not the database's guess."""
+    from rotonly_cli.io.workspace import load_state
+
+    _, guessed, _ = user_inputs
+    out = tmp_path / "ws"
+    run_pipeline(guessed["colmap"], out, _options(), stages=("load", "identify"))
+    calibrated = load_state(out).options["intrinsics"]
+    focal = calibrated["cameras"]["1"]["params"][0]
+    assert calibrated["mode"] == "auto" and focal != pytest.approx(1380.0 * 1.3)
+    for name in ("refine", "average", "optimize", "translate", "triangulate"):
+        summary = resume(out, name, RunOptions(jobs=1))
+    assert next(iter(read_scene(out / "sfm_data.json").intrinsics.values())).focal_px == focal
+    camera = next(iter(summary["intrinsics"].values()))
+    assert camera["start"][0] == pytest.approx(1380.0 * 1.3) and camera["end"][0] == focal
+
+
+# ============================================================================ calibrated inputs
+
+@pytest.mark.parametrize("input_name", ["database.db", "openmvg/sfm_data.json"])
+def test_auto_leaves_calibrated_cameras_alone(tmp_path, input_name):
+    """Byte-identical to --intrinsics fixed on calibrated input (the check_identical.py
+    --against-fixed guard on the Strecha scenes, here on the bundled fixture)."""
+    source = DATA_FIXTURES / "herzjesu_p8"
+    shutil.copytree(source, tmp_path / "in")
+    outputs = {}
+    for mode in ("fixed", "auto"):
+        summary = run_pipeline(tmp_path / "in" / input_name, tmp_path / mode, _options(mode))
+        outputs[mode] = (tmp_path / mode / "sfm_data.json").read_bytes()
+        assert summary["warnings"] == []
+    assert outputs["auto"] == outputs["fixed"]
+    report = json.loads((tmp_path / "auto" / "reports" / "intrinsics.json").read_text())
+    assert report["kept_given_intrinsics"] and not report["rounds"]
+
+
+def test_views_of_one_camera_change_together():
+    scene = SfMScene(intrinsics={1: CAMERA})
+    for view_id in (1, 2):
+        scene.views[view_id] = View(view_id, f"{view_id}.jpg", 1)
+        scene.keypoints[view_id] = np.array([[768.0 + 138.0, 512.0]])
+        scene.normalized[view_id] = np.array([[0.1, 0.0]])
+    copy = stage.with_intrinsics(scene, {1: Intrinsics(1, "SIMPLE_RADIAL", 1536, 1024,
+                                                       np.array([690.0, 768.0, 512.0, 0.0]))})
+    np.testing.assert_allclose(copy.normalized[1], [[0.2, 0.0]])
+    np.testing.assert_allclose(copy.normalized[2], [[0.2, 0.0]])
+    np.testing.assert_allclose(scene.normalized[1], [[0.1, 0.0]])  # the original is untouched
