@@ -366,12 +366,14 @@ class IntrinsicsOptions:
     """Camera calibration (stages/intrinsics.py; docs/tuning.md "Intrinsics")."""
 
     mode: Intrinsics = Intrinsics.AUTO
-    #: auto: a camera whose mean reprojection error after the first reconstruction is above
-    #: ``suspect_noise_sigmas`` x the matches' noise sigma (load stage) and above
-    #: ``suspect_reprojection_px`` is calibrated too. Calibrated Strecha inputs: 0.17-0.23 px
-    #: at sigma 0.17-0.20 px; fountain-P11 with the guessed focal: 3.1 px at 0.33 px
-    suspect_noise_sigmas: float = 3.0
+    #: auto: a camera whose reprojection errors after the first reconstruction (robust sigma
+    #: over every observation, before triangulation drops any) are above ``suspect_noise_sigmas``
+    #: x the matches' noise sigma (fundamental-matrix fits) and above ``suspect_reprojection_px``
+    #: is calibrated too (docs/tuning.md "Intrinsics")
+    suspect_noise_sigmas: float = 2.5
     suspect_reprojection_px: float = 0.5
+    #: the largest pairs whose fundamental-matrix fits give the noise sigma
+    noise_sample_pairs: int = 30
     #: F re-fit on each pair's verified matches before the view-graph calibration (pixels)
     fundamental_max_error_px: float = 2.0
     fundamental_min_trials: int = 20

@@ -91,17 +91,21 @@ def load_stage(input_path: str | Path, options: RunOptions) -> Run:
     start = time.perf_counter()
     scene, kind = read_input(input_path, options.matches_dir)
     read_time = time.perf_counter() - start
-    calibration = start_calibration(scene, options.intrinsics)
+    calibration = start_calibration(scene, options.intrinsics, jobs=options.jobs)
     run = _build_graph(str(input_path), kind, calibration.scene, options)
     run.calibration = calibration
     run.reports["load"].update(read_time_s=read_time, input=str(input_path), input_kind=kind)
     return run
 
 
-def _build_graph(input_path: str, kind: InputKind, scene: SfMScene, options: RunOptions) -> Run:
+def _build_graph(input_path: str, kind: InputKind, scene: SfMScene, options: RunOptions,
+                 estimation: bool = False) -> Run:
+    """The load stage's view graph of ``scene``; ``estimation``: for a pass that only
+    estimates intrinsics (ESTIMATION_LOAD: one RANSAC run per edge, fewer trials)."""
     from rotonly_cli.stages.load import build_view_graph
 
-    graph, report = build_view_graph(scene, replace(options.load, progress=options.progress))
+    load = replace(options.load, progress=options.progress, **(ESTIMATION_LOAD if estimation else {}))
+    graph, report = build_view_graph(scene, load)
     run = Run(input_path, kind, scene, graph, options, reports={"load": report})
     _ensure_two_views(graph, "loading")
     return run
@@ -189,6 +193,10 @@ def _chain(run: Run, stages: tuple[str, ...] | list[str]) -> Run:
 #: that follows moves every pose and point, so the RANSAC poses stand in for TRRM's, GRRM
 #: and LiGT's robust rounds are left out (the estimates agree to 0.1 px: docs/tuning.md)
 ESTIMATION_STAGES = ("identify", "average", "translate", "triangulate")
+#: ... and when such a pass needs relative poses of its own (the intrinsics moved far since the
+#: last load stage), one RANSAC run per edge with fewer trials will do: far from the right
+#: intrinsics, RANSAC runs into its trial limit on every edge (docs/tuning.md)
+ESTIMATION_LOAD = {"consensus_runs": 1, "ransac_max_trials": 500}
 
 
 def _rerun(loaded: Run, scene: SfMScene, template: Run, estimation: bool = False) -> Run:
@@ -219,25 +227,31 @@ def calibrated_chain(loaded: Run) -> Run:
     guessed = bool(calibration.calibrate)
     run = _rerun(loaded, loaded.scene, loaded, estimation=guessed)
     suspects = options.mode == intrinsics.Mode.AUTO and calibration.add_suspects(
-        run.reports["triangulate"]["outlier_sigma_px_by_camera"], loaded.reports["load"].get("noise_sigma_px"))
+        run.reports["triangulate"]["outlier_sigma_px_by_camera"], run.scene)
     if not suspects and not guessed:
         return run  # every camera fits: the intrinsics stay as given
     if not guessed:
         calibration.fallback = run  # the result if no change turns out significant
-    graph_run = loaded  # the run whose load stage (relative poses) the passes reuse
+    graph_run, full_load = loaded, True  # the run whose load stage (relative poses) the passes reuse
+
+    def reload(estimation: bool) -> Run:
+        return _build_graph(loaded.input_path, loaded.input_kind, calibration.scene, loaded.options, estimation)
+
     if calibration.moved_from(graph_run.scene):
-        graph_run = _build_graph(loaded.input_path, loaded.input_kind, calibration.scene, loaded.options)
+        graph_run, full_load = reload(True), False
     if calibration.scene is not run.scene:
         run = _rerun(graph_run, calibration.scene, loaded, estimation=True)
     for round_ in range(options.max_rounds):
         settled = calibration.estimate(output_scene(run))
         if calibration.back_to_given():
             return calibration.fallback
-        if calibration.moved_from(graph_run.scene):  # the load stage's RANSAC ran with other intrinsics
-            graph_run = _build_graph(loaded.input_path, loaded.input_kind, calibration.scene, loaded.options)
         if settled or round_ == options.max_rounds - 1:
             break
+        if calibration.moved_from(graph_run.scene):  # the load stage's RANSAC ran with other intrinsics
+            graph_run, full_load = reload(True), False
         run = _rerun(graph_run, calibration.scene, loaded, estimation=True)
+    if not full_load or calibration.moved_from(graph_run.scene):
+        graph_run = reload(False)
     return _rerun(graph_run, calibration.scene, loaded)
 
 

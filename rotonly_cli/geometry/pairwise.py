@@ -446,10 +446,16 @@ def sampson_errors(R_j_from_i: np.ndarray, t: np.ndarray, x_i: np.ndarray, x_j: 
     """First-order geometric distance of each match to the epipolar geometry E = [t]x R_ij
     (Sampson), in normalized image units (x pixels / focal length): (m,)."""
     E = so3.hat(np.asarray(t, dtype=float)) @ np.asarray(R_j_from_i, dtype=float)
+    return epipolar_sampson_errors(E, x_i, x_j)
+
+
+def epipolar_sampson_errors(M: np.ndarray, x_i: np.ndarray, x_j: np.ndarray) -> np.ndarray:
+    """Sampson distance of each match (x_j^T M x_i = 0) to an essential or fundamental
+    matrix ``M``, in the units of ``x_i``, ``x_j`` ((m, 2) or (m, 3) with z = 1): (m,)."""
     a = _as_points(x_i, "x_i")
     b = _as_points(x_j, "x_j")
-    Ea = a @ E.T  # epipolar lines in view j
-    Etb = b @ E  # epipolar lines in view i
+    Ea = a @ np.asarray(M, dtype=float).T  # epipolar lines in view j
+    Etb = b @ np.asarray(M, dtype=float)  # epipolar lines in view i
     algebraic = np.einsum("ma,ma->m", b, Ea)
     gradient = Ea[:, 0] ** 2 + Ea[:, 1] ** 2 + Etb[:, 0] ** 2 + Etb[:, 1] ** 2
     return np.abs(algebraic) / np.sqrt(np.maximum(gradient, 1e-300))

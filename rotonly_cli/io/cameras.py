@@ -47,6 +47,16 @@ def project(intrinsics: Intrinsics, normalized: np.ndarray) -> np.ndarray:
     return np.asarray(camera.img_from_cam(rays), dtype=np.float64).reshape(-1, 2)
 
 
+def undistorted_pixels(intrinsics: Intrinsics, normalized: np.ndarray) -> np.ndarray:
+    """(n, 2) undistorted normalized coordinates -> (n, 2) pixels of the same camera without its
+    distortion (focal length(s) and principal point only)."""
+    groups = parameter_groups(intrinsics)
+    params = np.asarray(intrinsics.params, dtype=np.float64)
+    focal = params[groups["focal"]]
+    return np.asarray(normalized, dtype=np.float64).reshape(-1, 2) * (focal if focal.size == 2 else focal[0]) \
+        + params[groups["principal_point"]]
+
+
 def renormalize(scene: SfMScene, intrinsics: dict[int, Intrinsics]) -> None:
     """Replace ``scene``'s intrinsics by ``intrinsics`` (by id) and recompute the normalized
     coordinates of every view that uses one of them, in place."""

@@ -42,6 +42,7 @@ from rotonly_cli.io.colmap.database import read_camera_params, write_fundamental
 from rotonly_cli.io.colmap.model import model_reconstruction
 from rotonly_cli.options import Intrinsics as Mode
 from rotonly_cli.options import IntrinsicsOptions
+from rotonly_cli.runtime.parallel import edge_parts, fork_map
 from rotonly_cli.scene.types import Intrinsics, SfMScene
 
 logger = logging.getLogger(__name__)
@@ -106,11 +107,43 @@ def mean_reprojection_errors(scene: SfMScene) -> tuple[dict[int, float], float |
 
 
 def suspect_threshold_px(noise_sigma_px: float | None, options: IntrinsicsOptions) -> float:
-    """The mean reprojection error above which a camera's intrinsics are wrong: well above
-    the matches' noise (their sigma, measured by the load stage), and never below
+    """The reprojection error sigma above which a camera's intrinsics are wrong: well above
+    the matches' noise (:func:`fundamental_noise_sigma_px`), and never below
     ``suspect_reprojection_px``."""
     floor = options.suspect_reprojection_px
     return floor if noise_sigma_px is None else max(floor, options.suspect_noise_sigmas * noise_sigma_px)
+
+
+#: the noise sigma needs this many inlier residuals to be trusted
+MIN_NOISE_SAMPLES = 50
+
+
+def fundamental_noise_sigma_px(scene: SfMScene, options: IntrinsicsOptions) -> float | None:
+    """Noise sigma (px) of the matches whatever the focal lengths: 1.4826 x the median Sampson
+    distance to a fundamental matrix fitted (LO-RANSAC, ``fundamental_max_error_px``) on each
+    of the ``noise_sample_pairs`` largest verified pairs. The load stage's sigma comes from
+    essential matrices, which wrong intrinsics inflate as much as the reprojection errors
+    (a focal 10 % off with k1 = -0.3: 1.1 px against 0.5 px). None with too few inliers."""
+    import pycolmap
+
+    from rotonly_cli.geometry.pairwise import epipolar_sampson_errors
+
+    ransac = pycolmap.RANSACOptions(max_error=options.fundamental_max_error_px, random_seed=options.seed,
+                                    min_num_trials=options.fundamental_min_trials)
+    usable = [pair for pair in scene.pairs.values() if pair.verified and pair.config not in _NO_FUNDAMENTAL
+              and pair.i in scene.normalized and pair.j in scene.normalized and len(pair.matches) >= 8]
+    errors = [np.zeros(0)]
+    for pair in sorted(usable, key=lambda p: (-len(p.matches), p.i, p.j))[:options.noise_sample_pairs]:
+        matches = np.asarray(pair.matches, dtype=np.int64)
+        x_i, x_j = (np.ascontiguousarray(cameras.undistorted_pixels(
+            scene.intrinsics[scene.views[v].intrinsics_id], scene.normalized[v][matches[:, column]]))
+            for v, column in ((pair.i, 0), (pair.j, 1)))
+        result = pycolmap.estimate_fundamental_matrix(x_i, x_j, ransac)
+        if result is not None:
+            inliers = np.asarray(result["inlier_mask"], dtype=bool).ravel()
+            errors.append(epipolar_sampson_errors(result["F"], x_i[inliers], x_j[inliers]))
+    errors = np.concatenate(errors)
+    return 1.4826 * float(np.median(errors)) if errors.size >= MIN_NOISE_SAMPLES else None
 
 
 def suspect_cameras(per_camera_px: dict[int, float], threshold_px: float) -> set[int]:
@@ -120,32 +153,46 @@ def suspect_cameras(per_camera_px: dict[int, float], threshold_px: float) -> set
 
 # ============================================================================ 2. view-graph calibration
 
-def refit_fundamentals(scene: SfMScene, options: IntrinsicsOptions) -> dict[tuple[int, int], np.ndarray]:
-    """F (pixels) of every verified pair that can hold one, from pycolmap's LO-RANSAC with
-    Sampson refinement on the pair's matches. COLMAP 3.8 stores F without that refinement:
+#: the F re-fit forks a process per this many matches at most (a fork costs ~30 ms)
+MIN_MATCHES_PER_PROCESS = 20_000
+
+
+def refit_fundamentals(scene: SfMScene, options: IntrinsicsOptions, jobs: int = 1) -> dict[tuple[int, int], np.ndarray]:
+    """F of every verified pair that can hold one, from pycolmap's LO-RANSAC with Sampson
+    refinement on the pair's matches, in pixels without the cameras' known distortion (the
+    keypoints themselves when there is none). COLMAP 3.8 stores F without that refinement:
     the view-graph focal of fountain-P11's guessed database was 2.4 % off with the stored F,
-    0.03 % with the re-fitted one (docs/tuning.md)."""
+    0.03 % with the re-fitted one (docs/tuning.md). ``jobs``: processes (forked)."""
     import pycolmap
 
     ransac = pycolmap.RANSACOptions(max_error=options.fundamental_max_error_px, random_seed=options.seed,
                                     min_num_trials=options.fundamental_min_trials)
-    fundamentals = {}
-    for (i, j), pair in sorted(scene.pairs.items()):
-        if not pair.verified or pair.config in _NO_FUNDAMENTAL or len(pair.matches) < 8:
-            continue
-        if i not in scene.keypoints or j not in scene.keypoints:
-            continue
-        matches = np.asarray(pair.matches, dtype=np.int64)
-        result = pycolmap.estimate_fundamental_matrix(
-            np.ascontiguousarray(scene.keypoints[i][matches[:, 0]], dtype=np.float64),
-            np.ascontiguousarray(scene.keypoints[j][matches[:, 1]], dtype=np.float64), ransac)
-        if result is not None:
-            fundamentals[(i, j)] = np.asarray(result["F"], dtype=np.float64)
-    return fundamentals
+    pixels = {view_id: cameras.undistorted_pixels(scene.intrinsics[view.intrinsics_id], scene.normalized[view_id])
+              for view_id, view in scene.views.items() if view_id in scene.normalized}
+    keys = [key for key, pair in sorted(scene.pairs.items()) if pair.verified and pair.config not in _NO_FUNDAMENTAL
+            and len(pair.matches) >= 8 and key[0] in pixels and key[1] in pixels]
+
+    def fit(part: tuple[int, int]) -> dict[tuple[int, int], np.ndarray]:
+        fitted = {}
+        for i, j in keys[part[0]:part[1]]:
+            matches = np.asarray(scene.pairs[(i, j)].matches, dtype=np.int64)
+            result = pycolmap.estimate_fundamental_matrix(np.ascontiguousarray(pixels[i][matches[:, 0]]),
+                                                          np.ascontiguousarray(pixels[j][matches[:, 1]]), ransac)
+            if result is not None:
+                fitted[(i, j)] = np.asarray(result["F"], dtype=np.float64)
+        return fitted
+
+    # pycolmap holds the GIL here: processes, not threads (each fit is seeded: same result)
+    counts = np.array([len(scene.pairs[key].matches) for key in keys], dtype=np.int64)
+    parts = edge_parts(counts, jobs, MIN_MATCHES_PER_PROCESS) if jobs > 1 and keys else [(0, len(keys))]
+    fundamentals: dict[tuple[int, int], np.ndarray] = {}
+    for fitted in fork_map(fit, parts):
+        fundamentals.update(fitted)
+    return dict(sorted(fundamentals.items()))
 
 
-def view_graph_focals(scene: SfMScene, calibrate: set[int],
-                      options: IntrinsicsOptions) -> tuple[dict[int, Intrinsics], dict]:
+def view_graph_focals(scene: SfMScene, calibrate: set[int], options: IntrinsicsOptions,
+                      jobs: int = 1) -> tuple[dict[int, Intrinsics], dict]:
     """New intrinsics (only the focal length changed) of the cameras in ``calibrate``, by
     ``pycolmap.calibrate_view_graph`` over the re-fitted fundamental matrices; the other
     cameras are held constant. Runs on a database written for it in a temporary folder
@@ -153,7 +200,7 @@ def view_graph_focals(scene: SfMScene, calibrate: set[int],
     import pycolmap
 
     start = time.perf_counter()
-    fundamentals = refit_fundamentals(scene, options)
+    fundamentals = refit_fundamentals(scene, options, jobs)
     report = {"cameras": sorted(calibrate), "num_pairs": len(fundamentals), "refit_time_s": time.perf_counter() - start}
     if not fundamentals:
         report.update(success=False, time_s=time.perf_counter() - start)
@@ -244,6 +291,7 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int],
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
     error_before = reconstruction.compute_mean_reprojection_error()
     summary = pycolmap.create_default_bundle_adjuster(ba, config, reconstruction).solve()
+    reconstruction.update_point_3d_errors()
     error_after = reconstruction.compute_mean_reprojection_error()
     estimated, rejected = {}, []
     for camera_id in sorted(refine):
@@ -257,7 +305,7 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int],
               "num_points": 0 if subset.structure is None else len(subset.structure.points),
               "num_images": len(reconstruction.reg_image_ids()),
               "mean_reprojection_error_px": [float(error_before), float(error_after)],
-              "iterations": int(len(summary.iterations)) if hasattr(summary, "iterations") else None,
+              "termination": getattr(summary.termination_type, "name", str(summary.termination_type)),
               "estimate": {str(c): describe(k) for c, k in estimated.items()},
               "time_s": time.perf_counter() - start}
     return estimated, report
@@ -344,35 +392,50 @@ class Calibration:
     #: reprojection error), "refine" (--intrinsics refine)
     calibrate: dict[int, str] = field(default_factory=dict)
     #: per calibrated camera, what the estimates are compared with (refinement-model terms):
-    #: the view-graph calibration's result, or the given intrinsics of a suspect
+    #: the view-graph calibration's result for a guess, else the given intrinsics
     reference: dict[int, Intrinsics] = field(default_factory=dict)
     view_graph: list[dict] = field(default_factory=list)
     rounds: list[dict] = field(default_factory=list)
     first_reprojection_px: dict[int, float] = field(default_factory=dict)
     suspect_threshold_px: float | None = None
+    noise_sigma_px: float | None = None  #: the matches' noise (F-based), when it was measured
     #: auto, when only suspects are calibrated: the run with the given intrinsics, the result
     #: if none of their changes is significant
     fallback: object | None = None
     settled: bool | None = None  #: whether the last round moved the intrinsics by little (None: no round)
     result: dict = field(default_factory=dict)
+    jobs: int = 1  #: processes for the fundamental-matrix fits
 
     def _calibrate_focals(self, cameras_: dict[int, str]) -> None:
-        focals, report = view_graph_focals(self.scene, set(cameras_), self.options)
+        focals, report = view_graph_focals(self.scene, set(cameras_), self.options, self.jobs)
         self.view_graph.append(report)
         self.scene = with_intrinsics(self.scene, focals)
         for camera_id, why in cameras_.items():
             self.calibrate[camera_id] = why
-            start = self.given[camera_id] if why == "suspect" else self.scene.intrinsics[camera_id]
-            self.reference[camera_id] = cameras.refinement_model(start)
+            # what an estimate must differ from to be kept: the view-graph calibration for a
+            # focal the input calls a guess, else the intrinsics as given
+            guess = self.given[camera_id].prior_focal is False
+            self.reference[camera_id] = cameras.refinement_model(
+                self.scene.intrinsics[camera_id] if guess else self.given[camera_id])
+            if self.reference[camera_id] is None and not guess and camera_id in focals:
+                # no refinement of this model: the view-graph focal is the only estimate, kept
+                # if significant
+                if shift_px(self.given[camera_id], focals[camera_id]) <= self.options.min_shift * half_diagonal(
+                        self.given[camera_id]):
+                    self.scene = with_intrinsics(self.scene, {camera_id: self.given[camera_id]})
 
-    def add_suspects(self, sigma_by_camera: dict[str, float], noise_sigma_px: float | None) -> bool:
+    def add_suspects(self, sigma_by_camera: dict[str, float], scene: SfMScene) -> bool:
         """auto: cameras not yet calibrated whose reprojection errors in the first
         reconstruction (``sigma_by_camera``: robust sigma in px of every observation's error
         before triangulation drops any, the triangulate stage's report) show them wrong join
-        the calibration, starting with their focal from the view graph. True if any did."""
+        the calibration, starting with their focal from the view graph. True if any did.
+        The matches' noise (``scene``'s) is measured only if some sigma is above the floor."""
         per_camera = {int(c): float(v) for c, v in sigma_by_camera.items()}
         self.first_reprojection_px = per_camera
-        self.suspect_threshold_px = suspect_threshold_px(noise_sigma_px, self.options)
+        noise = None
+        if any(v > self.options.suspect_reprojection_px for v in per_camera.values()):
+            noise = self.noise_sigma_px = fundamental_noise_sigma_px(scene, self.options)
+        self.suspect_threshold_px = suspect_threshold_px(noise, self.options)
         suspects = {c for c in suspect_cameras(per_camera, self.suspect_threshold_px) if c not in self.calibrate}
         if suspects:
             logger.info("intrinsics: camera(s) %s reproject with sigma %s px (> %.2f px): calibrating them",
@@ -432,6 +495,7 @@ class Calibration:
                         for c in sorted(self.given)},
             "reprojection_error_px": overall, "view_graph_calibration": self.view_graph, "rounds": self.rounds,
             "settled": self.settled, "suspect_threshold_px": self.suspect_threshold_px,
+            "noise_sigma_px": self.noise_sigma_px,
             "kept_given_intrinsics": all(_same(final[c], k) for c, k in self.given.items()),
             "warnings": warnings}
         return self.result
@@ -466,11 +530,12 @@ class Calibration:
                 "reprojection_error_px": self.result["reprojection_error_px"], "warnings": self.result["warnings"]}
 
 
-def start_calibration(scene: SfMScene, options: IntrinsicsOptions, calibrate_now: bool = True) -> Calibration:
+def start_calibration(scene: SfMScene, options: IntrinsicsOptions, calibrate_now: bool = True,
+                      jobs: int = 1) -> Calibration:
     """The calibration of a run on ``scene`` as read: the cameras to calibrate from the start
     get their focal length from the view graph (before the load stage) if ``calibrate_now``."""
     options.validate()
-    calibration = Calibration(options, dict(scene.intrinsics), scene)
+    calibration = Calibration(options, dict(scene.intrinsics), scene, jobs=jobs)
     calibrate = cameras_to_calibrate(scene, options.mode) if calibrate_now else set()
     if calibrate:
         why = "refine" if options.mode == Mode.REFINE else "guess"

@@ -62,7 +62,7 @@ def test_suspect_threshold_follows_the_noise():
     options = IntrinsicsOptions()
     assert stage.suspect_threshold_px(None, options) == options.suspect_reprojection_px
     assert stage.suspect_threshold_px(0.1, options) == options.suspect_reprojection_px
-    assert stage.suspect_threshold_px(1.0, options) == pytest.approx(3.0)
+    assert stage.suspect_threshold_px(1.0, options) == pytest.approx(2.5)
     assert stage.suspect_cameras({1: 0.2, 2: 4.0}, 1.0) == {2}
 
 
