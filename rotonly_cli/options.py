@@ -141,6 +141,12 @@ class TRRMOptions:
     final_inlier_pass: bool = True
     #: k of the inlier test ‖r‖ <= k σ: 3σ keeps ~99.7 % of Gaussian inliers
     inlier_threshold_sigmas: float = 3.0
+    #: edges whose refinement ended PURE_ROTATION or moved more than this (deg) from the
+    #: start are refined again from the two rotations of the linear 8-point E of their
+    #: matches; a restart replaces the result when its median squared residual is below half
+    #: of it. TRRM (and its λ_min(Pˢ) phase) has local minima a few degrees from the truth,
+    #: one near the pure-rotation fit; real edges start well inside 1°. None: no restarts
+    restart_change_deg: float | None = 1.0
 
     def validate(self) -> TRRMOptions:
         if self.loss not in (RobustLoss.CAUCHY, RobustLoss.NONE):
@@ -152,6 +158,7 @@ class TRRMOptions:
         if not self.inlier_threshold_sigmas > 0:
             raise ValueError("inlier_threshold_sigmas: must be > 0")
         _require_non_negative(self, "irls_step_tolerance", none_allowed=True)
+        _require_non_negative(self, "restart_change_deg", none_allowed=True)
         return self
 
 
