@@ -166,8 +166,9 @@ def simulate_multiview(setup: str = "circular", *, num_views: int = 100, num_poi
         raise InputError(f"unknown noise model {noise_model!r}", field="noise_model")
     if num_views < 3 or num_points < 1 or window < 1:
         raise InputError("need num_views >= 3, num_points >= 1, window >= 1", field="num_views/num_points/window")
-    for name, value in (("corrupt_fraction", corrupt_fraction), ("epipolar_outlier_fraction", epipolar_outlier_fraction),
-                        ("swapped_fraction", swapped_fraction)):
+    fractions = {"corrupt_fraction": corrupt_fraction, "epipolar_outlier_fraction": epipolar_outlier_fraction,
+                 "swapped_fraction": swapped_fraction}
+    for name, value in fractions.items():
         if not 0.0 <= value <= 1.0:
             raise InputError("must be in [0, 1]", field=name)
     if isinstance(image_size, (int, np.integer)):
