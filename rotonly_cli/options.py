@@ -16,7 +16,8 @@ from rotonly_cli.errors import InputError
 
 __all__ = [
     "AverageOptions", "AveragingOptions", "GRRMOptions", "IdentificationOptions", "LiGTOptions", "LoadOptions",
-    "Reestimate", "ResidualForm", "RobustLoss", "RobustWeight", "RunOptions", "TRRMOptions", "TriangulationOptions",
+    "Reestimate", "RejectOptions", "ResidualForm", "RobustLoss", "RobustWeight", "RunOptions", "TRRMOptions",
+    "TriangulationOptions",
 ]
 
 
@@ -354,6 +355,18 @@ class LoadOptions:
 
 
 @dataclass(frozen=True)
+class RejectOptions:
+    """The reject stage (stages/reject.py): multi-view outlier rejection under the global poses."""
+
+    #: rounds of reject -> GRRM -> LiGT; they stop earlier when a round drops nothing
+    max_rounds: int = 3
+    #: a match is dropped beyond this many robust sigmas of the Sampson errors under the global poses
+    outlier_sigmas: float = 5.0
+    #: ... and never within this many pixels
+    min_threshold_px: float = 1.0
+
+
+@dataclass(frozen=True)
 class AverageOptions:
     """The average stage (stages/average.py)."""
 
@@ -377,6 +390,7 @@ class RunOptions:
     average: AverageOptions = AverageOptions()
     optimize: GRRMOptions = GRRMOptions()
     translate: LiGTOptions = LiGTOptions()
+    reject: RejectOptions = RejectOptions()
     triangulate: TriangulationOptions = TriangulationOptions()
     grrm: bool = True  #: False: keep the averaged rotations (ablation)
     progress: bool = False

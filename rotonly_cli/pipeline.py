@@ -2,8 +2,9 @@
 
 load (INPUT -> view graph, re-estimated relative poses, min-inlier filter)
 -> identify (scene kinds; ROTATION_SINGULAR filtered) -> refine (TRRM, batched)
--> average (L1-IRLS, gross-outlier filter) -> optimize (GRRM) -> translate (LiGT)
--> triangulate (+ colours) -> export (OUT/sfm_data.json, OUT/sparse/).
+-> average (L1-IRLS, gross-outlier filter) -> optimize (GRRM) -> translate (robust LiGT)
+-> reject (multi-view outlier rejection, then GRRM + LiGT again) -> triangulate (+ colours)
+-> export (OUT/sfm_data.json, OUT/sparse/).
 
 Every stage reads and writes plain objects; :class:`Run` holds them. The workspace
 ``OUT/`` (architecture.md "CLI contract"): ``sfm_data.json``, ``sparse/``, ``view_graph.json``,
@@ -41,7 +42,7 @@ from rotonly_cli.scene.types import SfMScene, Structure
 from rotonly_cli.scene.view_graph import ViewGraph, largest_component
 
 logger = logging.getLogger(__name__)
-STAGES = ("load", "identify", "refine", "average", "optimize", "translate", "triangulate")
+STAGES = ("load", "identify", "refine", "average", "optimize", "translate", "reject", "triangulate")
 #: files a workspace may hold; an existing OUT with anything else is not replaced
 WORKSPACE_ENTRIES = {"sfm_data.json", "sparse", "view_graph.json", "reports", "run.log", STATE_FILE, "eval"}
 
@@ -146,6 +147,33 @@ def image_root(run: Run) -> Path | None:
     return root if root.is_absolute() else base / root
 
 
+def reject_stage(run: Run) -> None:
+    """Rounds of stages/reject (drop the matches inconsistent with the global poses) followed
+    by GRRM and LiGT on what is left, until a round drops nothing (RejectOptions.max_rounds).
+    The optimize and translate reports are those of the last solve."""
+    from rotonly_cli.stages.reject import reject_round
+
+    start = time.perf_counter()
+    rounds = []
+    focal_px = run.scene.focal_px(run.graph.view_ids())
+    for _ in range(run.options.reject.max_rounds):
+        if run.rotations is None or run.centers is None:
+            break
+        report = reject_round(run.graph, run.scene.normalized, run.rotations, run.centers, focal_px,
+                              run.options.reject, run.options.load.min_inliers, run.options.average.max_residual_deg)
+        rounds.append(report)
+        logger.info("reject: %d of %d matches inconsistent with the global poses (threshold %.2f px), edges "
+                    "filtered %s", report["num_dropped"], report["num_matches"], report["threshold_px"] or 0.0,
+                    report["edges_filtered"] or "none")
+        if report["num_dropped"] == 0 and not report["edges_filtered"]:
+            break
+        _ensure_two_views(run.graph, "multi-view rejection")
+        optimize_stage(run)
+        translate_stage(run)
+    run.reports["reject"] = {"rounds": rounds, "num_dropped": int(sum(r["num_dropped"] for r in rounds)),
+                             "time_s": time.perf_counter() - start}
+
+
 def triangulate_stage(run: Run) -> None:
     from rotonly_cli.stages.triangulate import triangulate_graph
 
@@ -157,7 +185,8 @@ def triangulate_stage(run: Run) -> None:
 
 
 STAGE_FUNCTIONS = {"identify": identify_stage, "refine": refine_stage, "average": average_stage,
-                   "optimize": optimize_stage, "translate": translate_stage, "triangulate": triangulate_stage}
+                   "optimize": optimize_stage, "translate": translate_stage, "reject": reject_stage,
+                   "triangulate": triangulate_stage}
 
 
 # ============================================================================ outputs

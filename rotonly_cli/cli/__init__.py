@@ -25,6 +25,7 @@ COMMANDS: dict[str, str] = {
     "average": "rotonly_cli.cli.stages",
     "optimize": "rotonly_cli.cli.stages",
     "translate": "rotonly_cli.cli.stages",
+    "reject": "rotonly_cli.cli.stages",
     "triangulate": "rotonly_cli.cli.stages",
     "eval": "rotonly_cli.cli.eval",
     "convert": "rotonly_cli.cli.convert",

@@ -5,6 +5,7 @@
     rotonly average OUT              # robust rotation averaging (+ outlier filter)
     rotonly optimize OUT             # GRRM
     rotonly translate OUT            # LiGT camera centres
+    rotonly reject OUT               # multi-view outlier rejection, then GRRM + LiGT again
     rotonly triangulate OUT          # points; writes OUT/sfm_data.json and OUT/sparse/
 
 Each updates OUT/state.npz, OUT/view_graph.json and OUT/reports/<stage>.json.
@@ -54,8 +55,10 @@ optimize = _stage_command("optimize", "GRRM (the paper's Algorithm 4) refines th
                           "reprojection residuals of all REGULAR edges.")
 translate = _stage_command("translate", "Camera centres by LiGT from the rotations and the tracks of the REGULAR "
                            "edges.")
+reject = _stage_command("reject", "Drop the matches inconsistent with the global poses (Sampson error under the "
+                        "rotations and LiGT centres), then run GRRM and LiGT again, until nothing changes.")
 triangulate = _stage_command("triangulate", "Triangulate the tracks and write OUT/sfm_data.json and OUT/sparse/.",
                              cli_options.image_path, cli_options.gt)
 
 commands = {"identify": identify, "average": average, "optimize": optimize, "translate": translate,
-            "triangulate": triangulate}
+            "reject": reject, "triangulate": triangulate}

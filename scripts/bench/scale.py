@@ -42,7 +42,7 @@ from rotonly_cli.bench import results_md
 from rotonly_cli.bench.common import code_version
 from rotonly_cli.io.atomic import make_staging_dir, replace_dir, staging_dir
 
-STAGES = ("load", "identify", "refine", "average", "optimize", "translate", "triangulate", "export")
+STAGES = ("load", "identify", "refine", "average", "optimize", "translate", "reject", "triangulate", "export")
 STAGE_TITLES = {"optimize": "GRRM"}
 GRRM_TARGET_S = 60.0
 GRRM_TARGET_GB = 4.0
