@@ -329,6 +329,11 @@ class LoadOptions:
     #: seeded RANSAC runs per edge; an edge keeps the matches that are inliers of all of them
     #: (the stable consensus) and the pose of the run closest to the others
     consensus_runs: int = 3
+    #: a RANSAC run on an edge with more matches samples and scores a seeded random subset of
+    #: this size; the inliers are then all matches within the threshold of its model. Its cost
+    #: grows with the matches (~15 µs each: the local optimisation), its model's accuracy hardly
+    #: (TRRM refines it on the inliers). None: always all matches
+    ransac_max_matches: int | None = 2000
     #: the matches are verified inliers already, so the adaptive trial count stops early;
     #: pycolmap's default floor of 1000 trials would dominate the load time
     ransac_min_trials: int = 20

@@ -63,8 +63,16 @@ def focal_length(intrinsics: Intrinsics) -> float:
 def _relative_pose_ransac(x_i: np.ndarray, x_j: np.ndarray, focal_i: float, focal_j: float, max_error_px: float,
                           seed: int, options: LoadOptions):
     """pycolmap LO-RANSAC on normalized points through SIMPLE_PINHOLE(f, 0, 0) cameras, so
-    the threshold is in pixels. Returns (R_j_from_i, unit t, inlier mask) or None."""
+    the threshold is in pixels. Returns (R_j_from_i, unit t, inlier mask) or None.
+
+    Beyond ``options.ransac_max_matches`` matches RANSAC runs on a seeded random subset of
+    that size, and the inliers are every match within the threshold of its model (Sampson)."""
     import pycolmap
+
+    subset = None
+    if options.ransac_max_matches is not None and len(x_i) > options.ransac_max_matches:
+        subset = np.sort(np.random.default_rng(seed).choice(len(x_i), options.ransac_max_matches, replace=False))
+        all_i, all_j, x_i, x_j = x_i, x_j, x_i[subset], x_j[subset]
 
     cameras = [pycolmap.Camera(model=pycolmap.CameraModelId.SIMPLE_PINHOLE, width=2, height=2,
                                params=np.array([f, 0.0, 0.0])) for f in (focal_i, focal_j)]
@@ -78,8 +86,10 @@ def _relative_pose_ransac(x_i: np.ndarray, x_j: np.ndarray, focal_i: float, foca
     pose = result["cam2_from_cam1"]
     t = np.array(pose.translation, dtype=float)
     norm = np.linalg.norm(t)
-    return (np.array(pose.rotation.matrix(), dtype=float), t / norm if norm > 0 else t,
-            np.asarray(result["inlier_mask"], dtype=bool).ravel())
+    R, t = np.array(pose.rotation.matrix(), dtype=float), t / norm if norm > 0 else t
+    if subset is None:
+        return R, t, np.asarray(result["inlier_mask"], dtype=bool).ravel()
+    return R, t, pg.sampson_errors(R, t, all_i, all_j) * 0.5 * (focal_i + focal_j) <= max_error_px
 
 
 def _pool_map(function, items: list, progress: bool, desc: str) -> list:
