@@ -23,7 +23,7 @@ def _output_kind(path: Path) -> str:
 
 
 def convert(input_path: PathLike, output_path: PathLike, matches_dir: PathLike | None = None,
-            text: bool = False) -> str:
+            text: bool = False, matches_file: PathLike | None = None) -> str:
     """Convert ``input_path`` to ``output_path``; returns a one-line summary."""
     from rotonly_cli.io import colmap, openmvg
 
@@ -40,7 +40,7 @@ def convert(input_path: PathLike, output_path: PathLike, matches_dir: PathLike |
     if input_kind == InputKind.OPENMVG:
         sfm_data = input_path / "sfm_data.json" if input_path.is_dir() else input_path
         if output_kind == "colmap-db":
-            scene = openmvg.read_project(sfm_data, matches_dir)
+            scene = openmvg.read_project(sfm_data, matches_dir, matches_file)
         else:
             scene = openmvg.read_sfm_data(sfm_data)
     elif input_kind == InputKind.COLMAP_DB:

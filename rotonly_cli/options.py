@@ -344,6 +344,9 @@ class LoadOptions:
     seed: int = 0
     min_inliers: int = 30  #: edges with fewer inlier matches are filtered
     progress: bool = False
+    #: RANSAC threads (pycolmap releases the GIL; every edge is seeded on its own, so the
+    #: results do not depend on it); 0 = one per usable CPU
+    jobs: int = 0
 
     def validate(self) -> LoadOptions:
         if self.reestimate not in REESTIMATE_MODES:
@@ -356,6 +359,8 @@ class LoadOptions:
             raise InputError("must be >= 1", field="consensus_runs")
         if self.min_inliers < MIN_MATCHES:
             raise InputError(f"must be >= {MIN_MATCHES}", field="min_inliers")
+        if self.jobs < 0:
+            raise InputError("must be >= 0", field="jobs")
         return self
 
 
@@ -387,6 +392,7 @@ class RunOptions:
     """`rotonly run`: the whole chain."""
 
     matches_dir: str | None = None  #: OpenMVG input: features + matches folder
+    matches_file: str | None = None  #: OpenMVG input: the matches file (-M; default: matches.e/f/putative)
     image_path: str | None = None  #: images for the point colours (default: beside the input)
     gt: str | None = None  #: ground truth for the final evaluation
     load: LoadOptions = LoadOptions()

@@ -15,6 +15,7 @@ renames it at the end, so a failed run leaves no partial OUT.
 
 from __future__ import annotations
 
+import copy
 import logging
 import shutil
 import time
@@ -64,6 +65,8 @@ class Run:
     keypoint_rgb: Future | None = None
     #: tracks built by translate and reused by triangulate (scene/tracks)
     tracks: TrackCache = field(default_factory=TrackCache)
+    #: the intrinsics as read, before any stage changed them (report.html)
+    input_intrinsics: dict = field(default_factory=dict)
 
 
 # ============================================================================ stages in memory
@@ -77,16 +80,24 @@ def _ensure_two_views(graph: ViewGraph, after: str) -> None:
 
 
 def load_stage(input_path: str | Path, options: RunOptions) -> Run:
-    from rotonly_cli.stages.load import build_view_graph, read_input
+    from rotonly_cli.stages.load import input_files, read_input
 
     start = time.perf_counter()
-    scene, kind = read_input(input_path, options.matches_dir)
-    read_time = time.perf_counter() - start
-    graph, report = build_view_graph(scene, replace(options.load, progress=options.progress))
-    report["read_time_s"] = read_time
-    report["input"] = str(input_path)
-    report["input_kind"] = kind
-    run = Run(str(input_path), kind, scene, graph, options, reports={"load": report})
+    scene, kind = read_input(input_path, options.matches_dir, options.matches_file)
+    sources = input_files(input_path, kind, scene, options.matches_dir, options.matches_file)
+    return load_scene(scene, kind, str(input_path), options, time.perf_counter() - start, sources)
+
+
+def load_scene(scene: SfMScene, kind: InputKind, input_label: str, options: RunOptions, read_time: float = 0.0,
+               sources: dict | None = None) -> Run:
+    """The load stage on a scene already read (``input_label``: its path, or what it was made
+    from); ``sources``: what it was read from (stages.load.input_files, for reports/load.json)."""
+    from rotonly_cli.stages.load import build_view_graph
+
+    graph, report = build_view_graph(scene, replace(options.load, progress=options.progress, jobs=options.jobs))
+    report.update(read_time_s=read_time, input=input_label, input_kind=kind, **(sources or {"input_files": []}))
+    run = Run(input_label, kind, scene, graph, options, reports={"load": report},
+              input_intrinsics=copy.deepcopy(scene.intrinsics))
     _ensure_two_views(graph, "loading")
     return run
 
@@ -132,19 +143,30 @@ def translate_stage(run: Run) -> None:
 
 
 def image_root(run: Run) -> Path | None:
-    """--image-path; else COLMAP: ``images/`` beside the database; OpenMVG: root_path
-    (relative to the sfm_data.json folder)."""
+    """--image-path; else COLMAP: ``images/`` beside the database; OpenMVG: root_path the way
+    OpenMVG's tools read it (from the current directory), else from the sfm_data.json folder."""
     if run.options.image_path:
         return Path(run.options.image_path)
     input_path = Path(run.input_path)
     if run.input_kind == InputKind.COLMAP_DB:
         candidate = input_path.parent / "images"
-        return candidate if candidate.is_dir() else None
-    if not run.scene.root_path:
+        return candidate if input_path.is_file() and candidate.is_dir() else None
+    if run.input_kind != InputKind.OPENMVG:
         return None
-    root = Path(run.scene.root_path)
-    base = input_path if input_path.is_dir() else input_path.parent
-    return root if root.is_absolute() else base / root
+    from rotonly_cli.io.openmvg import image_root as openmvg_image_root
+
+    return openmvg_image_root(run.scene.root_path, input_path / "sfm_data.json" if input_path.is_dir() else input_path)
+
+
+def output_root_path(run: Run) -> str:
+    """``root_path`` of OUT/sfm_data.json: --image-path as given, an OpenMVG input's root_path
+    as it came (OpenMVG resolves both from the current directory), else the image folder found."""
+    if run.options.image_path:
+        return str(run.options.image_path)
+    if run.input_kind == InputKind.OPENMVG:
+        return run.scene.root_path
+    root = image_root(run)
+    return "" if root is None else str(root)
 
 
 def reject_stage(run: Run) -> None:
@@ -195,7 +217,8 @@ def output_scene(run: Run) -> SfMScene:
     """The input scene with the estimated poses (views with rotation and centre) and points."""
     from rotonly_cli.stages.export import posed_scene
 
-    return posed_scene(run.scene, run.graph.view_ids(), run.rotations, run.centers, run.structure, image_root(run))
+    return posed_scene(run.scene, run.graph.view_ids(), run.rotations, run.centers, run.structure,
+                       output_root_path(run) or None)
 
 
 def write_outputs(out_dir: Path, run: Run) -> SfMScene:
@@ -212,8 +235,8 @@ def write_workspace(out_dir: Path, run: Run, stages_done: list[str]) -> None:
     write_view_graph_json(out_dir / "view_graph.json", run.graph)
     for stage, report in run.reports.items():
         write_report(out_dir, stage, report)
-    options = {"matches_dir": run.options.matches_dir, "image_path": run.options.image_path,
-               "grrm": run.options.grrm}
+    options = {"matches_dir": run.options.matches_dir, "matches_file": run.options.matches_file,
+               "image_path": run.options.image_path, "grrm": run.options.grrm}
     save_state(out_dir, WorkspaceState(run.input_path, run.input_kind, run.options.matches_dir,
                                        run.options.image_path, run.graph, run.rotations, run.centers,
                                        stages_done, options))
@@ -364,12 +387,13 @@ def resume(out_dir: str | Path, stage: str, options: RunOptions | None = None) -
     saved = state.options
     options = options or RunOptions()
     options = replace(options, matches_dir=options.matches_dir or saved.get("matches_dir"),
+                      matches_file=options.matches_file or saved.get("matches_file"),
                       image_path=options.image_path or saved.get("image_path"))
     gt = ground_truth_for(options, [stage])
     start = time.perf_counter()
     with _RunLog(out_dir), collector_paused():
         try:
-            scene, kind = read_input(state.input_path, options.matches_dir)
+            scene, kind = read_input(state.input_path, options.matches_dir, options.matches_file)
             run = Run(state.input_path, kind, scene, state.graph, options, state.rotations, state.centers)
             if stage == "triangulate" and (run.rotations is None or run.centers is None):
                 raise InputError("no rotations / centres in the workspace", path=str(out_dir))

@@ -4,7 +4,8 @@ rotonly_cli/options.py.
 =====================  ==============================================================
 option                 commands
 =====================  ==============================================================
---matches-dir          run, identify (OpenMVG input); convert has its own help
+--matches-dir          run, identify, convert (OpenMVG input)
+-M, --matches          run, identify, convert (OpenMVG input)
 --image-path           run, identify, triangulate
 --min-inliers          run, identify
 --reestimate           run, identify
@@ -44,6 +45,10 @@ matches_dir = click.option(
     "--matches-dir", type=click.Path(path_type=Path), default=None,
     help="OpenMVG input: folder with <view>.feat and matches.e/f/putative .bin|.txt (default: the sfm_data.json "
          "folder).")
+matches_file = click.option(
+    "-M", "--matches", "matches_file", type=click.Path(path_type=Path), default=None,
+    help="OpenMVG input: the matches file, as OpenMVG's --match_file (a bare name is looked up in --matches-dir; "
+         "default: the first of matches.e, matches.f, matches.putative .bin|.txt there).")
 image_path = click.option(
     "--image-path", type=click.Path(path_type=Path), default=None,
     help="Images, for point colours (default: images/ beside a database, root_path of an OpenMVG project; "
@@ -61,7 +66,7 @@ ransac_max_error = click.option(
 seed = click.option("--seed", type=int, default=LoadOptions.seed, show_default=True,
                     help="RANSAC seed (runs are deterministic).")
 #: the load stage's options (`run` and `identify`)
-load_options = _all(matches_dir, image_path, min_inliers, reestimate, ransac_max_error, seed)
+load_options = _all(matches_dir, matches_file, image_path, min_inliers, reestimate, ransac_max_error, seed)
 
 max_residual_deg = click.option(
     "--max-residual-deg", type=click.FloatRange(min=0, min_open=True), default=AverageOptions.max_residual_deg,

@@ -11,8 +11,8 @@ import click
 from rotonly_cli.cli import options as cli_options
 
 
-def run_options(ctx: click.Context, matches_dir, image_path, min_inliers, reestimate, ransac_max_error, seed,
-                **extra):
+def run_options(ctx: click.Context, matches_dir, matches_file, image_path, min_inliers, reestimate, ransac_max_error,
+                seed, **extra):
     from rotonly_cli.options import AverageOptions, LoadOptions, RunOptions
 
     quiet = (ctx.obj or {}).get("verbosity", 0) < 0
@@ -20,6 +20,7 @@ def run_options(ctx: click.Context, matches_dir, image_path, min_inliers, reesti
                        min_inliers=min_inliers)
     average = AverageOptions(max_residual_deg=extra.pop("max_residual_deg", AverageOptions.max_residual_deg))
     return RunOptions(matches_dir=None if matches_dir is None else str(matches_dir),
+                      matches_file=None if matches_file is None else str(matches_file),
                       image_path=None if image_path is None else str(image_path), load=load, average=average,
                       progress=sys.stderr.isatty() and not quiet, **extra)
 

@@ -14,9 +14,9 @@ from rotonly_cli.scene.types import Pose, SfMScene, Structure
 
 
 def posed_scene(scene: SfMScene, view_ids: list[int], rotations: np.ndarray | None, centers: np.ndarray | None,
-                structure: Structure | None, image_root: Path | None) -> SfMScene:
+                structure: Structure | None, image_root: str | Path | None) -> SfMScene:
     """``scene`` with the estimated poses (rows of ``view_ids`` with a finite rotation and
-    centre), the points, no pairs, and ``root_path`` = the image folder (when known)."""
+    centre), the points, no pairs, and ``root_path`` = ``image_root`` (when given)."""
     poses = {}
     if rotations is not None and centers is not None:
         for row, view_id in enumerate(view_ids):
