@@ -58,25 +58,106 @@ class LazyGroup(click.Group):
         return getattr(module, "command", None)
 
 
+#: rotonly's own loggers (the package's modules and GRRM's "rotonly.grrm"): -v shows their debug
+#: lines, -vv every library's
+ROTONLY_LOGGERS = ("rotonly_cli", "rotonly")
+
+#: the closing text of every command's --help
+EPILOG = """\b
+Exit codes: 0 success; 1 no result possible (e.g. fewer than two connected views);
+2 bad input or usage (one line names the file and the field; nothing is written).
+Shell completion (bash): eval "$(_ROTONLY_COMPLETE=bash_source rotonly)" in ~/.bashrc;
+zsh: zsh_source in ~/.zshrc; fish: fish_source into ~/.config/fish/completions/rotonly.fish."""
+
+
 def setup_logging(verbosity: int) -> None:
-    level = {-1: logging.WARNING, 0: logging.INFO}.get(verbosity, logging.DEBUG)
-    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-                        datefmt="%H:%M:%S", stream=sys.stderr, force=True)
+    """-q (-1): warnings and errors; default (0): one line per stage; -v (1): rotonly's per-stage
+    detail (edge counts per reason, GRRM iterations, timings) with logger names; -vv: every
+    library's debug output too."""
+    level = {-1: logging.WARNING, 0: logging.INFO, 1: logging.INFO}.get(verbosity, logging.DEBUG)
+    fmt = ("%(asctime)s %(levelname)s %(name)s: %(message)s" if verbosity > 0
+           else "%(levelname)s: %(message)s" if verbosity < 0 else "%(asctime)s %(message)s")
+    logging.basicConfig(level=level, format=fmt, datefmt="%H:%M:%S", stream=sys.stderr, force=True)
+    for name in ROTONLY_LOGGERS:
+        logging.getLogger(name).setLevel(logging.DEBUG if verbosity > 0 else logging.NOTSET)
 
 
-@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
-@click.version_option(__version__, prog_name="rotonly")
-@click.option("-v", "--verbose", count=True, help="More log output (-v debug).")
-@click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
+def _verbosity(ctx: click.Context, **change) -> None:
+    """Record -v / -q (given before or after the subcommand) on the root context and set the
+    logging up again: ``-q`` wins, ``-v`` counts wherever it stands."""
+    state = ctx.find_root().ensure_object(dict)
+    state["verbose"] = state.get("verbose", 0) + change.get("verbose", 0)
+    state["quiet"] = state.get("quiet", False) or change.get("quiet", False)
+    state["verbosity"] = -1 if state["quiet"] else state["verbose"]
+    setup_logging(state["verbosity"])
+
+
+def _on_verbose(ctx: click.Context, param: click.Parameter, value: int) -> None:
+    if value and not ctx.resilient_parsing:
+        _verbosity(ctx, verbose=value)
+
+
+def _on_quiet(ctx: click.Context, param: click.Parameter, value: bool) -> None:
+    if value and not ctx.resilient_parsing:
+        _verbosity(ctx, quiet=True)
+
+
+def _on_version(ctx: click.Context, param: click.Parameter, value: bool) -> None:
+    if value and not ctx.resilient_parsing:
+        click.echo(f"rotonly, version {__version__}")
+        ctx.exit()
+
+
+def global_options() -> list[click.Option]:
+    """-v, -q and --version: options of the group and of every subcommand, so that they work
+    before and after the subcommand alike."""
+    return [
+        click.Option(["-v", "--verbose"], count=True, expose_value=False, is_eager=True, callback=_on_verbose,
+                     help="More detail: -v per-stage detail (edge counts per reason, GRRM iterations, timings), "
+                          "-vv every library's debug output."),
+        click.Option(["-q", "--quiet"], is_flag=True, expose_value=False, is_eager=True, callback=_on_quiet,
+                     help="Only warnings and errors (no progress bars)."),
+        click.Option(["--version"], is_flag=True, expose_value=False, is_eager=True, callback=_on_version,
+                     help="Show the version and exit."),
+    ]
+
+
+def with_global_options(command: click.Command) -> click.Command:
+    """``command`` (and a group's subcommands) with :func:`global_options` and the exit-code
+    epilog; idempotent."""
+    if not getattr(command, "_rotonly_global_options", False):
+        names = {opt for param in command.params for opt in getattr(param, "opts", ())}
+        command.params.extend(option for option in global_options() if not names & set(option.opts))
+        command.epilog = command.epilog or EPILOG
+        command._rotonly_global_options = True
+    for subcommand in getattr(command, "commands", {}).values():
+        with_global_options(subcommand)
+    return command
+
+
+class RotonlyGroup(LazyGroup):
+    """The lazy group whose subcommands accept the global options too."""
+
+    @staticmethod
+    def _load(name: str):
+        command = LazyGroup._load(name)
+        return None if command is None else with_global_options(command)
+
+
+@click.group(cls=RotonlyGroup, context_settings={"help_option_names": ["-h", "--help"]}, epilog=EPILOG)
 @click.pass_context
-def cli(ctx: click.Context, verbose: int, quiet: bool) -> None:
+def cli(ctx: click.Context) -> None:
     """rotonly: rotation-only SfM (TRRM two-view and GRRM multi-view rotation estimation).
 
-    Reads OpenMVG projects or COLMAP databases, writes OpenMVG sfm_data.json and COLMAP models.
+    Reads OpenMVG projects or COLMAP databases, writes OpenMVG sfm_data.json and COLMAP models
+    (and OUT/report.html). -v, -q and --version may also follow the subcommand.
     """
-    ctx.ensure_object(dict)
-    ctx.obj["verbosity"] = -1 if quiet else verbose
-    setup_logging(ctx.obj["verbosity"])
+    state = ctx.ensure_object(dict)
+    if "verbosity" not in state:  # neither -v nor -q given before the subcommand
+        _verbosity(ctx)
+
+
+cli.params.extend(global_options())
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -9,7 +9,7 @@ option                 commands
 --image-path           run, identify, triangulate
 --min-inliers          run, identify
 --reestimate           run, identify
---ransac-max-error     run, identify
+--ransac-max-error     run, identify, refine (simulated edge)
 --seed (RANSAC)        run, identify
 --max-residual-deg     run, average
 --gt (GT_PATH)         run, triangulate
@@ -62,7 +62,7 @@ reestimate = click.option(
          "(PLANAR/UNCALIBRATED/... or none stored).")
 ransac_max_error = click.option(
     "--ransac-max-error", type=click.FloatRange(min=0, min_open=True), default=LoadOptions.ransac_max_error_px,
-    show_default=True, help="RANSAC threshold in pixels.")
+    show_default=True, help="RANSAC threshold in pixels (relative poses re-estimated by calibrated RANSAC).")
 seed = click.option("--seed", type=int, default=LoadOptions.seed, show_default=True,
                     help="RANSAC seed (runs are deterministic).")
 #: the load stage's options (`run` and `identify`)
@@ -77,6 +77,7 @@ gt = click.option(
 jobs = click.option(
     "--jobs", type=click.IntRange(min=1), default=None,
     callback=lambda ctx, param, value: _usable_cpus() if value is None else value,
-    help="Processes for scene identification and TRRM (forked, Linux; default: the usable CPUs). The numbers do "
-         "not depend on it. Both stay in one process while images are being decoded for the point colours (a fork "
-         "is unsafe with a thread running).")
+    help=f"CPUs to use (default: the usable CPUs, {_usable_cpus()} here): threads for the RANSAC of relative "
+         "poses, forked processes (Linux) for scene identification and TRRM, one per 100000 matches at most (a "
+         "smaller input runs in one process; reports/refine.json records how many ran). The numbers do not "
+         "depend on it.")

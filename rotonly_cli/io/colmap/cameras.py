@@ -127,9 +127,9 @@ def to_openmvg_scene(scene: SfMScene) -> SfMScene:
                                np.array([focal, camera.principal_point_x,
                                          camera.principal_point_y]))
             resampled[intrinsic_id] = exact
-            logger.info("camera %d (%s %s) has no exact OpenMVG model: keypoints re-rendered "
-                        "through an undistorted pinhole f=%.6g", intrinsic_id, intrinsic.model,
-                        np.array2string(params, precision=6), focal)
+            logger.info("camera %d (%s): no exact OpenMVG model, written as a pinhole f=%.6g (keypoints "
+                        "re-rendered)", intrinsic_id, intrinsic.model, focal)
+            logger.debug("camera %d params %s", intrinsic_id, np.array2string(params, precision=6))
         intrinsics[intrinsic_id] = exact
     keypoints = dict(scene.keypoints)
     for view_id, view in scene.views.items():
