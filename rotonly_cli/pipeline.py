@@ -45,7 +45,8 @@ from rotonly_cli.scene.view_graph import ViewGraph, largest_component
 logger = logging.getLogger(__name__)
 STAGES = ("load", "identify", "refine", "average", "optimize", "translate", "reject", "triangulate")
 #: files a workspace may hold; an existing OUT with anything else is not replaced
-WORKSPACE_ENTRIES = {"sfm_data.json", "sparse", "view_graph.json", "reports", "run.log", STATE_FILE, "eval"}
+WORKSPACE_ENTRIES = {"sfm_data.json", "sparse", "view_graph.json", "reports", "run.log", STATE_FILE, "eval",
+                     "report.html"}
 
 
 @dataclass
@@ -130,8 +131,11 @@ def optimize_stage(run: Run) -> None:
     if not run.options.grrm:
         run.reports["optimize"] = {"skipped": "disabled (--no-grrm)"}
         return
-    run.rotations, run.reports["optimize"] = optimize_graph(run.graph, run.scene.normalized, run.rotations,
-                                                            run.options.optimize)
+    from rotonly_cli.runtime.progress import iteration_bar
+
+    with iteration_bar(run.options.progress, run.options.optimize.max_iterations, "GRRM") as on_iteration:
+        run.rotations, run.reports["optimize"] = optimize_graph(run.graph, run.scene.normalized, run.rotations,
+                                                                run.options.optimize, on_iteration=on_iteration)
 
 
 def translate_stage(run: Run) -> None:
@@ -325,16 +329,8 @@ def run_pipeline(input_path: str | Path, out_dir: str | Path, options: RunOption
         with _RunLog(staging), collector_paused():
             logger.info("rotonly run %s -> %s", input_path, out_dir)
             try:
-                run = load_stage(input_path, options)
-                if "triangulate" in stages:
-                    from rotonly_cli.stages.triangulate import start_keypoint_colors
-
-                    run.keypoint_rgb = start_keypoint_colors(run.scene, image_root(run))
-                done = ["load"]
-                for stage in stages[1:]:
-                    STAGE_FUNCTIONS[stage](run)
-                    done.append(stage)
-                summary = _finish(staging, out_dir, run, done, start, gt)
+                run = run_stages(input_path, options, stages)
+                summary = _finish(staging, out_dir, run, list(stages), start, gt)
             except ValueError as exc:
                 raise _as_algorithm_error(exc) from exc
         replace_dir(staging, out_dir)
@@ -344,13 +340,57 @@ def run_pipeline(input_path: str | Path, out_dir: str | Path, options: RunOption
     return summary
 
 
+def colours_start_after(run: Run, stages: tuple[str, ...] | list[str]) -> str | None:
+    """The stage after which the images are decoded for the point colours (on a thread):
+    right after loading, so that decoding overlaps the rotation stages, unless identification
+    and TRRM will fork (``--jobs``, runtime/parallel): a fork waits for no running thread, so
+    then after TRRM. None when the chain ends before triangulation."""
+    if "triangulate" not in stages:
+        return None
+    from rotonly_cli.runtime.parallel import would_fork
+
+    matches = sum(run.graph.edges[k].num_inliers for k in run.graph.active_edges())
+    return "refine" if "refine" in stages and would_fork(matches, run.options.jobs) else "load"
+
+
+def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptions(),
+               stages: tuple[str, ...] = STAGES, kind: InputKind | None = None, label: str | None = None) -> Run:
+    """Run ``stages`` (a prefix of STAGES) in memory on INPUT (a path, or a scene already read:
+    then ``kind`` and ``label`` say what it is), with the progress bars and -v detail lines."""
+    from rotonly_cli.monitor import StageMonitor
+
+    with StageMonitor(stages, options.progress) as monitor:
+        with monitor.stage("load"):
+            if isinstance(input_path, SfMScene):
+                run = load_scene(input_path, kind, label or "<in memory>", options)
+            else:
+                run = load_stage(input_path, options)
+            monitor.run = run
+        colours_after = colours_start_after(run, stages)
+        for stage in stages:
+            if stage != "load":
+                with monitor.stage(stage):
+                    STAGE_FUNCTIONS[stage](run)
+            if stage == colours_after:
+                from rotonly_cli.stages.triangulate import start_keypoint_colors
+
+                run.keypoint_rgb = start_keypoint_colors(run.scene, image_root(run))
+    return run
+
+
 def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: float,
             gt: SfMScene | None) -> dict:
     """Write outputs of a finished chain into ``directory`` (which becomes ``out_dir``);
     ``gt``: the ground truth of ``run.options.gt`` (:func:`ground_truth_for`) or None."""
+    from rotonly_cli.evaluation.run_report import structure_statistics, write_run_report
+
     summary: dict = {"input": run.input_path, "stages": done}
+    scene = statistics = None
     if done[-1] == "triangulate":
+        started = time.perf_counter()
         scene = write_outputs(directory, run)
+        statistics = structure_statistics(scene, run.graph.view_ids())
+        run.reports["export"] = {**statistics.report, "time_s": time.perf_counter() - started}
         summary.update(num_views=len(run.scene.views), num_registered=len(scene.poses),
                        num_points=0 if scene.structure is None else len(scene.structure.points),
                        unregistered_views=[v for v in run.graph.view_ids() if v not in scene.poses])
@@ -362,8 +402,10 @@ def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: fl
     summary["time_s"] = time.perf_counter() - start
     run.reports["run"] = summary
     write_workspace(directory, run, done)
+    write_run_report(directory, run, scene, statistics, done)
     logger.info("done in %.2f s: %s", summary["time_s"],
-                {k: v for k, v in summary.items() if k in ("num_registered", "num_points", "num_active_edges")})
+                ", ".join(f"{summary[k]} {k.removeprefix('num_').replace('_', ' ')}"
+                          for k in ("num_registered", "num_points", "num_active_edges") if k in summary))
     return summary
 
 
@@ -397,7 +439,12 @@ def resume(out_dir: str | Path, stage: str, options: RunOptions | None = None) -
             run = Run(state.input_path, kind, scene, state.graph, options, state.rotations, state.centers)
             if stage == "triangulate" and (run.rotations is None or run.centers is None):
                 raise InputError("no rotations / centres in the workspace", path=str(out_dir))
-            STAGE_FUNCTIONS[stage](run)
+            from rotonly_cli.monitor import StageMonitor
+
+            with StageMonitor([stage], options.progress) as monitor:
+                monitor.run = run
+                with monitor.stage(stage):
+                    STAGE_FUNCTIONS[stage](run)
             done = list(STAGES[:position + 1])
             if position < STAGES.index("average"):
                 run.rotations = None  # stale: computed from the edges before this stage

@@ -26,7 +26,7 @@ from rotonly_cli.io.openmvg.sfm_data_writer import sfm_data_bytes, sfm_data_docu
 
 __all__ = [
     "INTRINSIC_DISTORTION_FIELDS", "PIXEL_OFFSET", "UNDEFINED_INDEX", "add_distortion", "distort_project",
-    "image_root", "matches_bytes", "project_files", "read_feature_table", "read_features", "read_matches", "read_pairs", "read_project",
-    "read_sfm_data", "remove_distortion", "sfm_data_bytes", "sfm_data_document", "undistort_normalize",
-    "write_features", "write_matches", "write_pairs", "write_project", "write_sfm_data",
+    "image_root", "matches_bytes", "project_files", "read_feature_table", "read_features", "read_matches",
+    "read_pairs", "read_project", "read_sfm_data", "remove_distortion", "sfm_data_bytes", "sfm_data_document",
+    "undistort_normalize", "write_features", "write_matches", "write_pairs", "write_project", "write_sfm_data",
 ]
