@@ -318,18 +318,30 @@ def run_pipeline(input_path: str | Path, out_dir: str | Path, options: RunOption
     With all stages the outputs (sfm_data.json, sparse/) are written, and with
     ``options.gt`` the evaluation (OUT/eval/report.{json,html}).
     """
-    input_path, out_dir = Path(input_path), Path(out_dir)
+    return run_into(input_path, out_dir, options, stages)[0]
+
+
+def run_into(input_path: str | Path | SfMScene, out_dir: str | Path, options: RunOptions = RunOptions(),
+             stages: tuple[str, ...] = STAGES, kind: InputKind | None = None,
+             label: str | None = None) -> tuple[dict, Run]:
+    """:func:`run_pipeline`, returning the run too; INPUT may be a scene already read (then
+    ``kind`` and ``label`` say what it is, as for :func:`run_stages`)."""
+    out_dir = Path(out_dir)
     check_out_dir(out_dir)
-    if out_dir.exists() and input_path.resolve().is_relative_to(out_dir.resolve()):
-        raise InputError("the input lies inside OUT, which would be replaced", path=str(input_path), field="-o")
+    if isinstance(input_path, SfMScene):
+        label = label or "<in memory>"
+    else:
+        input_path = Path(input_path)
+        if out_dir.exists() and input_path.resolve().is_relative_to(out_dir.resolve()):
+            raise InputError("the input lies inside OUT, which would be replaced", path=str(input_path), field="-o")
     gt = ground_truth_for(options, stages)
     staging = make_staging_dir(out_dir)
     start = time.perf_counter()
     try:
         with _RunLog(staging), collector_paused():
-            logger.info("rotonly run %s -> %s", input_path, out_dir)
+            logger.info("rotonly run %s -> %s", label or input_path, out_dir)
             try:
-                run = run_stages(input_path, options, stages)
+                run = run_stages(input_path, options, stages, kind, label)
                 summary = _finish(staging, out_dir, run, list(stages), start, gt)
             except ValueError as exc:
                 raise _as_algorithm_error(exc) from exc
@@ -337,7 +349,18 @@ def run_pipeline(input_path: str | Path, out_dir: str | Path, options: RunOption
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    return summary
+    return summary, run
+
+
+def run_in_memory(input_path: str | Path | SfMScene, options: RunOptions = RunOptions(),
+                  stages: tuple[str, ...] = STAGES, kind: InputKind | None = None, label: str | None = None) -> Run:
+    """:func:`run_stages` as `rotonly run` runs them (the collector paused, a ValueError of
+    the algorithm raised as AlgorithmError), writing nothing."""
+    with collector_paused():
+        try:
+            return run_stages(input_path, options, stages, kind, label)
+        except ValueError as exc:
+            raise _as_algorithm_error(exc) from exc
 
 
 def colours_start_after(run: Run, stages: tuple[str, ...] | list[str]) -> str | None:

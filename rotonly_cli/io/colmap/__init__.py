@@ -30,8 +30,8 @@ from rotonly_cli.io.colmap.cameras import (
                                            to_openmvg_scene,
 )
 from rotonly_cli.io.colmap.database import REQUIRED_TABLES, check_database, id_offset, read_database, write_database
-from rotonly_cli.io.colmap.model import read_model, write_model
+from rotonly_cli.io.colmap.model import read_model, scene_from_reconstruction, to_reconstruction, write_model
 
 __all__ = ["REQUIRED_TABLES", "check_database", "colmap_to_openmvg", "id_offset", "normalize_keypoints",
-           "pycolmap_camera", "read_database", "read_model", "to_colmap_intrinsics", "to_openmvg_scene",
-           "write_database", "write_model"]
+           "pycolmap_camera", "read_database", "read_model", "scene_from_reconstruction", "to_colmap_intrinsics",
+           "to_openmvg_scene", "to_reconstruction", "write_database", "write_model"]

@@ -8,7 +8,7 @@ import shutil
 import sqlite3
 import tempfile
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import closing, contextmanager, nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +30,31 @@ REQUIRED_TABLES = ("cameras", "images", "keypoints", "two_view_geometries")
 _CONFIG_FROM_OPENMVG = {"E": "CALIBRATED", "F": "UNCALIBRATED", "H": "PLANAR", None: "CALIBRATED"}
 # Verified-and-rejected configurations: not a usable pair.
 _REJECTED_CONFIGS = ("UNDEFINED", "DEGENERATE", "WATERMARK")
+# COLMAP 3.8's tables (its src/base/database.cc; data_fixtures/colmap38_herzjesu4 has them as
+# COLMAP 3.8 wrote them) and the columns write_database copies into them from pycolmap's.
+_COLMAP38_TABLES = (
+    "CREATE TABLE cameras (camera_id INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, model INTEGER NOT NULL, "
+    "width INTEGER NOT NULL, height INTEGER NOT NULL, params BLOB, prior_focal_length INTEGER NOT NULL)",
+    "CREATE TABLE images (image_id INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, name TEXT NOT NULL UNIQUE, "
+    "camera_id INTEGER NOT NULL, prior_qw REAL, prior_qx REAL, prior_qy REAL, prior_qz REAL, prior_tx REAL, "
+    "prior_ty REAL, prior_tz REAL, CONSTRAINT image_id_check CHECK(image_id >= 0 and image_id < 2147483647), "
+    "FOREIGN KEY(camera_id) REFERENCES cameras(camera_id))",
+    "CREATE TABLE keypoints (image_id INTEGER PRIMARY KEY NOT NULL, rows INTEGER NOT NULL, cols INTEGER NOT NULL, "
+    "data BLOB, FOREIGN KEY(image_id) REFERENCES images(image_id) ON DELETE CASCADE)",
+    "CREATE TABLE descriptors (image_id INTEGER PRIMARY KEY NOT NULL, rows INTEGER NOT NULL, cols INTEGER NOT NULL, "
+    "data BLOB, FOREIGN KEY(image_id) REFERENCES images(image_id) ON DELETE CASCADE)",
+    "CREATE TABLE matches (pair_id INTEGER PRIMARY KEY NOT NULL, rows INTEGER NOT NULL, cols INTEGER NOT NULL, "
+    "data BLOB)",
+    "CREATE TABLE two_view_geometries (pair_id INTEGER PRIMARY KEY NOT NULL, rows INTEGER NOT NULL, "
+    "cols INTEGER NOT NULL, data BLOB, config INTEGER NOT NULL, F BLOB, E BLOB, H BLOB, qvec BLOB, tvec BLOB)",
+    "CREATE UNIQUE INDEX index_name ON images(name)",
+)
+_COLMAP38_COLUMNS = {
+    "cameras": "camera_id, model, width, height, params, prior_focal_length", "images": "image_id, name, camera_id",
+    "keypoints": "image_id, rows, cols, data", "descriptors": "image_id, rows, cols, data",
+    "matches": "pair_id, rows, cols, data",
+    "two_view_geometries": "pair_id, rows, cols, data, config, F, E, H, qvec, tvec",
+}
 
 
 # ============================================================================ database: reading
@@ -86,12 +111,16 @@ def read_database(path: PathLike, include_unverified: bool = True) -> SfMScene:
     stored, ``cam2_from_cam1`` as R_j_from_i / unit t_j_from_i); pairs verified and rejected
     (UNDEFINED, DEGENERATE, WATERMARK or no inlier) are dropped; with
     ``include_unverified`` the raw ``matches`` of pairs never verified come with
-    ``verified=False``.
+    ``verified=False``. ``path`` may also be an open ``pycolmap.Database`` (read in place).
     """
     pycolmap = import_pycolmap()
-    path = check_database(path)
+    if isinstance(path, pycolmap.Database):
+        opened, path = nullcontext(path), Path("<pycolmap.Database>")
+    else:
+        path = check_database(path)
+        opened = _open_database_copy(path)
     scene = SfMScene(source="colmap-db")
-    with _open_database_copy(path) as database:
+    with opened as database:
         cameras = {camera.camera_id: camera for camera in database.read_all_cameras()}
         for camera_id, camera in cameras.items():
             scene.intrinsics[camera_id] = Intrinsics(
@@ -172,12 +201,14 @@ def id_offset(ids) -> int:
 
 
 def write_database(path: PathLike, scene: SfMScene) -> None:
-    """SfMScene -> new COLMAP database at ``path`` (replaced atomically).
+    """SfMScene -> new COLMAP database at ``path`` (replaced atomically), in COLMAP 3.8's
+    layout (:func:`to_colmap38_layout`), which COLMAP 3.x opens and COLMAP / pycolmap 4.x
+    migrate on opening.
 
-    One camera per intrinsic (OpenMVG models mapped by ``to_colmap_intrinsics``), a trivial
-    rig per camera and frame per image, keypoints, ``matches`` for every pair and a
-    ``two_view_geometries`` row (inliers = the pair's matches, config, ``cam2_from_cam1``
-    when known) for verified pairs. View/camera ids < 1 are shifted (``id_offset``).
+    One camera per intrinsic (OpenMVG models mapped by ``to_colmap_intrinsics``), keypoints,
+    ``matches`` for every pair and a ``two_view_geometries`` row (inliers = the pair's matches,
+    config, ``cam2_from_cam1`` when known) for verified pairs. View/camera ids < 1 are
+    shifted (``id_offset``).
     """
     pycolmap = import_pycolmap()
     path = Path(path)
@@ -196,6 +227,28 @@ def write_database(path: PathLike, scene: SfMScene) -> None:
             connection.execute("PRAGMA journal_mode=DELETE")
         finally:
             connection.close()
+        to_colmap38_layout(staging)
+
+
+def to_colmap38_layout(path: PathLike) -> None:
+    """Rewrite a database pycolmap 4.x wrote in COLMAP 3.8's layout: the tables of 3.8 (no
+    rigs, frames or pose priors: pycolmap 4.x makes trivial ones when it opens the file, as
+    for any 3.x database; image pose priors empty, descriptor type dropped) with the same
+    rows. COLMAP 3.8 refuses 4.x's layout ("SQL logic error")."""
+    path = Path(path)
+    rebuilt = path.with_name(f"{path.name}.colmap38")
+    try:
+        with closing(sqlite3.connect(str(rebuilt))) as database:
+            for statement in _COLMAP38_TABLES:
+                database.execute(statement)
+            database.execute("ATTACH DATABASE ? AS old", (str(path),))
+            for table, columns in _COLMAP38_COLUMNS.items():
+                database.execute(f"INSERT INTO main.{table} ({columns}) SELECT {columns} FROM old.{table}")
+            database.commit()
+            database.execute("DETACH DATABASE old")
+        os.replace(rebuilt, path)
+    finally:
+        rebuilt.unlink(missing_ok=True)
 
 
 def _default_camera(pycolmap, view: View, camera_id: int):

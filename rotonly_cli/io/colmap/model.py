@@ -222,6 +222,14 @@ def write_model(out_dir: PathLike, scene: SfMScene, binary: bool = True) -> None
             reconstruction.write_text(str(staging))
 
 
+def to_reconstruction(scene: SfMScene):
+    """The posed views and the points of ``scene`` as a pycolmap.Reconstruction: the model
+    :func:`write_model` writes."""
+    pycolmap = import_pycolmap()
+    with tempfile.TemporaryDirectory(prefix="rotonly-model-") as workdir:
+        return _model_reconstruction(pycolmap, scene, Path(workdir))
+
+
 def read_model(path: PathLike) -> SfMScene:
     """COLMAP sparse model folder -> SfMScene with cameras, (registered) views, poses,
     keypoints = the images' points2D, normalized, and structure with tracks and colours."""
@@ -236,6 +244,11 @@ def read_model(path: PathLike) -> SfMScene:
         reconstruction = pycolmap.Reconstruction(str(path))
     except Exception as exc:  # pycolmap raises ValueError/RuntimeError on corrupt files
         raise InputError(f"pycolmap cannot read the model ({exc})", path=str(path)) from None
+    return scene_from_reconstruction(reconstruction)
+
+
+def scene_from_reconstruction(reconstruction) -> SfMScene:
+    """A pycolmap.Reconstruction (in memory) as an SfMScene, as :func:`read_model` reads one."""
     scene = SfMScene(source="colmap-model")
     for camera_id, camera in reconstruction.cameras.items():
         scene.intrinsics[int(camera_id)] = Intrinsics(
