@@ -34,6 +34,12 @@ def _label(value: float) -> str:
     return f"{value:.6g}" if abs(value) >= 1e-3 or value == 0 else f"{value:.2e}"
 
 
+def _inside(limits: tuple[float, float]) -> list[float]:
+    """The :func:`nice_ticks` of an axis that lie on it."""
+    low, high = limits
+    return [value for value in nice_ticks(low, high) if low - 1e-12 <= value <= high + 1e-12]
+
+
 class Chart:
     """One plot: data coordinates in ``xlim`` x ``ylim`` drawn into a ``width`` x ``height``
     pixel SVG. ``categories``: names of x = 0, 1, ... for bar charts (labelled, rotated)."""
@@ -138,19 +144,16 @@ class Chart:
         left, top, w, h = self.left, self.top, self.plot_width, self.plot_height
         if self.axes:
             out.append(f'<rect x="{left}" y="{top}" width="{w:.1f}" height="{h:.1f}" fill="none" stroke="#888"/>')
-            for value in nice_ticks(*self.ylim):
-                if self.ylim[0] - 1e-12 <= value <= self.ylim[1] + 1e-12:
-                    y = float(self.py(value))
-                    out.append(f'<path d="M{left} {y:.1f}h{w:.1f}" stroke="#e4e4e4"/>'
-                               f'<text x="{left - 4}" y="{y + 3.5:.1f}" font-size="10" text-anchor="end" '
-                               f'style="{FONT}">{_label(value)}</text>')
+            for value in _inside(self.ylim):
+                y = float(self.py(value))
+                out.append(f'<path d="M{left} {y:.1f}h{w:.1f}" stroke="#e4e4e4"/><text x="{left - 4}" '
+                           f'y="{y + 3.5:.1f}" font-size="10" text-anchor="end" style="{FONT}">{_label(value)}</text>')
             if self.categories is None:
-                for value in nice_ticks(*self.xlim):
-                    if self.xlim[0] - 1e-12 <= value <= self.xlim[1] + 1e-12:
-                        x = float(self.px(value))
-                        out.append(f'<path d="M{x:.1f} {top + h:.1f}v4" stroke="#888"/>'
-                                   f'<text x="{x:.1f}" y="{top + h + 15:.1f}" font-size="10" text-anchor="middle" '
-                                   f'style="{FONT}">{_label(value)}</text>')
+                for value in _inside(self.xlim):
+                    x = float(self.px(value))
+                    out.append(f'<path d="M{x:.1f} {top + h:.1f}v4" stroke="#888"/><text x="{x:.1f}" '
+                               f'y="{top + h + 15:.1f}" font-size="10" text-anchor="middle" style="{FONT}">'
+                               f'{_label(value)}</text>')
             else:
                 step = max(1, math.ceil(len(self.categories) / 60))
                 for k in range(0, len(self.categories), step):

@@ -10,17 +10,9 @@ import shutil
 import numpy as np
 import pytest
 
-from rotonly_cli.cli import main
-
-from helpers import DATA_FIXTURES
+from helpers import DATA_FIXTURES, rotonly
 
 PROJECT = DATA_FIXTURES / "herzjesu_p8" / "openmvg"
-
-
-def _rotonly(*args) -> int:
-    with pytest.raises(SystemExit) as exit_info:
-        main([str(a) for a in args])
-    return exit_info.value.code
 
 
 def _project(folder, root_path: str):
@@ -48,7 +40,7 @@ def test_root_path_found_the_openmvg_way_and_written_back(tmp_path, monkeypatch,
     names = _project(tmp_path / "P", "images")
     _images((tmp_path if where == "cwd" else tmp_path / "P") / "images", names)
     monkeypatch.chdir(tmp_path)
-    assert _rotonly("-q", "run", "P/sfm_data.json", "-o", "OUT") == 0
+    assert rotonly("-q", "run", "P/sfm_data.json", "-o", "OUT") == 0
     assert json.loads((tmp_path / "OUT" / "sfm_data.json").read_text())["root_path"] == "images"
     triangulate = json.loads((tmp_path / "OUT" / "reports" / "triangulate.json").read_text())
     assert triangulate["images_missing"] == [] and triangulate["points_coloured"] == triangulate["num_points"] > 0
@@ -60,7 +52,7 @@ def test_image_path_is_written_as_root_path(tmp_path, monkeypatch):
     names = _project(tmp_path / "P", "/nowhere")
     _images(tmp_path / "pictures", names)
     monkeypatch.chdir(tmp_path)
-    assert _rotonly("-q", "run", "P/sfm_data.json", "-o", "OUT", "--image-path", "pictures") == 0
+    assert rotonly("-q", "run", "P/sfm_data.json", "-o", "OUT", "--image-path", "pictures") == 0
     assert json.loads((tmp_path / "OUT" / "sfm_data.json").read_text())["root_path"] == "pictures"
 
 
@@ -69,23 +61,23 @@ def test_matches_option_and_input_files_in_the_load_report(tmp_path, monkeypatch
     shutil.copyfile(tmp_path / "P" / "matches.e.bin", tmp_path / "P" / "matches.f.bin")
     (tmp_path / "P" / "matches.e.bin").write_bytes(b"\x01")  # unreadable: must not be read with -M
     monkeypatch.chdir(tmp_path)
-    assert _rotonly("-q", "run", "P/sfm_data.json", "-M", "P/matches.f.bin", "-o", "OUT") == 0
+    assert rotonly("-q", "run", "P/sfm_data.json", "-M", "P/matches.f.bin", "-o", "OUT") == 0
     load = json.loads((tmp_path / "OUT" / "reports" / "load.json").read_text())
     assert load["matches_file"] == "P/matches.f.bin"
     assert load["input_files"][0] == "P/sfm_data.json" and load["input_files"][-1] == "P/matches.f.bin"
     assert sorted(load["input_files"][1:-1]) == [f"P/{k:04d}.feat" for k in range(8)]
     # a bare name is looked up in --matches-dir, as OpenMVG's tools do
-    assert _rotonly("-q", "run", "P/sfm_data.json", "--matches", "matches.f.bin", "-o", "OUT2") == 0
+    assert rotonly("-q", "run", "P/sfm_data.json", "--matches", "matches.f.bin", "-o", "OUT2") == 0
     assert json.loads((tmp_path / "OUT2" / "reports" / "load.json").read_text())["matches_file"] == "P/matches.f.bin"
     # the default is unchanged: the first of matches.e, matches.f, ... (here the broken one)
-    assert _rotonly("-q", "run", "P/sfm_data.json", "-o", "OUT3") == 2
-    assert _rotonly("-q", "run", "P/sfm_data.json", "-M", "P/none.bin", "-o", "OUT3") == 2
+    assert rotonly("-q", "run", "P/sfm_data.json", "-o", "OUT3") == 2
+    assert rotonly("-q", "run", "P/sfm_data.json", "-M", "P/none.bin", "-o", "OUT3") == 2
     assert not (tmp_path / "OUT3").exists()
 
 
 def test_database_input_files(tmp_path):
     db = tmp_path / "database.db"
     shutil.copyfile(DATA_FIXTURES / "herzjesu_p8" / "database.db", db)
-    assert _rotonly("-q", "identify", db, "-o", tmp_path / "OUT") == 0
+    assert rotonly("-q", "identify", db, "-o", tmp_path / "OUT") == 0
     load = json.loads((tmp_path / "OUT" / "reports" / "load.json").read_text())
     assert load["input_files"] == [str(db)] and "matches_file" not in load

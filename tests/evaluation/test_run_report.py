@@ -16,29 +16,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rotonly_cli.cli import main
 from rotonly_cli.evaluation import svg
 from rotonly_cli.evaluation.run_report import top_view_axes
 
-from helpers import DATA_FIXTURES
+from helpers import DATA_FIXTURES, rotonly
 
 HERZ_JESU = DATA_FIXTURES / "herzjesu_p8"
-
-
-def _rotonly(*args) -> int:
-    with pytest.raises(SystemExit) as exit_info:
-        main([str(a) for a in args])
-    return exit_info.value.code
 
 
 @pytest.fixture(scope="module")
 def full_run(tmp_path_factory):
     """`rotonly run` with --gt on the Herz-Jesu database fixture."""
-    root = tmp_path_factory.mktemp("report")
-    db = root / "database.db"
-    shutil.copyfile(HERZ_JESU / "database.db", db)
-    assert _rotonly("-q", "run", db, "-o", root / "out", "--gt", HERZ_JESU) == 0
-    return root / "out"
+    out = tmp_path_factory.mktemp("report") / "out"
+    assert rotonly("-q", "run", HERZ_JESU / "database.db", "-o", out, "--gt", HERZ_JESU) == 0
+    return out
 
 
 class _Page(HTMLParser):
@@ -191,19 +182,19 @@ def test_report_after_identify_and_stage_commands(tmp_path):
     db = tmp_path / "database.db"
     shutil.copyfile(HERZ_JESU / "database.db", db)
     out = tmp_path / "out"
-    assert _rotonly("-q", "identify", db, "-o", out) == 0
+    assert rotonly("-q", "identify", db, "-o", out) == 0
     page = _page(out / "report.html")
     assert [img["alt"] for img in page.images] == ["View graph (views on a circle in id order)"]
     assert "export" not in _reports(out)
     for stage in ("refine", "average", "optimize", "translate", "triangulate"):
-        assert _rotonly("-q", stage, out) == 0
+        assert rotonly("-q", stage, out) == 0
     page = _page(out / "report.html")
     assert len(page.images) == 6
     reports = _reports(out)
     for path, text in page.sources:
         assert _matches(text, _lookup(reports, path)), (path, text)
     # after a stage command the later stages' reports of the earlier run are stale: not shown
-    assert _rotonly("-q", "refine", out) == 0
+    assert rotonly("-q", "refine", out) == 0
     sources = {path.split(".")[0] for path, _ in _page(out / "report.html").sources}
     assert {"load", "identify", "refine", "run"} <= sources and not sources & {"average", "export", "triangulate"}
 
