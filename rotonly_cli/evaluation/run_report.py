@@ -27,8 +27,6 @@ from rotonly_cli.evaluation import svg
 from rotonly_cli.scene.types import Intrinsics, SfMScene
 
 REPORT_FILE = "report.html"
-#: stage reports in chain order; other reports follow, ``run`` last
-STAGE_ORDER = ("load", "identify", "refine", "average", "optimize", "translate", "triangulate", "export")
 #: list items shown of a report value (the JSON file has them all)
 MAX_LIST_ITEMS = 24
 MAX_TABLE_ROWS = 300
@@ -108,9 +106,9 @@ def structure_statistics(scene: SfMScene, view_ids: list[int]) -> StructureStati
 # ============================================================================ reading the reports
 
 def read_reports(reports_dir: Path, stages_done: list[str]) -> dict[str, dict]:
-    """reports/<name>.json as written, in chain order: the stages done (a stage command leaves
-    the later stages' files of an earlier run: stale, left out), export only after
-    triangulation, any other report, ``run`` last."""
+    """reports/<name>.json as written, in chain order (pipeline.STAGES, then export): the
+    stages done (a stage command leaves the later stages' files of an earlier run: stale, left
+    out), export only after triangulation, any other report, ``run`` last."""
     found = {path.stem: path for path in sorted(reports_dir.glob("*.json"))} if reports_dir.is_dir() else {}
     from rotonly_cli.pipeline import STAGES
 
@@ -119,7 +117,8 @@ def read_reports(reports_dir: Path, stages_done: list[str]) -> dict[str, dict]:
             return name in stages_done
         return name != "export" or stages_done[-1:] == ["triangulate"]
 
-    names = [n for n in STAGE_ORDER if n in found] + sorted(set(found) - set(STAGE_ORDER) - {"run"})
+    order = (*STAGES, "export")
+    names = [n for n in order if n in found] + sorted(set(found) - set(order) - {"run"})
     names += ["run"] if "run" in found else []
     reports = {}
     for name in names:
