@@ -25,6 +25,9 @@ import click
 
 from rotonly_cli.options import REESTIMATE_MODES, AverageOptions, LoadOptions
 
+#: `rotonly refine FILE.npz`: the 5-point RANSAC threshold (px) when --ransac-max-error is not given
+SIMULATION_RANSAC_MAX_ERROR_PX = 2.0
+
 
 def _all(*decorators):
     """One decorator applying ``decorators`` in the order written (top one first in --help)."""
@@ -62,7 +65,9 @@ reestimate = click.option(
          "(PLANAR/UNCALIBRATED/... or none stored).")
 ransac_max_error = click.option(
     "--ransac-max-error", type=click.FloatRange(min=0, min_open=True), default=LoadOptions.ransac_max_error_px,
-    show_default=True, help="RANSAC threshold in pixels (relative poses re-estimated by calibrated RANSAC).")
+    show_default=True, help="RANSAC inlier threshold in pixels for the relative poses (default: "
+    f"{LoadOptions.inlier_threshold_sigmas:g} x the matches' noise sigma, measured on the input; refine FILE.npz: "
+    f"{SIMULATION_RANSAC_MAX_ERROR_PX:g} px).")
 seed = click.option("--seed", type=int, default=LoadOptions.seed, show_default=True,
                     help="RANSAC seed (runs are deterministic).")
 #: the load stage's options (`run` and `identify`)

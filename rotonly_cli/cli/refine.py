@@ -132,6 +132,8 @@ def command(ctx: click.Context, target: Path, init: str, perturb_deg: float, ran
     if target.suffix.lower() != ".npz":
         raise InputError("expected a workspace folder (from `rotonly identify`) or a .npz from "
                          "`rotonly simulate twoview`", path=target, field="TARGET")
+    if ransac_max_error is None:
+        ransac_max_error = cli_options.SIMULATION_RANSAC_MAX_ERROR_PX
     row = refine_simulation(target, init, perturb_deg, ransac_max_error, seed)
     if as_json:
         import json

@@ -249,8 +249,8 @@ def build_view_graph(scene: SfMScene, options: LoadOptions = LoadOptions()) -> t
         "dropped_matches": dict(sorted(dropped.items())), "min_inliers": options.min_inliers,
         "time_s": time.perf_counter() - start,
     }
-    logger.info("view graph: %d views, %d pairs, %d re-estimated (%d failed) at %.2f px%s, %d active edges, "
-                "largest component %d views", len(scene.views), len(scene.pairs), len(to_estimate), num_failed,
-                threshold, "" if sigma is None else f" (noise sigma {sigma:.3f} px)", report["num_active_edges"],
-                len(component))
+    logger.info("load: %d views, %d pairs, %d re-estimated at %.2f px%s, %d failed; %d active edges%s",
+                len(scene.views), len(scene.pairs), len(to_estimate), threshold,
+                "" if sigma is None else f" (noise sigma {sigma:.3g})", num_failed, report["num_active_edges"],
+                f", {len(component)} views connected" if len(component) < len(scene.views) else "")
     return graph, report

@@ -67,8 +67,8 @@ def test_quiet_and_verbose_after_the_subcommand(capsys, database, tmp_path):
     trailing = _rotonly(capsys, "run", database, "-v", "-o", tmp_path / "d")[2]
     for text in (leading, trailing):
         assert "DEBUG rotonly.grrm: GRRM iteration 1:" in text
-        assert re.search(r"DEBUG rotonly_cli.monitor: refine: [\d.]+ s; 27 of 28 edges active \(filtered: too few "
-                         r"inliers 1\)", text)
+        assert re.search(r"DEBUG rotonly_cli.monitor: refine: [\d.]+ s; \d+ of 28 edges active \(filtered: too few "
+                         r"inliers \d+\)", text)
         assert "refine report: cost_after=" in text
     assert _comparable(leading, tmp_path / "d") == _comparable(trailing, tmp_path / "d")
     # -q wins over -v, wherever each stands

@@ -18,6 +18,7 @@ import pytest
 
 from rotonly_cli.evaluation import svg
 from rotonly_cli.evaluation.run_report import top_view_axes
+from rotonly_cli.pipeline import STAGES
 
 from helpers import DATA_FIXTURES, rotonly
 
@@ -186,7 +187,7 @@ def test_report_after_identify_and_stage_commands(tmp_path):
     page = _page(out / "report.html")
     assert [img["alt"] for img in page.images] == ["View graph (views on a circle in id order)"]
     assert "export" not in _reports(out)
-    for stage in ("refine", "average", "optimize", "translate", "triangulate"):
+    for stage in STAGES[2:]:
         assert rotonly("-q", stage, out) == 0
     page = _page(out / "report.html")
     assert len(page.images) == 6
