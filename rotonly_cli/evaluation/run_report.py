@@ -74,8 +74,9 @@ def structure_statistics(scene: SfMScene, view_ids: list[int]) -> StructureStati
         point_of = np.repeat(np.arange(len(track_lengths)), track_lengths)
         residuals = np.full(len(view_feature), np.nan)
         points = np.asarray(structure.points, dtype=float)
-        for view_id in np.unique(view_feature[:, 0]).tolist():
-            rows = np.flatnonzero(view_feature[:, 0] == view_id)
+        by_view = np.argsort(view_feature[:, 0], kind="stable")  # observations grouped by view
+        views, first = np.unique(view_feature[by_view, 0], return_index=True)
+        for view_id, rows in zip(views.tolist(), np.split(by_view, first[1:])):
             pose, observed = scene.poses.get(view_id), scene.normalized.get(view_id)
             if pose is None or observed is None:
                 continue
