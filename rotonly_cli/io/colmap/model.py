@@ -15,6 +15,7 @@ from rotonly_cli.errors import InputError
 from rotonly_cli.io import atomic
 from rotonly_cli.io.colmap.cameras import import_pycolmap, normalize_keypoints, pycolmap_camera, to_colmap_intrinsics
 from rotonly_cli.io.colmap.database import id_offset
+from rotonly_cli.io.colmap.model_check import check_model
 from rotonly_cli.io.detect import is_colmap_model
 from rotonly_cli.scene.types import Intrinsics, Pose, SfMScene, Structure, View
 
@@ -232,10 +233,12 @@ def read_model(path: PathLike) -> SfMScene:
     if not is_colmap_model(path):
         raise InputError("not a COLMAP model (needs cameras, images, points3D .bin or .txt)",
                          path=str(path))
+    check_model(path)  # every file in a layout pycolmap reads: its own messages never reach the user
     try:
         reconstruction = pycolmap.Reconstruction(str(path))
-    except Exception as exc:  # pycolmap raises ValueError/RuntimeError on corrupt files
-        raise InputError(f"pycolmap cannot read the model ({exc})", path=str(path)) from None
+    except Exception:  # noqa: BLE001 - a disagreement check_model does not know; pycolmap's text is internal
+        raise InputError("pycolmap cannot read this model (its files disagree with each other)",
+                         path=str(path)) from None
     scene = SfMScene(source="colmap-model")
     for camera_id, camera in reconstruction.cameras.items():
         scene.intrinsics[int(camera_id)] = Intrinsics(
