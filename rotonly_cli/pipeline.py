@@ -9,14 +9,18 @@ load (INPUT -> view graph, re-estimated relative poses, min-inlier filter)
 Every stage reads and writes plain objects; :class:`Run` holds them. The workspace
 ``OUT/`` (architecture.md "CLI contract"): ``sfm_data.json``, ``sparse/``, ``view_graph.json``,
 ``reports/<stage>.json``, ``run.log`` and ``state.npz`` (io/workspace.py) for the stage
-subcommands. ``run`` builds the whole workspace in a temporary folder beside OUT and
-renames it at the end, so a failed run leaves no partial OUT.
+subcommands. ``run`` builds the whole workspace in a staging folder beside OUT and swaps it
+in at the end (io/atomic.Staging), so a failed or killed run leaves no partial OUT, and the
+next run into OUT removes what a killed one left.
+
+Errors: rotonly's own (errors.py) pass through; an OSError while writing becomes a one-line
+write error (exit 1 for a full disk); anything else is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
 
 import logging
-import shutil
+import sys
 import time
 from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
@@ -24,12 +28,14 @@ from pathlib import Path
 
 import numpy as np
 
-from rotonly_cli.errors import AlgorithmError, InputError, RotonlyError
-from rotonly_cli.io.atomic import check_replaceable, make_staging_dir, replace_dir
-from rotonly_cli.io.detect import InputKind
+from rotonly_cli.errors import AlgorithmError, InputError, write_error
+from rotonly_cli.io import atomic
+from rotonly_cli.io.atomic import check_replaceable
+from rotonly_cli.io.detect import InputKind, detect_input
 from rotonly_cli.io.workspace import (
     STATE_FILE,
     WorkspaceState,
+    check_graph_fits,
     load_state,
     save_state,
     write_report,
@@ -76,11 +82,12 @@ def _ensure_two_views(graph: ViewGraph, after: str) -> None:
                              f"connected by an edge); nothing to reconstruct")
 
 
-def load_stage(input_path: str | Path, options: RunOptions) -> Run:
+def load_stage(input_path: str | Path, options: RunOptions, scratch: Path | None = None) -> Run:
+    """``scratch``: where a database's private copy is made (the run's staging folder)."""
     from rotonly_cli.stages.load import build_view_graph, read_input
 
     start = time.perf_counter()
-    scene, kind = read_input(input_path, options.matches_dir)
+    scene, kind = read_input(input_path, options.matches_dir, scratch)
     read_time = time.perf_counter() - start
     graph, report = build_view_graph(scene, replace(options.load, progress=options.progress))
     report["read_time_s"] = read_time
@@ -255,11 +262,36 @@ def check_out_dir(out_dir: Path) -> None:
     check_replaceable(out_dir, WORKSPACE_ENTRIES, "a rotonly workspace")
 
 
+def check_input(input_path: Path) -> None:
+    """What can be checked of INPUT before anything is written: its kind, and a database
+    table by table (io/colmap/database_check). OpenMVG projects are checked as they are read."""
+    if detect_input(input_path) == InputKind.COLMAP_DB:
+        from rotonly_cli.io.colmap.database_check import check_database
+
+        check_database(input_path)
+
+
+class _LogFile(logging.FileHandler):
+    """run.log: a write error is kept (and raised by _RunLog), not printed as a traceback;
+    file names that are not UTF-8 are written with backslash escapes."""
+
+    error: OSError | None = None
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        error = sys.exc_info()[1]
+        if self.error is None and isinstance(error, OSError):
+            self.error = error
+
+
 class _RunLog:
     """Log records of the run also go to ``<dir>/run.log`` (closed on exit)."""
 
     def __init__(self, directory: Path):
-        self.handler = logging.FileHandler(directory / "run.log", mode="a", encoding="utf-8")
+        self.path = directory / "run.log"
+        try:
+            self.handler = _LogFile(self.path, mode="a", encoding="utf-8", errors="backslashreplace")
+        except OSError as exc:
+            raise write_error(exc, self.path, field=None) from None
         self.handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
         self.handler.setLevel(logging.DEBUG)
         self.root = logging.getLogger()
@@ -274,14 +306,12 @@ class _RunLog:
             self.root.setLevel(logging.INFO)
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, kind, *exc):
         self.root.removeHandler(self.handler)
         self.root.setLevel(self.previous_level)
         self.handler.close()
-
-
-def _as_algorithm_error(exc: ValueError) -> RotonlyError:
-    return exc if isinstance(exc, RotonlyError) else AlgorithmError(str(exc))
+        if kind is None and self.handler.error is not None:
+            raise write_error(self.handler.error, self.path, field=None)
 
 
 def run_pipeline(input_path: str | Path, out_dir: str | Path, options: RunOptions = RunOptions(),
@@ -296,29 +326,34 @@ def run_pipeline(input_path: str | Path, out_dir: str | Path, options: RunOption
     if out_dir.exists() and input_path.resolve().is_relative_to(out_dir.resolve()):
         raise InputError("the input lies inside OUT, which would be replaced", path=str(input_path), field="-o")
     gt = ground_truth_for(options, stages)
-    staging = make_staging_dir(out_dir)
+    check_input(input_path)  # before anything is made: a bad input leaves no folder behind
+    staging = atomic.Staging(out_dir)  # parents made here are removed again by discard()
     start = time.perf_counter()
     try:
-        with _RunLog(staging), collector_paused():
+        with _RunLog(staging.new), collector_paused():
             logger.info("rotonly run %s -> %s", input_path, out_dir)
-            try:
-                run = load_stage(input_path, options)
-                if "triangulate" in stages:
-                    from rotonly_cli.stages.triangulate import start_keypoint_colors
+            run = load_stage(input_path, options, staging.scratch)
+            if "triangulate" in stages:
+                from rotonly_cli.stages.triangulate import start_keypoint_colors
 
-                    run.keypoint_rgb = start_keypoint_colors(run.scene, image_root(run))
-                done = ["load"]
-                for stage in stages[1:]:
-                    STAGE_FUNCTIONS[stage](run)
-                    done.append(stage)
-                summary = _finish(staging, out_dir, run, done, start, gt)
-            except ValueError as exc:
-                raise _as_algorithm_error(exc) from exc
-        replace_dir(staging, out_dir)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
+                run.keypoint_rgb = start_keypoint_colors(run.scene, image_root(run))
+            done = ["load"]
+            for stage in stages[1:]:
+                STAGE_FUNCTIONS[stage](run)
+                done.append(stage)
+            summary = _written(out_dir, _finish, staging.new, out_dir, run, done, start, gt)
+        _written(out_dir, staging.commit, check_out_dir)
+    finally:
+        staging.discard()
     return summary
+
+
+def _written(out_dir: Path, write, *args, field: str | None = "-o"):
+    """``write(*args)`` with an OSError turned into the one-line write error of OUT."""
+    try:
+        return write(*args)
+    except OSError as exc:
+        raise write_error(exc, out_dir, field) from None
 
 
 def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: float,
@@ -368,17 +403,16 @@ def resume(out_dir: str | Path, stage: str, options: RunOptions | None = None) -
     gt = ground_truth_for(options, [stage])
     start = time.perf_counter()
     with _RunLog(out_dir), collector_paused():
-        try:
-            scene, kind = read_input(state.input_path, options.matches_dir)
-            run = Run(state.input_path, kind, scene, state.graph, options, state.rotations, state.centers)
-            if stage == "triangulate" and (run.rotations is None or run.centers is None):
-                raise InputError("no rotations / centres in the workspace", path=str(out_dir))
-            STAGE_FUNCTIONS[stage](run)
-            done = list(STAGES[:position + 1])
-            if position < STAGES.index("average"):
-                run.rotations = None  # stale: computed from the edges before this stage
-            if position < STAGES.index("translate"):
-                run.centers = None
-            return _finish(out_dir, out_dir, run, done, start, gt)
-        except ValueError as exc:
-            raise _as_algorithm_error(exc) from exc
+        with atomic.scratch_dir(out_dir) as scratch:  # a database's private copy, beside OUT
+            scene, kind = read_input(state.input_path, options.matches_dir, scratch)
+        check_graph_fits(state.graph, scene, out_dir / STATE_FILE)
+        run = Run(state.input_path, kind, scene, state.graph, options, state.rotations, state.centers)
+        if stage == "triangulate" and (run.rotations is None or run.centers is None):
+            raise InputError("no rotations / centres in the workspace", path=str(out_dir))
+        STAGE_FUNCTIONS[stage](run)
+        done = list(STAGES[:position + 1])
+        if position < STAGES.index("average"):
+            run.rotations = None  # stale: computed from the edges before this stage
+        if position < STAGES.index("translate"):
+            run.centers = None
+        return _written(out_dir, _finish, out_dir, out_dir, run, done, start, gt, field=None)

@@ -7,6 +7,7 @@ never breaks the others.
 
 from __future__ import annotations
 
+import errno
 import gc
 import importlib
 import logging
@@ -15,7 +16,7 @@ import sys
 import click
 
 from rotonly_cli import __version__
-from rotonly_cli.errors import RotonlyError
+from rotonly_cli.errors import RotonlyError, write_error
 
 # name -> module; the order is the order shown in --help.
 COMMANDS: dict[str, str] = {
@@ -79,8 +80,16 @@ def cli(ctx: click.Context, verbose: int, quiet: bool) -> None:
     setup_logging(ctx.obj["verbosity"])
 
 
+#: errno values of an OSError that are about the destination a command writes, not a bug:
+#: reported in one line (commands that know their output name it themselves, errors.write_error)
+DESTINATION_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM}
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports
+
+
 def main(argv: list[str] | None = None) -> None:
-    """Console-script entry: maps rotonly's typed errors to one line and an exit code."""
+    """Console-script entry: maps rotonly's typed errors to one line and an exit code
+    (architecture.md "Exit codes"); Ctrl-C to one line and 130. Other exceptions are bugs
+    and keep their traceback."""
     try:
         cli.main(args=argv, prog_name="rotonly", standalone_mode=False)
     except click.exceptions.Abort:
@@ -94,8 +103,15 @@ def main(argv: list[str] | None = None) -> None:
     except RotonlyError as exc:
         click.echo(f"error: {exc}", err=True)
         sys.exit(exc.exit_code)
-    except (MemoryError, KeyboardInterrupt):
-        raise
+    except KeyboardInterrupt:
+        click.echo("error: interrupted (nothing was written)", err=True)
+        sys.exit(EXIT_INTERRUPTED)
+    except OSError as exc:
+        if exc.errno not in DESTINATION_ERRORS:
+            raise
+        error = write_error(exc, exc.filename or "output", field=None)
+        click.echo(f"error: {error}", err=True)
+        sys.exit(error.exit_code)
     sys.exit(0)
 
 
