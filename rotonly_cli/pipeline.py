@@ -322,9 +322,9 @@ def run_pipeline(input_path: str | Path, out_dir: str | Path, options: RunOption
     ``options.gt`` the evaluation (OUT/eval/report.{json,html}).
     """
     input_path, out_dir = Path(input_path), Path(out_dir)
-    check_out_dir(out_dir)
     if out_dir.exists() and input_path.resolve().is_relative_to(out_dir.resolve()):
         raise InputError("the input lies inside OUT, which would be replaced", path=str(input_path), field="-o")
+    check_out_dir(out_dir)
     gt = ground_truth_for(options, stages)
     check_input(input_path)  # before anything is made: a bad input leaves no folder behind
     staging = atomic.Staging(out_dir)  # parents made here are removed again by discard()

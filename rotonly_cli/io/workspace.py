@@ -98,15 +98,12 @@ def load_state(out_dir: str | os.PathLike) -> WorkspaceState:
     """Read ``out_dir/state.npz``; InputError (naming the file and the array or key) if
     ``out_dir`` is not a rotonly workspace or its state is truncated or inconsistent."""
     path = Path(out_dir) / STATE_FILE
-    if not path.is_file():
+    if not os.path.lexists(path):
         raise InputError(f"not a rotonly workspace (no {STATE_FILE}; run `rotonly identify INPUT -o OUT` first)",
                          path=str(out_dir))
     arrays = _state_arrays(path)
-    meta = parse_json(str(arrays["meta_json"]), path, "meta_json")
-    _check_meta(path, meta, len(arrays["edge_views"]))
+    meta = arrays.pop("meta")
     views = meta["views"]
-    if len(views) != len(arrays["rotations"]):
-        raise InputError(f"{len(arrays['rotations'])} rows for {len(views)} views", path=str(path), field="rotations")
     view_ids = {int(v[0]) for v in views}
     for i, j in arrays["edge_views"].tolist():
         if not (i < j and i in view_ids and j in view_ids):
@@ -132,7 +129,8 @@ def load_state(out_dir: str | os.PathLike) -> WorkspaceState:
 
 def _state_arrays(path: Path) -> dict[str, np.ndarray]:
     """The arrays of state.npz, each of the dtype and shape of _STATE_ARRAYS, consistent
-    with each other (offsets into the matches, views of the edges)."""
+    with each other and with meta_json (offsets into the matches, one row per view), and
+    the parsed meta_json as ``meta``."""
     try:
         with open_input(path) as stream, np.load(stream, allow_pickle=False) as data:
             missing = [name for name in _STATE_ARRAYS if name not in data.files]
@@ -144,7 +142,11 @@ def _state_arrays(path: Path) -> dict[str, np.ndarray]:
         if isinstance(exc, InputError):
             raise
         raise InputError(f"unreadable workspace state ({type(exc).__name__}: {exc})", path=str(path)) from None
-    sizes = {"E": len(arrays["edge_views"]), "M": len(arrays["matches"]), "n": len(arrays["rotations"])}
+    if arrays["meta_json"].dtype.kind != "U" or arrays["meta_json"].shape != ():
+        raise InputError("expected one string", path=str(path), field="meta_json")
+    meta = parse_json(str(arrays["meta_json"]), path, "meta_json")
+    _check_meta(path, meta, len(arrays["edge_views"]))
+    sizes = {"E": len(arrays["edge_views"]), "M": len(arrays["matches"]), "n": len(meta["views"])}
     sizes["E+1"] = sizes["E"] + 1
     for name, (kind, shape) in _STATE_ARRAYS.items():
         array = arrays[name]
@@ -165,6 +167,7 @@ def _state_arrays(path: Path) -> dict[str, np.ndarray]:
         finite = np.isfinite(rows)
         if not np.all(finite.all(axis=1) | np.isnan(rows).all(axis=1)):
             raise InputError("rows must be finite or all NaN (not estimated)", path=str(path), field=name)
+    arrays["meta"] = meta
     return arrays
 
 

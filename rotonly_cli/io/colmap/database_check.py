@@ -124,11 +124,11 @@ class _Tables:
 
     def images(self, cameras: dict[int, str]) -> set[int]:
         images = set()
-        for image_id, name, camera_id in self.rows("SELECT image_id, name, camera_id FROM images"):
+        for image_id, name, kind, camera_id in self.rows("SELECT image_id, name, typeof(name), camera_id FROM images"):
             field = f"images: image {_shown(image_id)}"
             self.integer(image_id, field, "image_id")
-            if not isinstance(name, bytes):
-                raise self.fail(field, f"name {_shown(name)}: expected text")
+            if kind != b"text":
+                raise self.fail(field, f"name {_shown(name)} is {kind.decode()}: expected text")
             try:
                 name.decode("utf-8")
             except UnicodeDecodeError:

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from rotonly_cli.errors import InputError
-from rotonly_cli.io.inputs import check_camera, load_json
+from rotonly_cli.io.inputs import Oversized, check_camera, load_json
 from rotonly_cli.io.openmvg.cameras import INTRINSIC_DISTORTION_FIELDS, to_colmap_pixels
 from rotonly_cli.scene.types import Intrinsics, Pose, SfMScene, Structure, View
 
@@ -50,7 +50,8 @@ class _JsonFields:
     def typed(self, obj: Any, key: str, where: str, kind: type, label: str) -> Any:
         value = self.member(obj, key, where)
         if not isinstance(value, kind):
-            raise self.fail(f"{where}.{key}" if where else key, f"expected {label}, got {type(value).__name__}")
+            got = _shown(value) if isinstance(value, Oversized) else type(value).__name__
+            raise self.fail(f"{where}.{key}" if where else key, f"expected {label}, got {got}")
         return value
 
     def array(self, obj: Any, key: str, where: str) -> list:
