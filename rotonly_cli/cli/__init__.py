@@ -92,7 +92,10 @@ def main(argv: list[str] | None = None) -> None:
     and keep their traceback."""
     try:
         cli.main(args=argv, prog_name="rotonly", standalone_mode=False)
-    except click.exceptions.Abort:
+    except click.exceptions.Abort as exc:
+        if isinstance(exc.__cause__, KeyboardInterrupt):  # click's name for Ctrl-C
+            click.echo("error: interrupted", err=True)
+            sys.exit(EXIT_INTERRUPTED)
         click.echo("Aborted.", err=True)
         sys.exit(1)
     except click.exceptions.Exit as exc:
@@ -104,7 +107,7 @@ def main(argv: list[str] | None = None) -> None:
         click.echo(f"error: {exc}", err=True)
         sys.exit(exc.exit_code)
     except KeyboardInterrupt:
-        click.echo("error: interrupted (nothing was written)", err=True)
+        click.echo("error: interrupted", err=True)
         sys.exit(EXIT_INTERRUPTED)
     except OSError as exc:
         if exc.errno not in DESTINATION_ERRORS:
@@ -125,12 +128,16 @@ def console_main() -> None:
     :func:`main`, which freezes nothing.
 
     Before ``main``, numpy submodules that no command needs at start-up are registered as
-    lazily loaded (:mod:`rotonly_cli.runtime.startup`)."""
-    from rotonly_cli.runtime.startup import defer_unused_numpy_submodules
-
-    defer_unused_numpy_submodules()
+    lazily loaded (:mod:`rotonly_cli.runtime.startup`). Ctrl-C during that start-up is
+    answered like one during the command (one line, exit 130)."""
     try:
+        from rotonly_cli.runtime.startup import defer_unused_numpy_submodules
+
+        defer_unused_numpy_submodules()
         main()
+    except KeyboardInterrupt:
+        click.echo("error: interrupted", err=True)
+        sys.exit(EXIT_INTERRUPTED)
     finally:
         gc.freeze()
 
