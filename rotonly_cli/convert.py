@@ -12,6 +12,7 @@ import os
 from pathlib import Path
 
 from rotonly_cli.errors import InputError, write_error
+from rotonly_cli.io import atomic
 from rotonly_cli.io.detect import InputKind, detect_input
 
 PathLike = str | os.PathLike
@@ -44,7 +45,9 @@ def convert(input_path: PathLike, output_path: PathLike, matches_dir: PathLike |
         else:
             scene = openmvg.read_sfm_data(sfm_data)
     elif input_kind == InputKind.COLMAP_DB:
-        scene = colmap.read_database(input_path)
+        colmap.check_database(input_path)  # before the scratch folder (and OUTPUT's parents) are made
+        with atomic.scratch_dir(output_path) as scratch:  # the database's private copy, beside OUTPUT
+            scene = colmap.read_database(input_path, scratch_dir=scratch)
     else:
         scene = colmap.read_model(input_path)
 
