@@ -79,52 +79,57 @@ def timed_run(input_path: Path, out: Path, tmpdir: Path) -> tuple[int, str, floa
     return code, err, time.monotonic() - begin
 
 
+def interrupt(input_path: Path, out: Path, tmpdir: Path, delay: float, signal_number: int) -> tuple[int, str]:
+    """A run into OUT (the previous workspace marked) sent ``signal_number`` after ``delay`` s."""
+    mark_previous(out)
+    process = start(input_path, out, tmpdir)
+    time.sleep(delay)
+    process.send_signal(signal_number)
+    return finish(process)
+
+
+class Tally:
+    """Outcome counts and failures of one kind of trial; prints one line per trial."""
+
+    def __init__(self, count: int):
+        self.result = {"trials": count, "outcomes": {}, "failures": 0}
+
+    def add(self, outcome: str, clean: bool, line: str) -> None:
+        self.result["outcomes"][outcome] = self.result["outcomes"].get(outcome, 0) + 1
+        self.result["failures"] += not clean
+        print(line + ("" if clean else "  <-- NOT CLEAN"))
+
+
 def kills(input_path: Path, out: Path, tmpdir: Path, duration: float, count: int) -> dict:
-    outcomes: dict[str, int] = {}
-    failures = 0
+    tally = Tally(count)
     for k in range(1, count + 1):
-        mark_previous(out)
         delay = duration * k / (count + 1)
-        process = start(input_path, out, tmpdir)
-        time.sleep(delay)
-        process.kill()
-        finish(process)
+        interrupt(input_path, out, tmpdir, delay, signal.SIGKILL)
         after_kill, left = state_of(out), leftovers(out, tmpdir)
         code, err, _ = timed_run(input_path, out, tmpdir)
         after_next, left_next = state_of(out), leftovers(out, tmpdir)
         clean = after_kill in ("previous", "new") and code == 0 and after_next == "new" and not left_next
-        failures += not clean
-        outcomes[after_kill] = outcomes.get(after_kill, 0) + 1
-        print(f"kill -9 at {delay:5.2f} s: OUT {after_kill}, {len(left)} left beside it; next run exit {code}, "
-              f"OUT {after_next}, left {left_next or 'nothing'}{'' if clean else '  <-- NOT CLEAN ' + err[-300:]}")
-    return {"trials": count, "outcomes": outcomes, "failures": failures}
+        tally.add(after_kill, clean, f"kill -9 at {delay:5.2f} s: OUT {after_kill}, {len(left)} left beside it; next "
+                                     f"run exit {code}, OUT {after_next}, left {left_next or 'nothing'} {err[-300:]}")
+    return tally.result
 
 
 def interrupts(input_path: Path, out: Path, tmpdir: Path, duration: float, count: int) -> dict:
-    outcomes: dict[str, int] = {}
-    failures = 0
+    tally = Tally(count)
     for k in range(1, count + 1):
-        mark_previous(out)
         delay = duration * k / (count + 1)
-        process = start(input_path, out, tmpdir)
-        time.sleep(delay)
-        process.send_signal(signal.SIGINT)
-        code, err = finish(process)
+        code, err = interrupt(input_path, out, tmpdir, delay, signal.SIGINT)
         after, left = state_of(out), leftovers(out, tmpdir)
         lines = err.strip().splitlines()
         one_line = code == 0 or (code == 130 and lines == ["error: interrupted"])
         clean = after in ("previous", "new") and not left and one_line and (code == 0) == (after == "new")
-        failures += not clean
-        key = f"exit {code}, OUT {after}"
-        outcomes[key] = outcomes.get(key, 0) + 1
-        print(f"SIGINT at {delay:5.2f} s: exit {code}, OUT {after}, left {left or 'nothing'}, stderr {lines}"
-              f"{'' if clean else '  <-- NOT CLEAN'}")
-    return {"trials": count, "outcomes": outcomes, "failures": failures}
+        tally.add(f"exit {code}, OUT {after}", clean,
+                  f"SIGINT at {delay:5.2f} s: exit {code}, OUT {after}, left {left or 'nothing'}, stderr {lines}")
+    return tally.result
 
 
 def concurrent(input_path: Path, root: Path, tmpdir: Path, count: int) -> dict:
-    outcomes: dict[str, int] = {}
-    failures = 0
+    tally = Tally(count)
     for k in range(count):
         out = root / f"concurrent{k}" / "out"
         out.parent.mkdir()
@@ -137,12 +142,10 @@ def concurrent(input_path: Path, root: Path, tmpdir: Path, count: int) -> dict:
         after, left = state_of(out), leftovers(out, tmpdir)
         messages_ok = all(code == 0 or len(err.strip().splitlines()) == 1 for code, err in results)
         clean = after == "new" and not left and messages_ok and codes.count(0) >= 1
-        failures += not clean
-        key = f"exits {sorted(codes)}, OUT {after}"
-        outcomes[key] = outcomes.get(key, 0) + 1
-        print(f"two runs at once{' over a workspace' if k % 2 else ''}: exits {codes}, OUT {after}, "
-              f"left {left or 'nothing'}{'' if clean else '  <-- NOT CLEAN ' + str(results)}")
-    return {"trials": count, "outcomes": outcomes, "failures": failures}
+        tally.add(f"exits {sorted(codes)}, OUT {after}", clean,
+                  f"two runs at once{' over a workspace' if k % 2 else ''}: exits {codes}, OUT {after}, "
+                  f"left {left or 'nothing'}" + ("" if clean else f" {results}"))
+    return tally.result
 
 
 def main(argv: list[str] | None = None) -> int:
