@@ -180,3 +180,26 @@ def test_read_only_destination_is_one_line_exit_2(tmp_path):
         code, err = finish(start(["run", DB, "-o", read_only / "out"]))
         assert code == 2, err
         assert err.strip().splitlines() == [f"error: {read_only / 'out'}: -o: cannot write: Read-only file system"]
+
+
+def test_ctrl_c_that_a_library_wrapped_is_still_an_interrupt(tmp_path, monkeypatch, capsys):
+    """pycolmap turns a KeyboardInterrupt during its import into RuntimeError (from
+    ImportError): still exit 130 and one line."""
+    from rotonly_cli import pipeline
+    from rotonly_cli.cli import main
+
+    def interrupted_import(*args, **kwargs):
+        try:
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt as exc:
+                raise ImportError("initialization failed") from exc
+        except ImportError as exc:
+            raise RuntimeError("Cannot import the C++ backend pycolmap._core.") from exc
+
+    monkeypatch.setattr(pipeline, "check_input", interrupted_import)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["run", str(DB), "-o", str(tmp_path / "out")])
+    assert exit_info.value.code == 130
+    assert capsys.readouterr().err.strip().splitlines() == ["error: interrupted"]
+    assert list(tmp_path.iterdir()) == []

@@ -86,18 +86,24 @@ DESTINATION_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errn
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports
 
 
+def _interrupted(exc: BaseException) -> bool:
+    """Whether ``exc`` is Ctrl-C, or what a library made of it (click's Abort; pycolmap turns
+    a KeyboardInterrupt during its import into RuntimeError)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry: maps rotonly's typed errors to one line and an exit code
     (architecture.md "Exit codes"); Ctrl-C to one line and 130. Other exceptions are bugs
     and keep their traceback."""
     try:
         cli.main(args=argv, prog_name="rotonly", standalone_mode=False)
-    except click.exceptions.Abort as exc:
-        if isinstance(exc.__cause__, KeyboardInterrupt):  # click's name for Ctrl-C
-            click.echo("error: interrupted", err=True)
-            sys.exit(EXIT_INTERRUPTED)
-        click.echo("Aborted.", err=True)
-        sys.exit(1)
     except click.exceptions.Exit as exc:
         sys.exit(exc.exit_code)
     except click.ClickException as exc:
@@ -106,15 +112,20 @@ def main(argv: list[str] | None = None) -> None:
     except RotonlyError as exc:
         click.echo(f"error: {exc}", err=True)
         sys.exit(exc.exit_code)
-    except KeyboardInterrupt:
-        click.echo("error: interrupted", err=True)
-        sys.exit(EXIT_INTERRUPTED)
     except OSError as exc:
-        if exc.errno not in DESTINATION_ERRORS:
+        if exc.errno not in DESTINATION_ERRORS or _interrupted(exc):
             raise
         error = write_error(exc, exc.filename or "output", field=None)
         click.echo(f"error: {error}", err=True)
         sys.exit(error.exit_code)
+    except BaseException as exc:  # noqa: BLE001 - only Ctrl-C is answered here, the rest re-raised
+        if not _interrupted(exc):
+            if isinstance(exc, click.exceptions.Abort):
+                click.echo("Aborted.", err=True)
+                sys.exit(1)
+            raise
+        click.echo("error: interrupted", err=True)
+        sys.exit(EXIT_INTERRUPTED)
     sys.exit(0)
 
 
@@ -134,10 +145,11 @@ def console_main() -> None:
         from rotonly_cli.runtime.startup import defer_unused_numpy_submodules
 
         defer_unused_numpy_submodules()
-        main()
     except KeyboardInterrupt:
         click.echo("error: interrupted", err=True)
         sys.exit(EXIT_INTERRUPTED)
+    try:
+        main()
     finally:
         gc.freeze()
 
