@@ -85,6 +85,22 @@ def write_text(path: PathLike, text: str) -> None:
     write_bytes(path, text.encode("utf-8"))
 
 
+def disk_full(path: PathLike) -> bool:
+    """Whether the file system of ``path`` has (almost) no room left: what a writer that
+    does not report its errors (pycolmap's C++ streams) most likely ran into."""
+    space = os.statvfs(path)
+    free = space.f_bavail * space.f_frsize
+    return free < max(2 ** 20, 0.001 * space.f_blocks * space.f_frsize)
+
+
+def unreported_write_error(path: PathLike, what: str) -> OSError:
+    """The OSError a silent writer should have raised under ``path``: ENOSPC on a full file
+    system, else EIO with ``what`` went wrong."""
+    if disk_full(path):
+        return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+    return OSError(errno.EIO, what, str(path))
+
+
 # ============================================================================ staging folders
 
 #: the file that marks a staging folder as rotonly's; locked (flock) by the run that uses it

@@ -22,6 +22,9 @@ logger = logging.getLogger(__name__)
 def import_pycolmap():
     import pycolmap  # lazy: the CLI stays fast for commands that never touch COLMAP
 
+    # pycolmap's own log lines (glog warnings such as "Failed to open database ... Trying next
+    # registered factory") would precede rotonly's one-line errors; rotonly reports for it
+    pycolmap.logging.minloglevel = max(pycolmap.logging.minloglevel, 2)  # errors only
     return pycolmap
 
 

@@ -55,7 +55,11 @@ def _open_database_copy(path: Path, scratch_dir: PathLike | None = None) -> Iter
                 raise write_error(exc, scratch, field=None) from None
             if wal.is_file():
                 check_database(copy, shown=path, immutable=False)  # the pages the input check did not see
-            database = pycolmap.Database.open(str(copy))
+            try:
+                database = pycolmap.Database.open(str(copy))
+            except Exception:  # noqa: BLE001 - the copy passed check_database: the disk, not the input
+                error = atomic.unreported_write_error(scratch, "pycolmap cannot open the database copy")
+                raise write_error(error, scratch, field=None) from None
             try:
                 yield database
             finally:

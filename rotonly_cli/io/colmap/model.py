@@ -186,6 +186,7 @@ def _model_reconstruction(pycolmap, scene: SfMScene, workdir: Path):
     posed = [view_id for view_id in sorted(scene.views) if view_id in scene.poses]
     points, extra_points2D = _model_points(scene, posed)
     _reconstruction(pycolmap, scene, posed, extra_points2D).write_binary(str(workdir))
+    _check_written(workdir)
     images_path = workdir / "images.bin"
     images_path.write_bytes(_link_points2D(images_path.read_bytes(), points))
     (workdir / "points3D.bin").write_bytes(_points3D_bin(points))
@@ -207,6 +208,16 @@ def _observation_pixel(scene: SfMScene, point_index: int, row: int) -> np.ndarra
     return np.asarray(camera.img_from_cam(point_in_camera.reshape(1, 3)), dtype=np.float64)[0]
 
 
+def _check_written(folder: Path) -> None:
+    """pycolmap writes with C++ streams that ignore errors: on a full disk it leaves short
+    files and says nothing. The model it wrote is read back (model_check); a short one is the
+    OSError the write should have raised (ENOSPC when the file system is full, else EIO)."""
+    try:
+        check_model(folder)
+    except InputError as exc:
+        raise atomic.unreported_write_error(folder, f"pycolmap wrote an unreadable model ({exc})") from None
+
+
 def write_model(out_dir: PathLike, scene: SfMScene, binary: bool = True) -> None:
     """Write the posed views of ``scene`` as a COLMAP sparse model (cameras, images, points3D,
     rigs, frames; binary or text). Views without a pose are omitted. Staged in a temporary
@@ -221,6 +232,7 @@ def write_model(out_dir: PathLike, scene: SfMScene, binary: bool = True) -> None
             reconstruction.write_binary(str(staging))
         else:
             reconstruction.write_text(str(staging))
+        _check_written(staging)
 
 
 def read_model(path: PathLike) -> SfMScene:
