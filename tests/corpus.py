@@ -878,5 +878,26 @@ def _broken_link(root: Path) -> Path:
     return root / "dangling"
 
 
+# ============================================================================ usage
+
+
+def usage_case(name: str, expect: tuple[str, ...], *options: str, command: str = "run") -> Case:
+    def build(root: Path, bases: dict) -> list:
+        return [command, _db(root, HJ4_DB), "-o", out(root), *options]
+
+    return Case(name, build, expect)
+
+
+USAGE_CASES = [
+    usage_case("usage-seed-negative", ("rotonly run", "--seed", "-1"), "--seed", "-1"),
+    usage_case("usage-max-residual-nan", ("--max-residual-deg", "not a finite number"), "--max-residual-deg", "nan"),
+    usage_case("usage-ransac-error-inf", ("--ransac-max-error", "not a finite number"), "--ransac-max-error", "inf"),
+    usage_case("usage-min-inliers-too-few", ("--min-inliers", "2"), "--min-inliers", "2"),
+    usage_case("usage-jobs-zero", ("--jobs", "0"), "--jobs", "0"),
+    usage_case("usage-unknown-option", ("No such option", "--bogus"), "--bogus"),
+    usage_case("usage-identify-seed-text", ("rotonly identify", "--seed"), "--seed", "x", command="identify"),
+    Case("usage-missing-output", lambda root, bases: ["run", _db(root, HJ4_DB)], ("Missing option", "-o")),
+]
+
 CASES: list[Case] = [*DB_CASES, *FILE_CASES, *SPECIAL_CASES, *MVG_CASES, *GT_CASES, *MODEL_CASES, *WS_CASES,
-                     *DESTINATION_CASES]
+                     *DESTINATION_CASES, *USAGE_CASES]

@@ -108,7 +108,8 @@ def test_the_corpus_covers_every_kind_of_the_issue():
     """Issue 21's kinds: special files, JSON depth and number size, non-finite / negative /
     zero intrinsics and keypoints, truncated blobs, every input format, workspaces, OUT."""
     prefixes = {case.name.split("-")[0] for case in CASES}
-    assert {"db", "db38", "fifo", "device", "json", "feat", "matches", "gt", "model", "ws", "out", "eval"} <= prefixes
+    assert {"db", "db38", "fifo", "device", "json", "feat", "matches", "gt", "model", "ws", "out", "eval",
+            "usage"} <= prefixes
     names = " ".join(case.name for case in CASES)
     for kind in ("deep-nesting", "huge-integer", "focal-nan", "focal-negative", "focal-zero", "width-zero",
                  "principal-point-outside", "keypoint-nan", "keypoints-truncated", "qvec-nan", "camera-size-nan",

@@ -106,8 +106,10 @@ def main(argv: list[str] | None = None) -> None:
         cli.main(args=argv, prog_name="rotonly", standalone_mode=False)
     except click.exceptions.Exit as exc:
         sys.exit(exc.exit_code)
-    except click.ClickException as exc:
-        exc.show()
+    except click.ClickException as exc:  # usage: one line too (`rotonly CMD -h` has the rest)
+        context = getattr(exc, "ctx", None)
+        where = f"{context.command_path}: " if context is not None else ""
+        click.echo(f"error: {where}{exc.format_message()}", err=True)
         sys.exit(2)
     except RotonlyError as exc:
         click.echo(f"error: {exc}", err=True)
