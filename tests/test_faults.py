@@ -203,3 +203,13 @@ def test_ctrl_c_that_a_library_wrapped_is_still_an_interrupt(tmp_path, monkeypat
     assert exit_info.value.code == 130
     assert capsys.readouterr().err.strip().splitlines() == ["error: interrupted"]
     assert list(tmp_path.iterdir()) == []
+
+
+@needs_mount
+def test_out_that_is_a_mount_point_is_refused_before_the_run(tmp_path):
+    with tmpfs(tmp_path / "out", "size=1m") as out:
+        code, err = finish(start(["run", DB, "-o", out]))
+        assert code == 2, err
+        assert err.strip().splitlines() == [f"error: {out}: -o: is a mount point: it cannot be replaced in one step "
+                                            "(give a folder inside it)"]
+        assert list(out.iterdir()) == [] and leftovers(out) == []

@@ -176,6 +176,9 @@ class Staging:
         self.created_parents: list[Path] = []
         try:
             self.created_parents = _create_parents(self.target.parent)
+            if self.target.is_dir() and os.stat(self.target).st_dev != os.stat(self.target.parent).st_dev:
+                raise InputError("is a mount point: it cannot be replaced in one step (give a folder inside it)",
+                                 path=str(self.target), field="-o")
             remove_stale(self.target)
             self.root = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.", suffix=".tmp", dir=self.target.parent))
             self.lock = _locked_marker(self.root, self.target.name)
