@@ -11,7 +11,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from rotonly_cli.errors import InputError
+from rotonly_cli.errors import InputError, write_error
+from rotonly_cli.io import atomic
 from rotonly_cli.io.detect import InputKind, detect_input
 
 PathLike = str | os.PathLike
@@ -44,7 +45,9 @@ def convert(input_path: PathLike, output_path: PathLike, matches_dir: PathLike |
         else:
             scene = openmvg.read_sfm_data(sfm_data)
     elif input_kind == InputKind.COLMAP_DB:
-        scene = colmap.read_database(input_path)
+        colmap.check_database(input_path)  # before the scratch folder (and OUTPUT's parents) are made
+        with atomic.scratch_dir(output_path) as scratch:  # the database's private copy, beside OUTPUT
+            scene = colmap.read_database(input_path, scratch_dir=scratch)
     else:
         scene = colmap.read_model(input_path)
 
@@ -66,7 +69,7 @@ def convert(input_path: PathLike, output_path: PathLike, matches_dir: PathLike |
         output_path.parent.mkdir(parents=True, exist_ok=True)
         write()
     except OSError as exc:
-        raise InputError(f"cannot write: {exc.strerror or exc}", path=str(output_path)) from None
+        raise write_error(exc, output_path) from None
     num_verified = sum(1 for pair in scene.pairs.values() if pair.verified)
     return (f"{input_kind} {input_path} -> {output_kind} {output_path}: {len(scene.views)} views, "
             f"{len(scene.poses)} poses, {num_verified} verified / {len(scene.pairs)} pairs, "

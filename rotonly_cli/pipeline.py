@@ -9,15 +9,19 @@ load (INPUT -> view graph, re-estimated relative poses, min-inlier filter)
 Every stage reads and writes plain objects; :class:`Run` holds them. The workspace
 ``OUT/`` (architecture.md "CLI contract"): ``sfm_data.json``, ``sparse/``, ``view_graph.json``,
 ``reports/<stage>.json``, ``run.log`` and ``state.npz`` (io/workspace.py) for the stage
-subcommands. ``run`` builds the whole workspace in a temporary folder beside OUT and
-renames it at the end, so a failed run leaves no partial OUT.
+subcommands. ``run`` builds the whole workspace in a staging folder beside OUT and swaps it
+in at the end (io/atomic.Staging), so a failed or killed run leaves no partial OUT, and the
+next run into OUT removes what a killed one left.
+
+Errors: rotonly's own (errors.py) pass through; an OSError while writing becomes a one-line
+write error (exit 1 for a full disk); anything else is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
 
 import copy
 import logging
-import shutil
+import sys
 import time
 from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
@@ -25,12 +29,14 @@ from pathlib import Path
 
 import numpy as np
 
-from rotonly_cli.errors import AlgorithmError, InputError, RotonlyError
-from rotonly_cli.io.atomic import check_replaceable, make_staging_dir, replace_dir
-from rotonly_cli.io.detect import InputKind
+from rotonly_cli.errors import AlgorithmError, InputError, write_error
+from rotonly_cli.io import atomic
+from rotonly_cli.io.atomic import check_replaceable
+from rotonly_cli.io.detect import InputKind, detect_input
 from rotonly_cli.io.workspace import (
     STATE_FILE,
     WorkspaceState,
+    check_graph_fits,
     load_state,
     save_state,
     write_report,
@@ -80,11 +86,12 @@ def _ensure_two_views(graph: ViewGraph, after: str) -> None:
                              f"connected by an edge); nothing to reconstruct")
 
 
-def load_stage(input_path: str | Path, options: RunOptions) -> Run:
+def load_stage(input_path: str | Path, options: RunOptions, scratch: Path | None = None) -> Run:
+    """``scratch``: where a database's private copy is made (the run's staging folder)."""
     from rotonly_cli.stages.load import input_files, read_input
 
     start = time.perf_counter()
-    scene, kind = read_input(input_path, options.matches_dir, options.matches_file)
+    scene, kind = read_input(input_path, options.matches_dir, options.matches_file, scratch)
     sources = input_files(input_path, kind, scene, options.matches_dir, options.matches_file)
     return load_scene(scene, kind, str(input_path), options, time.perf_counter() - start, sources)
 
@@ -282,11 +289,36 @@ def check_out_dir(out_dir: Path) -> None:
     check_replaceable(out_dir, WORKSPACE_ENTRIES, "a rotonly workspace")
 
 
+def check_input(input_path: Path) -> None:
+    """What can be checked of INPUT before anything is written: its kind, and a database
+    table by table (io/colmap/database_check). OpenMVG projects are checked as they are read."""
+    if detect_input(input_path) == InputKind.COLMAP_DB:
+        from rotonly_cli.io.colmap.database_check import check_database
+
+        check_database(input_path)
+
+
+class _LogFile(logging.FileHandler):
+    """run.log: a write error is kept (and raised by _RunLog), not printed as a traceback;
+    file names that are not UTF-8 are written with backslash escapes."""
+
+    error: OSError | None = None
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        error = sys.exc_info()[1]
+        if self.error is None and isinstance(error, OSError):
+            self.error = error
+
+
 class _RunLog:
     """Log records of the run also go to ``<dir>/run.log`` (closed on exit)."""
 
     def __init__(self, directory: Path):
-        self.handler = logging.FileHandler(directory / "run.log", mode="a", encoding="utf-8")
+        self.path = directory / "run.log"
+        try:
+            self.handler = _LogFile(self.path, mode="a", encoding="utf-8", errors="backslashreplace")
+        except OSError as exc:
+            raise write_error(exc, self.path, field=None) from None
         self.handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
         self.handler.setLevel(logging.DEBUG)
         self.root = logging.getLogger()
@@ -301,14 +333,12 @@ class _RunLog:
             self.root.setLevel(logging.INFO)
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, kind, *exc):
         self.root.removeHandler(self.handler)
         self.root.setLevel(self.previous_level)
         self.handler.close()
-
-
-def _as_algorithm_error(exc: ValueError) -> RotonlyError:
-    return exc if isinstance(exc, RotonlyError) else AlgorithmError(str(exc))
+        if kind is None and self.handler.error is not None:
+            raise write_error(self.handler.error, self.path, field=None)
 
 
 def run_pipeline(input_path: str | Path, out_dir: str | Path, options: RunOptions = RunOptions(),
@@ -327,40 +357,37 @@ def run_into(input_path: str | Path | SfMScene, out_dir: str | Path, options: Ru
     """:func:`run_pipeline`, returning the run too; INPUT may be a scene already read (then
     ``kind`` and ``label`` say what it is, as for :func:`run_stages`)."""
     out_dir = Path(out_dir)
-    check_out_dir(out_dir)
-    if isinstance(input_path, SfMScene):
+    in_memory = isinstance(input_path, SfMScene)
+    if in_memory:
         label = label or "<in memory>"
     else:
         input_path = Path(input_path)
         if out_dir.exists() and input_path.resolve().is_relative_to(out_dir.resolve()):
             raise InputError("the input lies inside OUT, which would be replaced", path=str(input_path), field="-o")
+    check_out_dir(out_dir)
     gt = ground_truth_for(options, stages)
-    staging = make_staging_dir(out_dir)
+    if not in_memory:
+        check_input(input_path)  # before anything is made: a bad input leaves no folder behind
+    staging = atomic.Staging(out_dir)  # parents made here are removed again by discard()
     start = time.perf_counter()
     try:
-        with _RunLog(staging), collector_paused():
+        with _RunLog(staging.new), collector_paused():
             logger.info("rotonly run %s -> %s", label or input_path, out_dir)
-            try:
-                run = run_stages(input_path, options, stages, kind, label)
-                summary = _finish(staging, out_dir, run, list(stages), start, gt)
-            except ValueError as exc:
-                raise _as_algorithm_error(exc) from exc
-        replace_dir(staging, out_dir)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
+            run = run_stages(input_path, options, stages, kind, label, scratch=staging.scratch)
+            summary = _written(out_dir, _finish, staging.new, out_dir, run, list(stages), start, gt)
+        _written(out_dir, staging.commit, check_out_dir)
+    finally:
+        staging.discard()
     return summary, run
 
 
 def run_in_memory(input_path: str | Path | SfMScene, options: RunOptions = RunOptions(),
                   stages: tuple[str, ...] = STAGES, kind: InputKind | None = None, label: str | None = None) -> Run:
-    """:func:`run_stages` as `rotonly run` runs them (the collector paused, a ValueError of
-    the algorithm raised as AlgorithmError), writing nothing."""
+    """:func:`run_stages` as `rotonly run` runs them (the collector paused), writing nothing."""
+    if not isinstance(input_path, SfMScene):
+        check_input(Path(input_path))
     with collector_paused():
-        try:
-            return run_stages(input_path, options, stages, kind, label)
-        except ValueError as exc:
-            raise _as_algorithm_error(exc) from exc
+        return run_stages(input_path, options, stages, kind, label)
 
 
 def colours_start_after(run: Run, stages: tuple[str, ...] | list[str]) -> str | None:
@@ -377,9 +404,11 @@ def colours_start_after(run: Run, stages: tuple[str, ...] | list[str]) -> str | 
 
 
 def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptions(),
-               stages: tuple[str, ...] = STAGES, kind: InputKind | None = None, label: str | None = None) -> Run:
+               stages: tuple[str, ...] = STAGES, kind: InputKind | None = None, label: str | None = None,
+               scratch: Path | None = None) -> Run:
     """Run ``stages`` (a prefix of STAGES) in memory on INPUT (a path, or a scene already read:
-    then ``kind`` and ``label`` say what it is), with the progress bars and -v detail lines."""
+    then ``kind`` and ``label`` say what it is), with the progress bars and -v detail lines.
+    ``scratch``: where a database's private copy is made (default: a temporary folder)."""
     from rotonly_cli.monitor import StageMonitor
 
     with StageMonitor(stages, options.progress) as monitor:
@@ -387,7 +416,7 @@ def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptio
             if isinstance(input_path, SfMScene):
                 run = load_scene(input_path, kind, label or "<in memory>", options)
             else:
-                run = load_stage(input_path, options)
+                run = load_stage(input_path, options, scratch)
             monitor.run = run
         colours_after = colours_start_after(run, stages)
         for stage in stages:
@@ -399,6 +428,14 @@ def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptio
 
                 run.keypoint_rgb = start_keypoint_colors(run.scene, image_root(run))
     return run
+
+
+def _written(out_dir: Path, write, *args, field: str | None = "-o"):
+    """``write(*args)`` with an OSError turned into the one-line write error of OUT."""
+    try:
+        return write(*args)
+    except OSError as exc:
+        raise write_error(exc, out_dir, field) from None
 
 
 def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: float,
@@ -457,22 +494,21 @@ def resume(out_dir: str | Path, stage: str, options: RunOptions | None = None) -
     gt = ground_truth_for(options, [stage])
     start = time.perf_counter()
     with _RunLog(out_dir), collector_paused():
-        try:
-            scene, kind = read_input(state.input_path, options.matches_dir, options.matches_file)
-            run = Run(state.input_path, kind, scene, state.graph, options, state.rotations, state.centers)
-            if stage == "triangulate" and (run.rotations is None or run.centers is None):
-                raise InputError("no rotations / centres in the workspace", path=str(out_dir))
-            from rotonly_cli.monitor import StageMonitor
+        with atomic.scratch_dir(out_dir) as scratch:  # a database's private copy, beside OUT
+            scene, kind = read_input(state.input_path, options.matches_dir, options.matches_file, scratch)
+        check_graph_fits(state.graph, scene, out_dir / STATE_FILE)
+        run = Run(state.input_path, kind, scene, state.graph, options, state.rotations, state.centers)
+        if stage == "triangulate" and (run.rotations is None or run.centers is None):
+            raise InputError("no rotations / centres in the workspace", path=str(out_dir))
+        from rotonly_cli.monitor import StageMonitor
 
-            with StageMonitor([stage], options.progress) as monitor:
-                monitor.run = run
-                with monitor.stage(stage):
-                    STAGE_FUNCTIONS[stage](run)
-            done = list(STAGES[:position + 1])
-            if position < STAGES.index("average"):
-                run.rotations = None  # stale: computed from the edges before this stage
-            if position < STAGES.index("translate"):
-                run.centers = None
-            return _finish(out_dir, out_dir, run, done, start, gt)
-        except ValueError as exc:
-            raise _as_algorithm_error(exc) from exc
+        with StageMonitor([stage], options.progress) as monitor:
+            monitor.run = run
+            with monitor.stage(stage):
+                STAGE_FUNCTIONS[stage](run)
+        done = list(STAGES[:position + 1])
+        if position < STAGES.index("average"):
+            run.rotations = None  # stale: computed from the edges before this stage
+        if position < STAGES.index("translate"):
+            run.centers = None
+        return _written(out_dir, _finish, out_dir, out_dir, run, done, start, gt, field=None)

@@ -7,6 +7,7 @@ never breaks the others.
 
 from __future__ import annotations
 
+import errno
 import gc
 import importlib
 import logging
@@ -15,7 +16,7 @@ import sys
 import click
 
 from rotonly_cli import __version__
-from rotonly_cli.errors import RotonlyError
+from rotonly_cli.errors import RotonlyError, write_error
 
 # name -> module; the order is the order shown in --help.
 COMMANDS: dict[str, str] = {
@@ -160,23 +161,54 @@ def cli(ctx: click.Context) -> None:
 cli.params.extend(global_options())
 
 
+#: errno values of an OSError that are about the destination a command writes, not a bug:
+#: reported in one line (commands that know their output name it themselves, errors.write_error)
+DESTINATION_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM}
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports
+
+
+def _interrupted(exc: BaseException) -> bool:
+    """Whether ``exc`` is Ctrl-C, or what a library made of it (click's Abort; pycolmap turns
+    a KeyboardInterrupt during its import into RuntimeError)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
 def main(argv: list[str] | None = None) -> None:
-    """Console-script entry: maps rotonly's typed errors to one line and an exit code."""
+    """Console-script entry: maps rotonly's typed errors to one line and an exit code
+    (architecture.md "Exit codes"); Ctrl-C to one line and 130. Other exceptions are bugs
+    and keep their traceback."""
     try:
         cli.main(args=argv, prog_name="rotonly", standalone_mode=False)
-    except click.exceptions.Abort:
-        click.echo("Aborted.", err=True)
-        sys.exit(1)
     except click.exceptions.Exit as exc:
         sys.exit(exc.exit_code)
-    except click.ClickException as exc:
-        exc.show()
+    except click.ClickException as exc:  # usage: one line too (`rotonly CMD -h` has the rest)
+        context = getattr(exc, "ctx", None)
+        where = f"{context.command_path}: " if context is not None else ""
+        click.echo(f"error: {where}{exc.format_message()}", err=True)
         sys.exit(2)
     except RotonlyError as exc:
         click.echo(f"error: {exc}", err=True)
         sys.exit(exc.exit_code)
-    except (MemoryError, KeyboardInterrupt):
-        raise
+    except OSError as exc:
+        if exc.errno not in DESTINATION_ERRORS or _interrupted(exc):
+            raise
+        error = write_error(exc, exc.filename or "output", field=None)
+        click.echo(f"error: {error}", err=True)
+        sys.exit(error.exit_code)
+    except BaseException as exc:  # noqa: BLE001 - only Ctrl-C is answered here, the rest re-raised
+        if not _interrupted(exc):
+            if isinstance(exc, click.exceptions.Abort):
+                click.echo("Aborted.", err=True)
+                sys.exit(1)
+            raise
+        click.echo("error: interrupted", err=True)
+        sys.exit(EXIT_INTERRUPTED)
     sys.exit(0)
 
 
@@ -190,10 +222,15 @@ def console_main() -> None:
     :func:`main`, which freezes nothing.
 
     Before ``main``, numpy submodules that no command needs at start-up are registered as
-    lazily loaded (:mod:`rotonly_cli.runtime.startup`)."""
-    from rotonly_cli.runtime.startup import defer_unused_numpy_submodules
+    lazily loaded (:mod:`rotonly_cli.runtime.startup`). Ctrl-C during that start-up is
+    answered like one during the command (one line, exit 130)."""
+    try:
+        from rotonly_cli.runtime.startup import defer_unused_numpy_submodules
 
-    defer_unused_numpy_submodules()
+        defer_unused_numpy_submodules()
+    except KeyboardInterrupt:
+        click.echo("error: interrupted", err=True)
+        sys.exit(EXIT_INTERRUPTED)
     try:
         main()
     finally:

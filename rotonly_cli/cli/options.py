@@ -38,6 +38,16 @@ def _all(*decorators):
     return apply
 
 
+class FiniteFloatRange(click.FloatRange):
+    """click.FloatRange that also refuses nan and inf (which pass its comparisons)."""
+
+    def convert(self, value, param, ctx):
+        number = super().convert(value, param, ctx)
+        if number != number or number in (float("inf"), float("-inf")):
+            self.fail(f"{number} is not a finite number.", param, ctx)
+        return number
+
+
 def _usable_cpus() -> int:
     from rotonly_cli.runtime.parallel import usable_cpus
 
@@ -64,17 +74,17 @@ reestimate = click.option(
     help="Re-estimate relative poses with calibrated RANSAC: auto = edges without an E-based stored pose "
          "(PLANAR/UNCALIBRATED/... or none stored).")
 ransac_max_error = click.option(
-    "--ransac-max-error", type=click.FloatRange(min=0, min_open=True), default=LoadOptions.ransac_max_error_px,
+    "--ransac-max-error", type=FiniteFloatRange(min=0, min_open=True), default=LoadOptions.ransac_max_error_px,
     show_default=True, help="RANSAC inlier threshold in pixels for the relative poses (default: "
     f"{LoadOptions.inlier_threshold_sigmas:g} x the matches' noise sigma, measured on the input; refine FILE.npz: "
     f"{SIMULATION_RANSAC_MAX_ERROR_PX:g} px).")
-seed = click.option("--seed", type=int, default=LoadOptions.seed, show_default=True,
+seed = click.option("--seed", type=click.IntRange(0, 2 ** 31 - 1), default=LoadOptions.seed, show_default=True,
                     help="RANSAC seed (runs are deterministic).")
 #: the load stage's options (`run` and `identify`)
 load_options = _all(matches_dir, matches_file, image_path, min_inliers, reestimate, ransac_max_error, seed)
 
 max_residual_deg = click.option(
-    "--max-residual-deg", type=click.FloatRange(min=0, min_open=True), default=AverageOptions.max_residual_deg,
+    "--max-residual-deg", type=FiniteFloatRange(min=0, min_open=True), default=AverageOptions.max_residual_deg,
     show_default=True, help="Edges further than this from the averaged rotations are filtered as outliers.")
 gt = click.option(
     "--gt", "gt_path", type=click.Path(path_type=Path), default=None,

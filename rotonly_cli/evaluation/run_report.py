@@ -514,5 +514,7 @@ def write_run_report(directory: str | os.PathLike, run, scene: SfMScene | None,
     from rotonly_cli.io import atomic
 
     path = Path(directory) / REPORT_FILE
-    atomic.write_text(path, build_html(Path(directory), run, scene, statistics, stages_done))
+    page = build_html(Path(directory), run, scene, statistics, stages_done)
+    # file names that are not UTF-8 (surrogate escapes) are shown backslash-escaped, as in run.log
+    atomic.write_bytes(path, page.encode("utf-8", errors="backslashreplace"))
     return path

@@ -36,15 +36,17 @@ logger = logging.getLogger(__name__)
 ESSENTIAL_CONFIGS = ("CALIBRATED", "E")
 
 def read_input(input_path: str | Path, matches_dir: str | Path | None = None,
-               matches_file: str | Path | None = None) -> tuple[SfMScene, str]:
+               matches_file: str | Path | None = None,
+               scratch_dir: str | Path | None = None) -> tuple[SfMScene, str]:
     """(scene, kind) for a COLMAP database or an OpenMVG sfm_data.json (+ features, matches;
-    ``matches_file``: the matches file, -M, else the first of matches.e/f/putative)."""
+    ``matches_file``: the matches file, -M, else the first of matches.e/f/putative).
+    ``scratch_dir``: where a database's private copy is made (default: a temporary folder)."""
     from rotonly_cli.io import colmap, openmvg
 
     input_path = Path(input_path)
     kind = detect_input(input_path)
     if kind == InputKind.COLMAP_DB:
-        return colmap.read_database(input_path), kind
+        return colmap.read_database(input_path, scratch_dir=scratch_dir), kind
     if kind == InputKind.OPENMVG:
         sfm_data = input_path / "sfm_data.json" if input_path.is_dir() else input_path
         scene = openmvg.read_project(sfm_data, matches_dir, matches_file)

@@ -5,8 +5,9 @@ epipolar line) fits its own pair's geometry, which it helped estimate, but not t
 geometry E_ij = [t_ij]x R_ij that the global rotations and the LiGT centres give that pair
 (t_ij = R_j (c_i - c_j)): every pose there is fixed by all the other edges. Matches whose
 Sampson error under it exceeds max(``outlier_sigmas`` x sigma, ``min_threshold_px``) (sigma =
-1.4826 x the median over all matches, in pixels) are dropped, edges left with too few matches
-are filtered, and the edges' rotations are checked against the global ones again. The
+1.4826 x the median over all matches, in pixels) are dropped (an edge that would keep fewer
+than ``min_inliers`` keeps them all), and the edges' rotations are checked against the global
+ones again. The
 pipeline then runs GRRM and LiGT on what is left, until a round drops nothing
 (pipeline.reject_stage).
 """
@@ -25,7 +26,6 @@ from rotonly_cli.scene.view_graph import ViewGraph, largest_component, regular_e
 
 logger = logging.getLogger(__name__)
 DROP_REASON = "inconsistent with the global poses"
-FEW_REASON = "too few inliers after multi-view rejection"
 RESIDUAL_REASON = "rotation residual after multi-view rejection"
 
 
@@ -60,11 +60,13 @@ def reject_round(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from
     filtered: dict[str, int] = {}
     for k, error in zip(edges, errors):
         edge = graph.edges[k]
-        report["num_dropped"] += edge.drop_matches(error <= threshold, DROP_REASON)
-        if edge.num_inliers < min_inliers:
-            edge.filter(FEW_REASON)
-            filtered[FEW_REASON] = filtered.get(FEW_REASON, 0) + 1
+        keep = error <= threshold
+        if np.count_nonzero(keep) < min_inliers:
+            # an edge this round would empty keeps its matches: filtering it can cut a weakly
+            # connected view loose, and LiGT's centre for it with it (castle-P19, OpenMVG matches)
+            report["edges_kept_whole"] = report.get("edges_kept_whole", 0) + 1
             continue
+        report["num_dropped"] += edge.drop_matches(keep, DROP_REASON)
         # the view-graph check of the averaging, at the optimised rotations
         R_ij = R_cam_from_world[index[edge.j]] @ R_cam_from_world[index[edge.i]].T
         edge.residual_deg = float(np.degrees(so3.geodesic_angle(edge.R_j_from_i[None], R_ij[None])[0]))

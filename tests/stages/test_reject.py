@@ -7,7 +7,7 @@ from rotonly_cli.geometry import so3
 from rotonly_cli.options import RejectOptions
 from rotonly_cli.scene.types import View
 from rotonly_cli.scene.view_graph import Edge, ViewGraph
-from rotonly_cli.stages.reject import DROP_REASON, FEW_REASON, reject_round
+from rotonly_cli.stages.reject import DROP_REASON, reject_round
 
 FOCAL = 1000.0
 
@@ -44,8 +44,10 @@ def test_wrong_matches_dropped_clean_ones_kept():
     assert all(e.active for e in graph.edges)
 
 
-def test_edge_left_with_too_few_matches_is_filtered():
+def test_edge_that_would_be_emptied_keeps_its_matches():
+    """Filtering it could cut a weakly connected view loose; it is reported instead."""
     graph, normalized, R, C = _graph(np.random.default_rng(1), wrong_px=30.0, num_wrong=190)
-    reject_round(graph, normalized, R, C, np.full(3, FOCAL), RejectOptions(), min_inliers=30)
-    assert not graph.edges[0].active and graph.edges[0].reason == FEW_REASON
+    report = reject_round(graph, normalized, R, C, np.full(3, FOCAL), RejectOptions(), min_inliers=30)
+    assert graph.edges[0].active and graph.edges[0].num_inliers == 200 and not graph.edges[0].dropped_matches
+    assert report["edges_kept_whole"] == 1
     assert graph.edges[1].active and graph.edges[2].active

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import shutil
@@ -13,18 +14,17 @@ from pathlib import Path
 
 import numpy as np
 
-from rotonly_cli.errors import InputError
+from rotonly_cli.errors import InputError, write_error
 from rotonly_cli.io import atomic
 from rotonly_cli.io.colmap.cameras import import_pycolmap, normalize_keypoints, pycolmap_camera, to_colmap_intrinsics
-from rotonly_cli.io.detect import is_sqlite
+from rotonly_cli.io.colmap.database_check import check_database
+from rotonly_cli.io.inputs import check_finite, check_regular_file
 from rotonly_cli.scene.types import Intrinsics, PairMatches, SfMScene, View
 
 PathLike = str | os.PathLike
 logger = logging.getLogger(__name__)
 
 
-# Tables read_database needs (formats.md §4.1).
-REQUIRED_TABLES = ("cameras", "images", "keypoints", "two_view_geometries")
 # OpenMVG PairMatches.config -> COLMAP TwoViewGeometry config name (formats.md §4.5). A
 # verified pair of unknown kind is written CALIBRATED: COLMAP skips UNDEFINED pairs.
 _CONFIG_FROM_OPENMVG = {"E": "CALIBRATED", "F": "UNCALIBRATED", "H": "PLANAR", None: "CALIBRATED"}
@@ -59,66 +59,59 @@ _COLMAP38_COLUMNS = {
 
 # ============================================================================ database: reading
 
-def check_database(path: PathLike) -> Path:
-    """InputError unless ``path`` is an existing SQLite file holding COLMAP's tables.
-    Reads through sqlite's read-only mode, which never writes."""
-    path = Path(path)
-    if not path.exists():
-        raise InputError("no such file", path=str(path))
-    if not path.is_file():
-        raise InputError("is not a file (expected a COLMAP database)", path=str(path))
-    if not is_sqlite(path):
-        raise InputError("not an SQLite file (expected a COLMAP database)", path=str(path))
-    try:
-        # immutable=1: no locks and no -wal/-shm sidecars next to the input (pycolmap
-        # databases are in WAL mode, where even a read-only open would create them).
-        connection = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro&immutable=1",
-                                     uri=True)
-        try:
-            tables = {row[0] for row in connection.execute(
-                "SELECT name FROM sqlite_master WHERE type = 'table'")}
-        finally:
-            connection.close()
-    except sqlite3.DatabaseError as exc:
-        raise InputError(f"unreadable SQLite database ({exc})", path=str(path)) from None
-    for table in REQUIRED_TABLES:
-        if table not in tables:
-            raise InputError("COLMAP database without this table", path=str(path), field=table)
-    return path
-
-
 @contextmanager
-def _open_database_copy(path: Path) -> Iterator:
-    """pycolmap Database on a private copy of ``path`` (the input stays byte-identical)."""
+def _open_database_copy(path: Path, scratch_dir: PathLike | None = None) -> Iterator:
+    """pycolmap Database on a private copy of ``path`` (pycolmap's ``Database.open`` writes to
+    the file it opens; the input stays byte-identical) in ``scratch_dir`` (default: a
+    temporary folder), removed when the block ends."""
     pycolmap = import_pycolmap()
-    with tempfile.TemporaryDirectory(prefix="rotonly-db-") as scratch:
+    with (contextlib.nullcontext(scratch_dir) if scratch_dir is not None
+          else tempfile.TemporaryDirectory(prefix="rotonly-db-")) as scratch:
         copy = Path(scratch) / "database.db"
-        shutil.copyfile(path, copy)
-        wal = Path(f"{path}-wal")  # committed-but-not-checkpointed pages of a WAL database
-        if wal.is_file():
-            shutil.copyfile(wal, Path(f"{copy}-wal"))
-        database = pycolmap.Database.open(str(copy))
+        copies = [copy, Path(f"{copy}-wal"), Path(f"{copy}-shm"), Path(f"{copy}-journal")]
         try:
-            yield database
+            wal = Path(f"{path}-wal")  # committed-but-not-checkpointed pages of a WAL database
+            try:
+                shutil.copyfile(path, copy)
+                if wal.is_file():
+                    check_regular_file(wal)
+                    shutil.copyfile(wal, copies[1])
+            except OSError as exc:
+                raise write_error(exc, scratch, field=None) from None
+            if wal.is_file():
+                check_database(copy, shown=path, immutable=False)  # the pages the input check did not see
+            try:
+                database = pycolmap.Database.open(str(copy))
+            except Exception:  # noqa: BLE001 - the copy passed check_database: the disk, not the input
+                error = atomic.unreported_write_error(scratch, "pycolmap cannot open the database copy")
+                raise write_error(error, scratch, field=None) from None
+            try:
+                yield database
+            finally:
+                database.close()
         finally:
-            database.close()
+            for leftover in copies:
+                leftover.unlink(missing_ok=True)
 
 
-def read_database(path: PathLike, include_unverified: bool = True) -> SfMScene:
+def read_database(path: PathLike, include_unverified: bool = True, scratch_dir: PathLike | None = None) -> SfMScene:
     """COLMAP database -> SfMScene (formats.md §4.1-§4.6).
 
     Verified pairs come from ``two_view_geometries`` (inlier matches, config name and, when
     stored, ``cam2_from_cam1`` as R_j_from_i / unit t_j_from_i); pairs verified and rejected
     (UNDEFINED, DEGENERATE, WATERMARK or no inlier) are dropped; with
     ``include_unverified`` the raw ``matches`` of pairs never verified come with
-    ``verified=False``. ``path`` may also be an open ``pycolmap.Database`` (read in place).
+    ``verified=False``. The database is checked first (:func:`check_database`: nothing is
+    read that pycolmap would refuse), then read from a private copy in ``scratch_dir``
+    (default: a temporary folder). ``path`` may also be an open ``pycolmap.Database``
+    (read in place).
     """
     pycolmap = import_pycolmap()
     if isinstance(path, pycolmap.Database):
         opened, path = nullcontext(path), Path("<pycolmap.Database>")
     else:
         path = check_database(path)
-        opened = _open_database_copy(path)
+        opened = _open_database_copy(path, scratch_dir)
     scene = SfMScene(source="colmap-db")
     with opened as database:
         cameras = {camera.camera_id: camera for camera in database.read_all_cameras()}
@@ -138,6 +131,7 @@ def read_database(path: PathLike, include_unverified: bool = True) -> SfMScene:
                 keypoints = np.asarray(database.read_keypoints(image_id))[:, :2]
             else:
                 keypoints = np.zeros((0, 2))
+            check_finite(keypoints, path, f"keypoints of image {image_id}", "keypoint")
             scene.keypoints[image_id] = keypoints.astype(np.float64)
             scene.normalized[image_id] = normalize_keypoints(camera, scene.keypoints[image_id])
 
@@ -157,6 +151,9 @@ def read_database(path: PathLike, include_unverified: bool = True) -> SfMScene:
             relative = geometry.cam2_from_cam1
             if relative is not None:
                 pair.R_j_from_i = np.array(relative.rotation.matrix(), dtype=np.float64)
+                if not np.all(np.isfinite(pair.R_j_from_i)):
+                    raise InputError("qvec is not a rotation", path=str(path),
+                                     field=f"two_view_geometries of pair ({i}, {j})")
                 # A direction (scale unknown, §4.5): PLANAR/H decompositions store |t| != 1.
                 translation = np.array(relative.translation, dtype=np.float64)
                 norm = np.linalg.norm(translation)

@@ -10,6 +10,7 @@ import numpy as np
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.io import atomic
+from rotonly_cli.io.inputs import check_regular_file
 from rotonly_cli.io.openmvg.cameras import undistort_normalize
 from rotonly_cli.io.openmvg.features import read_features, write_features
 from rotonly_cli.io.openmvg.matches import read_matches, write_matches
@@ -86,7 +87,8 @@ def _choose_match_file(matches_dir: Path, matches_file: PathLike | None) -> Path
             raise InputError("matches file not found", path=str(candidate))
         return candidate
     for name, _, _ in _MATCH_FILE_PREFERENCE:
-        if (matches_dir / name).is_file():
+        if os.path.lexists(matches_dir / name):
+            check_regular_file(matches_dir / name)  # a pipe or a dangling link is an error, not "no file"
             return matches_dir / name
     return None
 
