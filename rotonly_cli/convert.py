@@ -11,7 +11,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from rotonly_cli.errors import InputError
+from rotonly_cli.errors import InputError, write_error
+from rotonly_cli.io import atomic
 from rotonly_cli.io.detect import InputKind, detect_input
 
 PathLike = str | os.PathLike
@@ -23,7 +24,7 @@ def _output_kind(path: Path) -> str:
 
 
 def convert(input_path: PathLike, output_path: PathLike, matches_dir: PathLike | None = None,
-            text: bool = False) -> str:
+            text: bool = False, matches_file: PathLike | None = None) -> str:
     """Convert ``input_path`` to ``output_path``; returns a one-line summary."""
     from rotonly_cli.io import colmap, openmvg
 
@@ -40,11 +41,13 @@ def convert(input_path: PathLike, output_path: PathLike, matches_dir: PathLike |
     if input_kind == InputKind.OPENMVG:
         sfm_data = input_path / "sfm_data.json" if input_path.is_dir() else input_path
         if output_kind == "colmap-db":
-            scene = openmvg.read_project(sfm_data, matches_dir)
+            scene = openmvg.read_project(sfm_data, matches_dir, matches_file)
         else:
             scene = openmvg.read_sfm_data(sfm_data)
     elif input_kind == InputKind.COLMAP_DB:
-        scene = colmap.read_database(input_path)
+        colmap.check_database(input_path)  # before the scratch folder (and OUTPUT's parents) are made
+        with atomic.scratch_dir(output_path) as scratch:  # the database's private copy, beside OUTPUT
+            scene = colmap.read_database(input_path, scratch_dir=scratch)
     else:
         scene = colmap.read_model(input_path)
 
@@ -66,7 +69,7 @@ def convert(input_path: PathLike, output_path: PathLike, matches_dir: PathLike |
         output_path.parent.mkdir(parents=True, exist_ok=True)
         write()
     except OSError as exc:
-        raise InputError(f"cannot write: {exc.strerror or exc}", path=str(output_path)) from None
+        raise write_error(exc, output_path) from None
     num_verified = sum(1 for pair in scene.pairs.values() if pair.verified)
     return (f"{input_kind} {input_path} -> {output_kind} {output_path}: {len(scene.views)} views, "
             f"{len(scene.poses)} poses, {num_verified} verified / {len(scene.pairs)} pairs, "

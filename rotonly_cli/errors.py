@@ -1,6 +1,9 @@
-"""Typed errors. The CLI maps them to exit codes (architecture.md "Exit codes")."""
+"""Typed errors. The CLI maps them to exit codes (architecture.md "Exit codes"): bad input or
+usage 2, everything rotonly reports on purpose otherwise 1. Any other exception is a bug."""
 
 from __future__ import annotations
+
+import errno
 
 
 class RotonlyError(Exception):
@@ -30,3 +33,29 @@ class AlgorithmError(RotonlyError):
     """The algorithm could not produce a result (exit code 1)."""
 
     exit_code = 1
+
+
+class OutputError(RotonlyError):
+    """An output could not be written although the destination was usable when the run
+    started (disk full, quota, I/O error): exit code 1. Nothing partial is left."""
+
+    exit_code = 1
+
+    def __init__(self, message: str, path: str | None = None):
+        self.path = None if path is None else str(path)
+        super().__init__(f"{path}: {message}" if path else message)
+
+
+#: errno values that mean "this destination cannot be used" (usage: exit 2), as opposed to a
+#: destination that ran out of room or failed while being written (exit 1)
+_UNUSABLE_DESTINATION = {errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR, errno.EEXIST, errno.EISDIR,
+                         errno.ENAMETOOLONG, errno.ELOOP, errno.ENOENT}
+
+
+def write_error(exc: OSError, path, field: str | None = "-o") -> RotonlyError:
+    """The one-line error for an ``OSError`` raised while writing under ``path``: InputError
+    (exit 2) when the destination cannot be used at all, OutputError (exit 1) otherwise."""
+    reason = exc.strerror or str(exc)
+    if exc.errno in _UNUSABLE_DESTINATION:
+        return InputError(f"cannot write: {reason}", path=str(path), field=field)
+    return OutputError(f"cannot write: {reason}", path=str(path))

@@ -16,8 +16,8 @@ from rotonly_cli.errors import InputError
 
 __all__ = [
     "AverageOptions", "AveragingOptions", "GRRMOptions", "IdentificationOptions", "Intrinsics", "IntrinsicsOptions",
-    "LiGTOptions", "LoadOptions", "Reestimate", "ResidualForm", "RobustLoss", "RobustWeight", "RunOptions",
-    "TRRMOptions", "TriangulationOptions",
+    "LiGTOptions", "LoadOptions", "Reestimate", "RejectOptions", "ResidualForm", "RobustLoss", "RobustWeight",
+    "RunOptions", "TRRMOptions", "TriangulationOptions",
 ]
 
 
@@ -156,6 +156,12 @@ class TRRMOptions:
     final_inlier_pass: bool = True
     #: k of the inlier test ‖r‖ <= k σ: 3σ keeps ~99.7 % of Gaussian inliers
     inlier_threshold_sigmas: float = 3.0
+    #: edges whose refinement ended PURE_ROTATION or moved more than this (deg) from the
+    #: start are refined again from the two rotations of the linear 8-point E of their
+    #: matches; a restart replaces the result when its median squared residual is below half
+    #: of it. TRRM (and its λ_min(Pˢ) phase) has local minima a few degrees from the truth,
+    #: one near the pure-rotation fit; real edges start well inside 1°. None: no restarts
+    restart_change_deg: float | None = 1.0
 
     def validate(self) -> TRRMOptions:
         if self.loss not in (RobustLoss.CAUCHY, RobustLoss.NONE):
@@ -167,6 +173,7 @@ class TRRMOptions:
         if not self.inlier_threshold_sigmas > 0:
             raise ValueError("inlier_threshold_sigmas: must be > 0")
         _require_non_negative(self, "irls_step_tolerance", none_allowed=True)
+        _require_non_negative(self, "restart_change_deg", none_allowed=True)
         return self
 
 
@@ -336,6 +343,11 @@ class LoadOptions:
     #: seeded RANSAC runs per edge; an edge keeps the matches that are inliers of all of them
     #: (the stable consensus) and the pose of the run closest to the others
     consensus_runs: int = 3
+    #: a RANSAC run on an edge with more matches samples and scores a seeded random subset of
+    #: this size; the inliers are then all matches within the threshold of its model. Its cost
+    #: grows with the matches (~15 µs each: the local optimisation), its model's accuracy hardly
+    #: (TRRM refines it on the inliers). None: always all matches
+    ransac_max_matches: int | None = 2000
     #: the matches are verified inliers already, so the adaptive trial count stops early;
     #: pycolmap's default floor of 1000 trials would dominate the load time
     ransac_min_trials: int = 20
@@ -346,6 +358,9 @@ class LoadOptions:
     seed: int = 0
     min_inliers: int = 30  #: edges with fewer inlier matches are filtered
     progress: bool = False
+    #: RANSAC threads (pycolmap releases the GIL; every edge is seeded on its own, so the
+    #: results do not depend on it); 0 = one per usable CPU
+    jobs: int = 0
 
     def validate(self) -> LoadOptions:
         if self.reestimate not in REESTIMATE_MODES:
@@ -358,6 +373,8 @@ class LoadOptions:
             raise InputError("must be >= 1", field="consensus_runs")
         if self.min_inliers < MIN_MATCHES:
             raise InputError(f"must be >= {MIN_MATCHES}", field="min_inliers")
+        if self.jobs < 0:
+            raise InputError("must be >= 0", field="jobs")
         return self
 
 
@@ -402,6 +419,18 @@ class IntrinsicsOptions:
 
 
 @dataclass(frozen=True)
+class RejectOptions:
+    """The reject stage (stages/reject.py): multi-view outlier rejection under the global poses."""
+
+    #: rounds of reject -> GRRM -> LiGT; they stop earlier when a round drops nothing
+    max_rounds: int = 3
+    #: a match is dropped beyond this many robust sigmas of the Sampson errors under the global poses
+    outlier_sigmas: float = 5.0
+    #: ... and never within this many pixels
+    min_threshold_px: float = 1.0
+
+
+@dataclass(frozen=True)
 class AverageOptions:
     """The average stage (stages/average.py)."""
 
@@ -417,6 +446,7 @@ class RunOptions:
     """`rotonly run`: the whole chain."""
 
     matches_dir: str | None = None  #: OpenMVG input: features + matches folder
+    matches_file: str | None = None  #: OpenMVG input: the matches file (-M; default: matches.e/f/putative)
     image_path: str | None = None  #: images for the point colours (default: beside the input)
     gt: str | None = None  #: ground truth for the final evaluation
     intrinsics: IntrinsicsOptions = IntrinsicsOptions()
@@ -426,6 +456,7 @@ class RunOptions:
     average: AverageOptions = AverageOptions()
     optimize: GRRMOptions = GRRMOptions()
     translate: LiGTOptions = LiGTOptions()
+    reject: RejectOptions = RejectOptions()
     triangulate: TriangulationOptions = TriangulationOptions()
     grrm: bool = True  #: False: keep the averaged rotations (ablation)
     progress: bool = False

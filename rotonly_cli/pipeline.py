@@ -2,21 +2,26 @@
 
 load (INPUT -> view graph, re-estimated relative poses, min-inlier filter)
 -> identify (scene kinds; ROTATION_SINGULAR filtered) -> refine (TRRM, batched)
--> average (L1-IRLS, gross-outlier filter) -> optimize (GRRM) -> translate (LiGT)
--> triangulate (+ colours) -> export (OUT/sfm_data.json, OUT/sparse/).
+-> average (L1-IRLS, gross-outlier filter) -> optimize (GRRM) -> translate (robust LiGT)
+-> reject (multi-view outlier rejection, then GRRM + LiGT again) -> triangulate (+ colours)
+-> export (OUT/sfm_data.json, OUT/sparse/).
 
 Every stage reads and writes plain objects; :class:`Run` holds them. The workspace
 ``OUT/`` (architecture.md "CLI contract"): ``sfm_data.json``, ``sparse/``, ``view_graph.json``,
 ``reports/<stage>.json``, ``run.log`` and ``state.npz`` (io/workspace.py) for the stage
-subcommands. ``run`` builds the whole workspace in a temporary folder beside OUT and
-renames it at the end, so a failed run leaves no partial OUT.
+subcommands. ``run`` builds the whole workspace in a staging folder beside OUT and swaps it
+in at the end (io/atomic.Staging), so a failed or killed run leaves no partial OUT, and the
+next run into OUT removes what a killed one left.
+
+Errors: rotonly's own (errors.py) pass through; an OSError while writing becomes a one-line
+write error (exit 1 for a full disk); anything else is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
 
 import copy
 import logging
-import shutil
+import sys
 import time
 from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
@@ -25,12 +30,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rotonly_cli.errors import AlgorithmError, InputError, RotonlyError
-from rotonly_cli.io.atomic import check_replaceable, make_staging_dir, replace_dir
-from rotonly_cli.io.detect import InputKind
+from rotonly_cli.errors import AlgorithmError, InputError, write_error
+from rotonly_cli.io import atomic
+from rotonly_cli.io.atomic import check_replaceable
+from rotonly_cli.io.detect import InputKind, detect_input
 from rotonly_cli.io.workspace import (
     STATE_FILE,
     WorkspaceState,
+    check_graph_fits,
     load_state,
     save_state,
     write_report,
@@ -46,9 +53,10 @@ if TYPE_CHECKING:
     from rotonly_cli.stages.intrinsics import Calibration
 
 logger = logging.getLogger(__name__)
-STAGES = ("load", "identify", "refine", "average", "optimize", "translate", "triangulate")
+STAGES = ("load", "identify", "refine", "average", "optimize", "translate", "reject", "triangulate")
 #: files a workspace may hold; an existing OUT with anything else is not replaced
-WORKSPACE_ENTRIES = {"sfm_data.json", "sparse", "view_graph.json", "reports", "run.log", STATE_FILE, "eval"}
+WORKSPACE_ENTRIES = {"sfm_data.json", "sparse", "view_graph.json", "reports", "run.log", STATE_FILE, "eval",
+                     "report.html"}
 
 
 @dataclass
@@ -68,6 +76,8 @@ class Run:
     keypoint_rgb: Future | None = None
     #: tracks built by translate and reused by triangulate (scene/tracks)
     tracks: TrackCache = field(default_factory=TrackCache)
+    #: the intrinsics as read, before any stage changed them (report.html)
+    input_intrinsics: dict = field(default_factory=dict)
     #: the camera calibration of this run (stages/intrinsics.Calibration)
     calibration: Calibration | None = None
 
@@ -82,19 +92,29 @@ def _ensure_two_views(graph: ViewGraph, after: str) -> None:
                              f"connected by an edge); nothing to reconstruct")
 
 
-def load_stage(input_path: str | Path, options: RunOptions) -> Run:
-    """Read INPUT, calibrate the focal lengths the input marks as guesses (--intrinsics),
-    build the view graph."""
-    from rotonly_cli.stages.intrinsics import start_calibration
-    from rotonly_cli.stages.load import read_input
+def load_stage(input_path: str | Path, options: RunOptions, scratch: Path | None = None) -> Run:
+    """``scratch``: where a database's private copy is made (the run's staging folder)."""
+    from rotonly_cli.stages.load import input_files, read_input
 
     start = time.perf_counter()
-    scene, kind = read_input(input_path, options.matches_dir)
-    read_time = time.perf_counter() - start
+    scene, kind = read_input(input_path, options.matches_dir, options.matches_file, scratch)
+    sources = input_files(input_path, kind, scene, options.matches_dir, options.matches_file)
+    return load_scene(scene, kind, str(input_path), options, time.perf_counter() - start, sources)
+
+
+def load_scene(scene: SfMScene, kind: InputKind, input_label: str, options: RunOptions, read_time: float = 0.0,
+               sources: dict | None = None) -> Run:
+    """The load stage on a scene already read (``input_label``: its path, or what it was made
+    from; ``sources``: what it was read from, stages.load.input_files, for reports/load.json):
+    the focal lengths the input marks as guesses calibrated (--intrinsics), the view graph built."""
+    from rotonly_cli.stages.intrinsics import start_calibration
+
     calibration = start_calibration(scene, options.intrinsics, jobs=options.jobs)
-    run = _build_graph(str(input_path), kind, calibration.scene, options)
+    run = _build_graph(input_label, kind, calibration.scene, options)
     run.calibration = calibration
-    run.reports["load"].update(read_time_s=read_time, input=str(input_path), input_kind=kind)
+    run.input_intrinsics = copy.deepcopy(scene.intrinsics)
+    run.reports["load"].update(read_time_s=read_time, input=input_label, input_kind=kind,
+                               **(sources or {"input_files": []}))
     return run
 
 
@@ -104,7 +124,8 @@ def _build_graph(input_path: str, kind: InputKind, scene: SfMScene, options: Run
     estimates intrinsics (ESTIMATION_LOAD: one RANSAC run per edge, fewer trials)."""
     from rotonly_cli.stages.load import build_view_graph
 
-    load = replace(options.load, progress=options.progress, **(ESTIMATION_LOAD if estimation else {}))
+    load = replace(options.load, progress=options.progress, jobs=options.jobs,
+                   **(ESTIMATION_LOAD if estimation else {}))
     graph, report = build_view_graph(scene, load)
     run = Run(input_path, kind, scene, graph, options, reports={"load": report})
     _ensure_two_views(graph, "loading")
@@ -139,8 +160,11 @@ def optimize_stage(run: Run) -> None:
     if not run.options.grrm:
         run.reports["optimize"] = {"skipped": "disabled (--no-grrm)"}
         return
-    run.rotations, run.reports["optimize"] = optimize_graph(run.graph, run.scene.normalized, run.rotations,
-                                                            run.options.optimize)
+    from rotonly_cli.runtime.progress import iteration_bar
+
+    with iteration_bar(run.options.progress, run.options.optimize.max_iterations, "GRRM") as on_iteration:
+        run.rotations, run.reports["optimize"] = optimize_graph(run.graph, run.scene.normalized, run.rotations,
+                                                                run.options.optimize, on_iteration=on_iteration)
 
 
 def translate_stage(run: Run) -> None:
@@ -152,19 +176,57 @@ def translate_stage(run: Run) -> None:
 
 
 def image_root(run: Run) -> Path | None:
-    """--image-path; else COLMAP: ``images/`` beside the database; OpenMVG: root_path
-    (relative to the sfm_data.json folder)."""
+    """--image-path; else COLMAP: ``images/`` beside the database; OpenMVG: root_path the way
+    OpenMVG's tools read it (from the current directory), else from the sfm_data.json folder."""
     if run.options.image_path:
         return Path(run.options.image_path)
     input_path = Path(run.input_path)
     if run.input_kind == InputKind.COLMAP_DB:
         candidate = input_path.parent / "images"
-        return candidate if candidate.is_dir() else None
-    if not run.scene.root_path:
+        return candidate if input_path.is_file() and candidate.is_dir() else None
+    if run.input_kind != InputKind.OPENMVG:
         return None
-    root = Path(run.scene.root_path)
-    base = input_path if input_path.is_dir() else input_path.parent
-    return root if root.is_absolute() else base / root
+    from rotonly_cli.io.openmvg import image_root as openmvg_image_root
+
+    return openmvg_image_root(run.scene.root_path, input_path / "sfm_data.json" if input_path.is_dir() else input_path)
+
+
+def output_root_path(run: Run) -> str:
+    """``root_path`` of OUT/sfm_data.json: --image-path as given, an OpenMVG input's root_path
+    as it came (OpenMVG resolves both from the current directory), else the image folder found."""
+    if run.options.image_path:
+        return str(run.options.image_path)
+    if run.input_kind == InputKind.OPENMVG:
+        return run.scene.root_path
+    root = image_root(run)
+    return "" if root is None else str(root)
+
+
+def reject_stage(run: Run) -> None:
+    """Rounds of stages/reject (drop the matches inconsistent with the global poses) followed
+    by GRRM and LiGT on what is left, until a round drops nothing (RejectOptions.max_rounds).
+    The optimize and translate reports are those of the last solve."""
+    from rotonly_cli.stages.reject import reject_round
+
+    start = time.perf_counter()
+    rounds = []
+    focal_px = run.scene.focal_px(run.graph.view_ids())
+    for _ in range(run.options.reject.max_rounds):
+        if run.rotations is None or run.centers is None:
+            break
+        report = reject_round(run.graph, run.scene.normalized, run.rotations, run.centers, focal_px,
+                              run.options.reject, run.options.load.min_inliers, run.options.average.max_residual_deg)
+        rounds.append(report)
+        logger.info("reject: %d of %d matches inconsistent with the global poses (threshold %.2f px), edges "
+                    "filtered %s", report["num_dropped"], report["num_matches"], report["threshold_px"] or 0.0,
+                    report["edges_filtered"] or "none")
+        if report["num_dropped"] == 0 and not report["edges_filtered"]:
+            break
+        _ensure_two_views(run.graph, "multi-view rejection")
+        optimize_stage(run)
+        translate_stage(run)
+    run.reports["reject"] = {"rounds": rounds, "num_dropped": int(sum(r["num_dropped"] for r in rounds)),
+                             "time_s": time.perf_counter() - start}
 
 
 def triangulate_stage(run: Run) -> None:
@@ -178,7 +240,8 @@ def triangulate_stage(run: Run) -> None:
 
 
 STAGE_FUNCTIONS = {"identify": identify_stage, "refine": refine_stage, "average": average_stage,
-                   "optimize": optimize_stage, "translate": translate_stage, "triangulate": triangulate_stage}
+                   "optimize": optimize_stage, "translate": translate_stage, "reject": reject_stage,
+                   "triangulate": triangulate_stage}
 
 
 # ============================================================================ intrinsics
@@ -199,7 +262,7 @@ ESTIMATION_STAGES = ("identify", "average", "translate", "triangulate")
 ESTIMATION_LOAD = {"consensus_runs": 1, "ransac_max_trials": 500}
 
 
-def _rerun(loaded: Run, scene: SfMScene, template: Run, estimation: bool = False) -> Run:
+def _rerun(loaded: Run, scene: SfMScene, template: Run, estimation: bool = False, chain=_chain) -> Run:
     """The stages after load on ``scene`` (new intrinsics) from a copy of ``loaded``'s view
     graph: the edges, inlier matches and relative poses of its load stage, as the TRRM starts.
     ``template``: the run of the load stage (keypoint colours, calibration, load report).
@@ -210,22 +273,23 @@ def _rerun(loaded: Run, scene: SfMScene, template: Run, estimation: bool = False
         options = replace(options, translate=replace(options.translate, robust_rounds=0))
     run = Run(loaded.input_path, loaded.input_kind, scene, copy.deepcopy(loaded.graph), options,
               reports={"load": report}, keypoint_rgb=template.keypoint_rgb, calibration=template.calibration)
-    return _chain(run, ESTIMATION_STAGES if estimation else STAGES[1:])
+    return chain(run, ESTIMATION_STAGES if estimation else STAGES[1:])
 
 
-def calibrated_chain(loaded: Run) -> Run:
+def calibrated_chain(loaded: Run, chain=_chain) -> Run:
     """identify ... triangulate with the intrinsics calibrated (stages/intrinsics.py): passes
     of rotonly's stages, each followed by an estimate of the intrinsics from its
     reconstruction, until they settle; then the final pass, whose rotations, centres and
-    points are the result. ``loaded``: the run after the load stage (not changed)."""
+    points are the result. ``loaded``: the run after the load stage (not changed); ``chain``:
+    runs stages on a run (:func:`_chain`; run_stages adds the progress bars)."""
     from rotonly_cli.stages import intrinsics
 
     calibration = loaded.calibration
     options = loaded.options.intrinsics
     if calibration is None or options.mode == intrinsics.Mode.FIXED:
-        return _chain(loaded, STAGES[1:])
+        return chain(loaded, STAGES[1:])
     guessed = bool(calibration.calibrate)
-    run = _rerun(loaded, loaded.scene, loaded, estimation=guessed)
+    run = _rerun(loaded, loaded.scene, loaded, estimation=guessed, chain=chain)
     suspects = options.mode == intrinsics.Mode.AUTO and calibration.add_suspects(
         run.reports["triangulate"]["outlier_sigma_px_by_camera"], run.scene)
     if not suspects and not guessed:
@@ -240,7 +304,7 @@ def calibrated_chain(loaded: Run) -> Run:
     if calibration.moved_from(graph_run.scene):
         graph_run, full_load = reload(True), False
     if calibration.scene is not run.scene:
-        run = _rerun(graph_run, calibration.scene, loaded, estimation=True)
+        run = _rerun(graph_run, calibration.scene, loaded, estimation=True, chain=chain)
     for round_ in range(options.max_rounds):
         settled = calibration.estimate(output_scene(run))
         if calibration.back_to_given():
@@ -249,10 +313,10 @@ def calibrated_chain(loaded: Run) -> Run:
             break
         if calibration.moved_from(graph_run.scene):  # the load stage's RANSAC ran with other intrinsics
             graph_run, full_load = reload(True), False
-        run = _rerun(graph_run, calibration.scene, loaded, estimation=True)
+        run = _rerun(graph_run, calibration.scene, loaded, estimation=True, chain=chain)
     if not full_load or calibration.moved_from(graph_run.scene):
         graph_run = reload(False)
-    return _rerun(graph_run, calibration.scene, loaded)
+    return _rerun(graph_run, calibration.scene, loaded, chain=chain)
 
 
 # ============================================================================ outputs
@@ -261,7 +325,8 @@ def output_scene(run: Run) -> SfMScene:
     """The input scene with the estimated poses (views with rotation and centre) and points."""
     from rotonly_cli.stages.export import posed_scene
 
-    return posed_scene(run.scene, run.graph.view_ids(), run.rotations, run.centers, run.structure, image_root(run))
+    return posed_scene(run.scene, run.graph.view_ids(), run.rotations, run.centers, run.structure,
+                       output_root_path(run) or None)
 
 
 def write_outputs(out_dir: Path, run: Run) -> SfMScene:
@@ -278,8 +343,8 @@ def write_workspace(out_dir: Path, run: Run, stages_done: list[str]) -> None:
     write_view_graph_json(out_dir / "view_graph.json", run.graph)
     for stage, report in run.reports.items():
         write_report(out_dir, stage, report)
-    options = {"matches_dir": run.options.matches_dir, "image_path": run.options.image_path,
-               "grrm": run.options.grrm}
+    options = {"matches_dir": run.options.matches_dir, "matches_file": run.options.matches_file,
+               "image_path": run.options.image_path, "grrm": run.options.grrm}
     intrinsics = run.calibration.changed() if run.calibration is not None else {}
     if intrinsics:  # calibrated intrinsics, for the stage commands (absent: the input's)
         options["intrinsics"] = intrinsics
@@ -324,11 +389,36 @@ def check_out_dir(out_dir: Path) -> None:
     check_replaceable(out_dir, WORKSPACE_ENTRIES, "a rotonly workspace")
 
 
+def check_input(input_path: Path) -> None:
+    """What can be checked of INPUT before anything is written: its kind, and a database
+    table by table (io/colmap/database_check). OpenMVG projects are checked as they are read."""
+    if detect_input(input_path) == InputKind.COLMAP_DB:
+        from rotonly_cli.io.colmap.database_check import check_database
+
+        check_database(input_path)
+
+
+class _LogFile(logging.FileHandler):
+    """run.log: a write error is kept (and raised by _RunLog), not printed as a traceback;
+    file names that are not UTF-8 are written with backslash escapes."""
+
+    error: OSError | None = None
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        error = sys.exc_info()[1]
+        if self.error is None and isinstance(error, OSError):
+            self.error = error
+
+
 class _RunLog:
     """Log records of the run also go to ``<dir>/run.log`` (closed on exit)."""
 
     def __init__(self, directory: Path):
-        self.handler = logging.FileHandler(directory / "run.log", mode="a", encoding="utf-8")
+        self.path = directory / "run.log"
+        try:
+            self.handler = _LogFile(self.path, mode="a", encoding="utf-8", errors="backslashreplace")
+        except OSError as exc:
+            raise write_error(exc, self.path, field=None) from None
         self.handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
         self.handler.setLevel(logging.DEBUG)
         self.root = logging.getLogger()
@@ -343,14 +433,12 @@ class _RunLog:
             self.root.setLevel(logging.INFO)
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, kind, *exc):
         self.root.removeHandler(self.handler)
         self.root.setLevel(self.previous_level)
         self.handler.close()
-
-
-def _as_algorithm_error(exc: ValueError) -> RotonlyError:
-    return exc if isinstance(exc, RotonlyError) else AlgorithmError(str(exc))
+        if kind is None and self.handler.error is not None:
+            raise write_error(self.handler.error, self.path, field=None)
 
 
 def run_pipeline(input_path: str | Path, out_dir: str | Path, options: RunOptions = RunOptions(),
@@ -360,43 +448,125 @@ def run_pipeline(input_path: str | Path, out_dir: str | Path, options: RunOption
     With all stages the outputs (sfm_data.json, sparse/) are written, and with
     ``options.gt`` the evaluation (OUT/eval/report.{json,html}).
     """
-    input_path, out_dir = Path(input_path), Path(out_dir)
+    return run_into(input_path, out_dir, options, stages)[0]
+
+
+def run_into(input_path: str | Path | SfMScene, out_dir: str | Path, options: RunOptions = RunOptions(),
+             stages: tuple[str, ...] = STAGES, kind: InputKind | None = None,
+             label: str | None = None) -> tuple[dict, Run]:
+    """:func:`run_pipeline`, returning the run too; INPUT may be a scene already read (then
+    ``kind`` and ``label`` say what it is, as for :func:`run_stages`)."""
+    out_dir = Path(out_dir)
+    in_memory = isinstance(input_path, SfMScene)
+    if in_memory:
+        label = label or "<in memory>"
+    else:
+        input_path = Path(input_path)
+        if out_dir.exists() and input_path.resolve().is_relative_to(out_dir.resolve()):
+            raise InputError("the input lies inside OUT, which would be replaced", path=str(input_path), field="-o")
     check_out_dir(out_dir)
-    if out_dir.exists() and input_path.resolve().is_relative_to(out_dir.resolve()):
-        raise InputError("the input lies inside OUT, which would be replaced", path=str(input_path), field="-o")
     gt = ground_truth_for(options, stages)
-    staging = make_staging_dir(out_dir)
+    if not in_memory:
+        check_input(input_path)  # before anything is made: a bad input leaves no folder behind
+    staging = atomic.Staging(out_dir)  # parents made here are removed again by discard()
     start = time.perf_counter()
     try:
-        with _RunLog(staging), collector_paused():
-            logger.info("rotonly run %s -> %s", input_path, out_dir)
-            try:
-                run = load_stage(input_path, options)
-                if "triangulate" in stages:
+        with _RunLog(staging.new), collector_paused():
+            logger.info("rotonly run %s -> %s", label or input_path, out_dir)
+            run = run_stages(input_path, options, stages, kind, label, scratch=staging.scratch)
+            summary = _written(out_dir, _finish, staging.new, out_dir, run, list(stages), start, gt)
+        _written(out_dir, staging.commit, check_out_dir)
+    finally:
+        staging.discard()
+    return summary, run
+
+
+def run_in_memory(input_path: str | Path | SfMScene, options: RunOptions = RunOptions(),
+                  stages: tuple[str, ...] = STAGES, kind: InputKind | None = None, label: str | None = None) -> Run:
+    """:func:`run_stages` as `rotonly run` runs them (the collector paused), writing nothing."""
+    if not isinstance(input_path, SfMScene):
+        check_input(Path(input_path))
+    with collector_paused():
+        return run_stages(input_path, options, stages, kind, label)
+
+
+def colours_start_after(run: Run, stages: tuple[str, ...] | list[str]) -> str | None:
+    """The stage after which the images are decoded for the point colours (on a thread):
+    right after loading, so that decoding overlaps the rotation stages, unless identification
+    and TRRM will fork (``--jobs``, runtime/parallel): a fork waits for no running thread, so
+    then after TRRM. None when the chain ends before triangulation."""
+    if "triangulate" not in stages:
+        return None
+    from rotonly_cli.runtime.parallel import would_fork
+
+    matches = sum(run.graph.edges[k].num_inliers for k in run.graph.active_edges())
+    return "refine" if "refine" in stages and would_fork(matches, run.options.jobs) else "load"
+
+
+def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptions(),
+               stages: tuple[str, ...] = STAGES, kind: InputKind | None = None, label: str | None = None,
+               scratch: Path | None = None) -> Run:
+    """Run ``stages`` (a prefix of STAGES) in memory on INPUT (a path, or a scene already read:
+    then ``kind`` and ``label`` say what it is), with the progress bars and -v detail lines.
+    ``scratch``: where a database's private copy is made (default: a temporary folder)."""
+    from rotonly_cli.monitor import StageMonitor
+
+    with StageMonitor(stages, options.progress) as monitor:
+        with monitor.stage("load"):
+            if isinstance(input_path, SfMScene):
+                run = load_scene(input_path, kind, label or "<in memory>", options)
+            else:
+                run = load_stage(input_path, options, scratch)
+            monitor.run = run
+        loaded, colours_after = run, colours_start_after(run, stages)
+
+        def chain(pass_run: Run, pass_stages: tuple[str, ...] | list[str]) -> Run:
+            """Stages on a run of this load stage (a pass of the calibration, or the chain),
+            each under the monitor; the colours decoded once, after ``colours_after``."""
+            monitor.run = pass_run  # the detail lines read this pass's reports
+            for stage in pass_stages:
+                if pass_run.keypoint_rgb is None:
+                    pass_run.keypoint_rgb = loaded.keypoint_rgb
+                with monitor.stage(stage):
+                    STAGE_FUNCTIONS[stage](pass_run)
+                if stage == colours_after and loaded.keypoint_rgb is None:
                     from rotonly_cli.stages.triangulate import start_keypoint_colors
 
-                    run.keypoint_rgb = start_keypoint_colors(run.scene, image_root(run))
-                if "triangulate" in stages:
-                    run = calibrated_chain(run)
-                else:
-                    _chain(run, stages[1:])
-                summary = _finish(staging, out_dir, run, list(stages), start, gt)
-            except ValueError as exc:
-                raise _as_algorithm_error(exc) from exc
-        replace_dir(staging, out_dir)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    return summary
+                    loaded.keypoint_rgb = start_keypoint_colors(loaded.scene, image_root(loaded))
+            return pass_run
+
+        if colours_after == "load":
+            from rotonly_cli.stages.triangulate import start_keypoint_colors
+
+            run.keypoint_rgb = start_keypoint_colors(run.scene, image_root(run))
+        if "triangulate" in stages:
+            run = calibrated_chain(run, chain)
+        else:
+            chain(run, stages[1:])
+    return run
+
+
+def _written(out_dir: Path, write, *args, field: str | None = "-o"):
+    """``write(*args)`` with an OSError turned into the one-line write error of OUT."""
+    try:
+        return write(*args)
+    except OSError as exc:
+        raise write_error(exc, out_dir, field) from None
 
 
 def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: float,
             gt: SfMScene | None) -> dict:
     """Write outputs of a finished chain into ``directory`` (which becomes ``out_dir``);
     ``gt``: the ground truth of ``run.options.gt`` (:func:`ground_truth_for`) or None."""
+    from rotonly_cli.evaluation.run_report import structure_statistics, write_run_report
+
     summary: dict = {"input": run.input_path, "stages": done}
+    scene = statistics = None
     if done[-1] == "triangulate":
+        started = time.perf_counter()
         scene = write_outputs(directory, run)
+        statistics = structure_statistics(scene, run.graph.view_ids())
+        run.reports["export"] = {**statistics.report, "time_s": time.perf_counter() - started}
         summary.update(num_views=len(run.scene.views), num_registered=len(scene.poses),
                        num_points=0 if scene.structure is None else len(scene.structure.points),
                        unregistered_views=[v for v in run.graph.view_ids() if v not in scene.poses])
@@ -413,8 +583,10 @@ def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: fl
     summary["time_s"] = time.perf_counter() - start
     run.reports["run"] = summary
     write_workspace(directory, run, done)
+    write_run_report(directory, run, scene, statistics, done)
     logger.info("done in %.2f s: %s", summary["time_s"],
-                {k: v for k, v in summary.items() if k in ("num_registered", "num_points", "num_active_edges")})
+                ", ".join(f"{summary[k]} {k.removeprefix('num_').replace('_', ' ')}"
+                          for k in ("num_registered", "num_points", "num_active_edges") if k in summary))
     return summary
 
 
@@ -448,23 +620,28 @@ def resume(out_dir: str | Path, stage: str, options: RunOptions | None = None) -
     saved = state.options
     options = options or RunOptions()
     options = replace(options, matches_dir=options.matches_dir or saved.get("matches_dir"),
+                      matches_file=options.matches_file or saved.get("matches_file"),
                       image_path=options.image_path or saved.get("image_path"))
     gt = ground_truth_for(options, [stage])
     start = time.perf_counter()
     with _RunLog(out_dir), collector_paused():
-        try:
-            scene, kind = read_input(state.input_path, options.matches_dir)
-            calibration = _restored_calibration(scene, options, saved.get("intrinsics", {}))
-            run = Run(state.input_path, kind, calibration.scene, state.graph, options, state.rotations,
-                      state.centers, calibration=calibration)
-            if stage == "triangulate" and (run.rotations is None or run.centers is None):
-                raise InputError("no rotations / centres in the workspace", path=str(out_dir))
-            STAGE_FUNCTIONS[stage](run)
-            done = list(STAGES[:position + 1])
-            if position < STAGES.index("average"):
-                run.rotations = None  # stale: computed from the edges before this stage
-            if position < STAGES.index("translate"):
-                run.centers = None
-            return _finish(out_dir, out_dir, run, done, start, gt)
-        except ValueError as exc:
-            raise _as_algorithm_error(exc) from exc
+        with atomic.scratch_dir(out_dir) as scratch:  # a database's private copy, beside OUT
+            scene, kind = read_input(state.input_path, options.matches_dir, options.matches_file, scratch)
+        check_graph_fits(state.graph, scene, out_dir / STATE_FILE)
+        calibration = _restored_calibration(scene, options, saved.get("intrinsics", {}))
+        run = Run(state.input_path, kind, calibration.scene, state.graph, options, state.rotations,
+                  state.centers, calibration=calibration)
+        if stage == "triangulate" and (run.rotations is None or run.centers is None):
+            raise InputError("no rotations / centres in the workspace", path=str(out_dir))
+        from rotonly_cli.monitor import StageMonitor
+
+        with StageMonitor([stage], options.progress) as monitor:
+            monitor.run = run
+            with monitor.stage(stage):
+                STAGE_FUNCTIONS[stage](run)
+        done = list(STAGES[:position + 1])
+        if position < STAGES.index("average"):
+            run.rotations = None  # stale: computed from the edges before this stage
+        if position < STAGES.index("translate"):
+            run.centers = None
+        return _written(out_dir, _finish, out_dir, out_dir, run, done, start, gt, field=None)

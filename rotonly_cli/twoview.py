@@ -8,7 +8,9 @@
 
 ``x_i``, ``x_j``: (m, 2) or (m, 3) normalized coordinates of matched points (at least 6).
 ``R_j_from_i``: the relative rotation R_ij = R_j R_i^T (maps camera-i coordinates into camera j).
-Bad input raises ``ValueError`` naming the argument.
+Bad input raises ``ValueError`` naming the argument; so do coordinates that are evidently
+pixels (most of an edge's coordinates beyond ``PIXEL_LIKE``: normalized ones that large lie
+more than 84 degrees off the optical axis).
 """
 
 from __future__ import annotations
@@ -27,8 +29,37 @@ from rotonly_cli.runtime.parallel import map_edges, plan
 
 __all__ = [
     "SceneKind", "SceneIdentification", "TwoViewRefinement", "BatchRefinement", "IdentificationOptions",
-    "TRRMOptions", "identify_scene", "identify_scenes", "refine_rotation", "refine_rotations",
+    "TRRMOptions", "identify_scene", "identify_scenes", "refine_rotation", "refine_rotations", "PIXEL_LIKE",
 ]
+
+#: |x|/|z| beyond this for most of an edge's coordinates: pixels, not normalized coordinates
+#: (tan 84.3 deg = 10)
+PIXEL_LIKE = 10.0
+#: matches per edge looked at for that test (the first ones)
+PIXEL_SAMPLE = 8
+
+
+def refuse_pixels(x: np.ndarray, offsets: np.ndarray, name: str, single: bool = False) -> None:
+    """ValueError naming ``name`` (``name[e]`` for edge e unless ``single``) when most of the
+    first PIXEL_SAMPLE matches of an edge have coordinates beyond PIXEL_LIKE: pixels passed
+    where normalized image coordinates are expected would give a silently wrong answer."""
+    starts, ends = np.asarray(offsets[:-1]), np.asarray(offsets[1:])
+    if not len(starts):
+        return
+    rows = starts[:, None] + np.arange(PIXEL_SAMPLE)[None, :]
+    present = rows < ends[:, None]
+    sample = x[np.minimum(rows, len(x) - 1)]  # (E, k, 3)
+    beyond = (np.abs(sample[..., :2]) > PIXEL_LIKE * np.abs(sample[..., 2:3])).sum(axis=2)
+    votes = np.where(present, beyond, 0).sum(axis=1)
+    flagged = np.flatnonzero(votes > present.sum(axis=1))  # more than half of the 2k coordinates
+    if flagged.size:
+        e = int(flagged[0])
+        block = sample[e][present[e]]
+        with np.errstate(all="ignore"):
+            median = float(np.median(np.abs(block[:, :2] / block[:, 2:3])))
+        raise ValueError(f"{name if single else f'{name}[{e}]'}: these look like pixel coordinates (median |x| = "
+                         f"{median:.4g}); pass normalized image coordinates K^-1 (u, v, 1) with lens distortion "
+                         "removed, e.g. pycolmap's Camera.cam_from_img(pixels)")
 
 
 @dataclass(frozen=True)
@@ -103,8 +134,17 @@ def _pack(xs_i: Sequence, xs_j: Sequence) -> _pg.EdgeBatch:
 
 def _prepare(R_j_from_i, xs_i: Sequence, xs_j: Sequence) -> tuple[np.ndarray, _pg.EdgeBatch]:
     batch = _pack(xs_i, xs_j)
+    refuse_pixels(batch.x_i, batch.offsets, "xs_i")
+    refuse_pixels(batch.x_j, batch.offsets, "xs_j")
     R = _pg.as_rotations(R_j_from_i, "R_j_from_i", batch=batch.num_edges).reshape(-1, 3, 3)
     return R, batch
+
+
+def _check_one_edge(x_i, x_j) -> None:
+    """The checks of ``_prepare`` with the single-edge functions' argument names."""
+    batch = _pg.pack_edges([x_i], [x_j])
+    refuse_pixels(batch.x_i, batch.offsets, "x_i", single=True)
+    refuse_pixels(batch.x_j, batch.offsets, "x_j", single=True)
 
 
 def _jobs(jobs) -> int:
@@ -147,6 +187,7 @@ def identify_scene(R_j_from_i, x_i, x_j,
     R = _pg.as_rotations(R_j_from_i, "R_j_from_i")
     if R.ndim != 2:
         raise ValueError(f"R_j_from_i: expected one (3, 3) rotation, got shape {R.shape}")
+    _check_one_edge(x_i, x_j)
     return identify_scenes(R[None], [x_i], [x_j], options)[0]
 
 
@@ -173,4 +214,5 @@ def refine_rotation(R_j_from_i, x_i, x_j, options: TRRMOptions = TRRMOptions(),
     R = _pg.as_rotations(R_j_from_i, "R_j_from_i")
     if R.ndim != 2:
         raise ValueError(f"R_j_from_i: expected one (3, 3) rotation, got shape {R.shape}")
+    _check_one_edge(x_i, x_j)
     return refine_rotations(R[None], [x_i], [x_j], options, identification_options)[0]

@@ -12,6 +12,17 @@ REPOSITORY = Path(__file__).resolve().parents[1]
 DATA_FIXTURES = REPOSITORY / "data_fixtures"  #: the bundled fixtures: the only data the tests read
 
 
+def rotonly(*args) -> int:
+    """The exit code of ``rotonly ARGS`` run in this process (``rotonly_cli.cli.main``)."""
+    import pytest
+
+    from rotonly_cli.cli import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(a) for a in args])
+    return exit_info.value.code
+
+
 def grrm_problem(setup="circular", noise=1.0, seed=1, views=10, points=400, window=3, init="ransac", corrupt=0.0):
     """A simulated multi-view problem for the GRRM tests: (simulation, multiview problem, R_gt)."""
     from rotonly_cli import multiview

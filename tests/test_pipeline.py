@@ -51,7 +51,7 @@ def test_synthetic_run_recovers_rotations(tmp_path):
     assert report.rotation_error_deg.max < 0.03
     assert report.position_error.max < 0.08  # GT units after the similarity; measured 0.038 (spacing 10)
     # every stage wrote its report; reports hold real numbers
-    for stage in ("load", "identify", "refine", "average", "optimize", "translate", "triangulate", "run"):
+    for stage in ("load", "identify", "refine", "average", "optimize", "translate", "reject", "triangulate", "run"):
         assert (tmp_path / "out" / "reports" / f"{stage}.json").is_file(), stage
     refine = json.loads((tmp_path / "out" / "reports" / "refine.json").read_text())
     assert refine["cost_after"] < refine["cost_before"]

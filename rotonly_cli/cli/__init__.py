@@ -7,6 +7,7 @@ never breaks the others.
 
 from __future__ import annotations
 
+import errno
 import gc
 import importlib
 import logging
@@ -15,7 +16,7 @@ import sys
 import click
 
 from rotonly_cli import __version__
-from rotonly_cli.errors import RotonlyError
+from rotonly_cli.errors import RotonlyError, write_error
 
 # name -> module; the order is the order shown in --help.
 COMMANDS: dict[str, str] = {
@@ -25,6 +26,7 @@ COMMANDS: dict[str, str] = {
     "average": "rotonly_cli.cli.stages",
     "optimize": "rotonly_cli.cli.stages",
     "translate": "rotonly_cli.cli.stages",
+    "reject": "rotonly_cli.cli.stages",
     "triangulate": "rotonly_cli.cli.stages",
     "eval": "rotonly_cli.cli.eval",
     "convert": "rotonly_cli.cli.convert",
@@ -57,44 +59,156 @@ class LazyGroup(click.Group):
         return getattr(module, "command", None)
 
 
+#: rotonly's own loggers (the package's modules and GRRM's "rotonly.grrm"): -v shows their debug
+#: lines, -vv every library's
+ROTONLY_LOGGERS = ("rotonly_cli", "rotonly")
+
+#: the closing text of every command's --help
+EPILOG = """\b
+Exit codes: 0 success; 1 no result possible (e.g. fewer than two connected views);
+2 bad input or usage (one line names the file and the field; nothing is written).
+Shell completion (bash): eval "$(_ROTONLY_COMPLETE=bash_source rotonly)" in ~/.bashrc;
+zsh: zsh_source in ~/.zshrc; fish: fish_source into ~/.config/fish/completions/rotonly.fish."""
+
+
 def setup_logging(verbosity: int) -> None:
-    level = {-1: logging.WARNING, 0: logging.INFO}.get(verbosity, logging.DEBUG)
-    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-                        datefmt="%H:%M:%S", stream=sys.stderr, force=True)
+    """-q (-1): warnings and errors; default (0): one line per stage; -v (1): rotonly's per-stage
+    detail (edge counts per reason, GRRM iterations, timings) with logger names; -vv: every
+    library's debug output too."""
+    level = {-1: logging.WARNING, 0: logging.INFO, 1: logging.INFO}.get(verbosity, logging.DEBUG)
+    fmt = ("%(asctime)s %(levelname)s %(name)s: %(message)s" if verbosity > 0
+           else "%(levelname)s: %(message)s" if verbosity < 0 else "%(asctime)s %(message)s")
+    logging.basicConfig(level=level, format=fmt, datefmt="%H:%M:%S", stream=sys.stderr, force=True)
+    for name in ROTONLY_LOGGERS:
+        logging.getLogger(name).setLevel(logging.DEBUG if verbosity > 0 else logging.NOTSET)
 
 
-@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
-@click.version_option(__version__, prog_name="rotonly")
-@click.option("-v", "--verbose", count=True, help="More log output (-v debug).")
-@click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
+def _verbosity(ctx: click.Context, **change) -> None:
+    """Record -v / -q (given before or after the subcommand) on the root context and set the
+    logging up again: ``-q`` wins, ``-v`` counts wherever it stands."""
+    state = ctx.find_root().ensure_object(dict)
+    state["verbose"] = state.get("verbose", 0) + change.get("verbose", 0)
+    state["quiet"] = state.get("quiet", False) or change.get("quiet", False)
+    state["verbosity"] = -1 if state["quiet"] else state["verbose"]
+    setup_logging(state["verbosity"])
+
+
+def _on_verbose(ctx: click.Context, param: click.Parameter, value: int) -> None:
+    if value and not ctx.resilient_parsing:
+        _verbosity(ctx, verbose=value)
+
+
+def _on_quiet(ctx: click.Context, param: click.Parameter, value: bool) -> None:
+    if value and not ctx.resilient_parsing:
+        _verbosity(ctx, quiet=True)
+
+
+def _on_version(ctx: click.Context, param: click.Parameter, value: bool) -> None:
+    if value and not ctx.resilient_parsing:
+        click.echo(f"rotonly, version {__version__}")
+        ctx.exit()
+
+
+def global_options() -> list[click.Option]:
+    """-v, -q and --version: options of the group and of every subcommand, so that they work
+    before and after the subcommand alike."""
+    return [
+        click.Option(["-v", "--verbose"], count=True, expose_value=False, is_eager=True, callback=_on_verbose,
+                     help="More detail: -v per-stage detail (edge counts per reason, GRRM iterations, timings), "
+                          "-vv every library's debug output."),
+        click.Option(["-q", "--quiet"], is_flag=True, expose_value=False, is_eager=True, callback=_on_quiet,
+                     help="Only warnings and errors (no progress bars)."),
+        click.Option(["--version"], is_flag=True, expose_value=False, is_eager=True, callback=_on_version,
+                     help="Show the version and exit."),
+    ]
+
+
+def with_global_options(command: click.Command) -> click.Command:
+    """``command`` (and a group's subcommands) with :func:`global_options` and the exit-code
+    epilog; idempotent."""
+    if not getattr(command, "_rotonly_global_options", False):
+        names = {opt for param in command.params for opt in getattr(param, "opts", ())}
+        command.params.extend(option for option in global_options() if not names & set(option.opts))
+        command.epilog = command.epilog or EPILOG
+        command._rotonly_global_options = True
+    for subcommand in getattr(command, "commands", {}).values():
+        with_global_options(subcommand)
+    return command
+
+
+class RotonlyGroup(LazyGroup):
+    """The lazy group whose subcommands accept the global options too."""
+
+    @staticmethod
+    def _load(name: str):
+        command = LazyGroup._load(name)
+        return None if command is None else with_global_options(command)
+
+
+@click.group(cls=RotonlyGroup, context_settings={"help_option_names": ["-h", "--help"]}, epilog=EPILOG)
 @click.pass_context
-def cli(ctx: click.Context, verbose: int, quiet: bool) -> None:
+def cli(ctx: click.Context) -> None:
     """rotonly: rotation-only SfM (TRRM two-view and GRRM multi-view rotation estimation).
 
-    Reads OpenMVG projects or COLMAP databases, writes OpenMVG sfm_data.json and COLMAP models.
+    Reads OpenMVG projects or COLMAP databases, writes OpenMVG sfm_data.json and COLMAP models
+    (and OUT/report.html). -v, -q and --version may also follow the subcommand.
     """
-    ctx.ensure_object(dict)
-    ctx.obj["verbosity"] = -1 if quiet else verbose
-    setup_logging(ctx.obj["verbosity"])
+    state = ctx.ensure_object(dict)
+    if "verbosity" not in state:  # neither -v nor -q given before the subcommand
+        _verbosity(ctx)
+
+
+cli.params.extend(global_options())
+
+
+#: errno values of an OSError that are about the destination a command writes, not a bug:
+#: reported in one line (commands that know their output name it themselves, errors.write_error)
+DESTINATION_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM}
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports
+
+
+def _interrupted(exc: BaseException) -> bool:
+    """Whether ``exc`` is Ctrl-C, or what a library made of it (click's Abort; pycolmap turns
+    a KeyboardInterrupt during its import into RuntimeError)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Console-script entry: maps rotonly's typed errors to one line and an exit code."""
+    """Console-script entry: maps rotonly's typed errors to one line and an exit code
+    (architecture.md "Exit codes"); Ctrl-C to one line and 130. Other exceptions are bugs
+    and keep their traceback."""
     try:
         cli.main(args=argv, prog_name="rotonly", standalone_mode=False)
-    except click.exceptions.Abort:
-        click.echo("Aborted.", err=True)
-        sys.exit(1)
     except click.exceptions.Exit as exc:
         sys.exit(exc.exit_code)
-    except click.ClickException as exc:
-        exc.show()
+    except click.ClickException as exc:  # usage: one line too (`rotonly CMD -h` has the rest)
+        context = getattr(exc, "ctx", None)
+        where = f"{context.command_path}: " if context is not None else ""
+        click.echo(f"error: {where}{exc.format_message()}", err=True)
         sys.exit(2)
     except RotonlyError as exc:
         click.echo(f"error: {exc}", err=True)
         sys.exit(exc.exit_code)
-    except (MemoryError, KeyboardInterrupt):
-        raise
+    except OSError as exc:
+        if exc.errno not in DESTINATION_ERRORS or _interrupted(exc):
+            raise
+        error = write_error(exc, exc.filename or "output", field=None)
+        click.echo(f"error: {error}", err=True)
+        sys.exit(error.exit_code)
+    except BaseException as exc:  # noqa: BLE001 - only Ctrl-C is answered here, the rest re-raised
+        if not _interrupted(exc):
+            if isinstance(exc, click.exceptions.Abort):
+                click.echo("Aborted.", err=True)
+                sys.exit(1)
+            raise
+        click.echo("error: interrupted", err=True)
+        sys.exit(EXIT_INTERRUPTED)
     sys.exit(0)
 
 
@@ -108,10 +222,15 @@ def console_main() -> None:
     :func:`main`, which freezes nothing.
 
     Before ``main``, numpy submodules that no command needs at start-up are registered as
-    lazily loaded (:mod:`rotonly_cli.runtime.startup`)."""
-    from rotonly_cli.runtime.startup import defer_unused_numpy_submodules
+    lazily loaded (:mod:`rotonly_cli.runtime.startup`). Ctrl-C during that start-up is
+    answered like one during the command (one line, exit 130)."""
+    try:
+        from rotonly_cli.runtime.startup import defer_unused_numpy_submodules
 
-    defer_unused_numpy_submodules()
+        defer_unused_numpy_submodules()
+    except KeyboardInterrupt:
+        click.echo("error: interrupted", err=True)
+        sys.exit(EXIT_INTERRUPTED)
     try:
         main()
     finally:

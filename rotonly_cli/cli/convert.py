@@ -6,17 +6,19 @@ from pathlib import Path
 
 import click
 
+from rotonly_cli.cli import options as cli_options
+
 
 @click.command("convert")
 @click.argument("input_path", metavar="INPUT", type=click.Path(path_type=Path))
 @click.option("-o", "--output", "output_path", required=True, type=click.Path(path_type=Path),
               help="*.db: COLMAP database; *.json: OpenMVG sfm_data.json; otherwise a folder "
                    "(OpenMVG project for COLMAP input, COLMAP model for OpenMVG input).")
-@click.option("--matches-dir", type=click.Path(path_type=Path), default=None,
-              help="OpenMVG input: folder with <view>.feat and matches.* (default: the "
-                   "sfm_data.json folder).")
+@cli_options.matches_dir
+@cli_options.matches_file
 @click.option("--text", is_flag=True, help="Write a COLMAP model as .txt instead of .bin.")
-def command(input_path: Path, output_path: Path, matches_dir: Path | None, text: bool) -> None:
+def command(input_path: Path, output_path: Path, matches_dir: Path | None, matches_file: Path | None,
+            text: bool) -> None:
     """Convert between COLMAP and OpenMVG.
 
     \b
@@ -36,4 +38,5 @@ def command(input_path: Path, output_path: Path, matches_dir: Path | None, text:
     """
     from rotonly_cli.convert import convert
 
-    click.echo(convert(input_path, output_path, matches_dir=matches_dir, text=text), err=True)
+    click.echo(convert(input_path, output_path, matches_dir=matches_dir, matches_file=matches_file, text=text),
+               err=True)

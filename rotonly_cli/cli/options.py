@@ -4,11 +4,12 @@ rotonly_cli/options.py.
 =====================  ==============================================================
 option                 commands
 =====================  ==============================================================
---matches-dir          run, identify (OpenMVG input); convert has its own help
+--matches-dir          run, identify, convert (OpenMVG input)
+-M, --matches          run, identify, convert (OpenMVG input)
 --image-path           run, identify, triangulate
 --min-inliers          run, identify
 --reestimate           run, identify
---ransac-max-error     run, identify
+--ransac-max-error     run, identify, refine (simulated edge)
 --seed (RANSAC)        run, identify
 --max-residual-deg     run, average
 --gt (GT_PATH)         run, triangulate
@@ -25,6 +26,9 @@ import click
 
 from rotonly_cli.options import INTRINSICS_MODES, REESTIMATE_MODES, AverageOptions, IntrinsicsOptions, LoadOptions
 
+#: `rotonly refine FILE.npz`: the 5-point RANSAC threshold (px) when --ransac-max-error is not given
+SIMULATION_RANSAC_MAX_ERROR_PX = 2.0
+
 
 def _all(*decorators):
     """One decorator applying ``decorators`` in the order written (top one first in --help)."""
@@ -33,6 +37,16 @@ def _all(*decorators):
             function = decorator(function)
         return function
     return apply
+
+
+class FiniteFloatRange(click.FloatRange):
+    """click.FloatRange that also refuses nan and inf (which pass its comparisons)."""
+
+    def convert(self, value, param, ctx):
+        number = super().convert(value, param, ctx)
+        if number != number or number in (float("inf"), float("-inf")):
+            self.fail(f"{number} is not a finite number.", param, ctx)
+        return number
 
 
 def _usable_cpus() -> int:
@@ -45,6 +59,10 @@ matches_dir = click.option(
     "--matches-dir", type=click.Path(path_type=Path), default=None,
     help="OpenMVG input: folder with <view>.feat and matches.e/f/putative .bin|.txt (default: the sfm_data.json "
          "folder).")
+matches_file = click.option(
+    "-M", "--matches", "matches_file", type=click.Path(path_type=Path), default=None,
+    help="OpenMVG input: the matches file, as OpenMVG's --match_file (a bare name is looked up in --matches-dir; "
+         "default: the first of matches.e, matches.f, matches.putative .bin|.txt there).")
 image_path = click.option(
     "--image-path", type=click.Path(path_type=Path), default=None,
     help="Images, for point colours (default: images/ beside a database, root_path of an OpenMVG project; "
@@ -57,9 +75,11 @@ reestimate = click.option(
     help="Re-estimate relative poses with calibrated RANSAC: auto = edges without an E-based stored pose "
          "(PLANAR/UNCALIBRATED/... or none stored).")
 ransac_max_error = click.option(
-    "--ransac-max-error", type=click.FloatRange(min=0, min_open=True), default=LoadOptions.ransac_max_error_px,
-    show_default=True, help="RANSAC threshold in pixels.")
-seed = click.option("--seed", type=int, default=LoadOptions.seed, show_default=True,
+    "--ransac-max-error", type=FiniteFloatRange(min=0, min_open=True), default=LoadOptions.ransac_max_error_px,
+    show_default=True, help="RANSAC inlier threshold in pixels for the relative poses (default: "
+    f"{LoadOptions.inlier_threshold_sigmas:g} x the matches' noise sigma, measured on the input; refine FILE.npz: "
+    f"{SIMULATION_RANSAC_MAX_ERROR_PX:g} px).")
+seed = click.option("--seed", type=click.IntRange(0, 2 ** 31 - 1), default=LoadOptions.seed, show_default=True,
                     help="RANSAC seed (runs are deterministic).")
 intrinsics = click.option(
     "--intrinsics", type=click.Choice(INTRINSICS_MODES), default=IntrinsicsOptions.mode.value, show_default=True,
@@ -68,10 +88,11 @@ intrinsics = click.option(
          "a guess (COLMAP prior_focal_length = 0) and cameras whose reprojection error shows them wrong are "
          "calibrated, the others stay as given. Poses always come from the rotation-only stages.")
 #: the load stage's options (`run` and `identify`)
-load_options = _all(matches_dir, image_path, min_inliers, reestimate, ransac_max_error, seed, intrinsics)
+load_options = _all(matches_dir, matches_file, image_path, min_inliers, reestimate, ransac_max_error, seed,
+                    intrinsics)
 
 max_residual_deg = click.option(
-    "--max-residual-deg", type=click.FloatRange(min=0, min_open=True), default=AverageOptions.max_residual_deg,
+    "--max-residual-deg", type=FiniteFloatRange(min=0, min_open=True), default=AverageOptions.max_residual_deg,
     show_default=True, help="Edges further than this from the averaged rotations are filtered as outliers.")
 gt = click.option(
     "--gt", "gt_path", type=click.Path(path_type=Path), default=None,
@@ -79,6 +100,7 @@ gt = click.option(
 jobs = click.option(
     "--jobs", type=click.IntRange(min=1), default=None,
     callback=lambda ctx, param, value: _usable_cpus() if value is None else value,
-    help="Processes for scene identification and TRRM (forked, Linux; default: the usable CPUs). The numbers do "
-         "not depend on it. Both stay in one process while images are being decoded for the point colours (a fork "
-         "is unsafe with a thread running).")
+    help=f"CPUs to use (default: the usable CPUs, {_usable_cpus()} here): threads for the RANSAC of relative "
+         "poses, forked processes (Linux) for scene identification and TRRM, one per 100000 matches at most (a "
+         "smaller input runs in one process; reports/refine.json records how many ran). The numbers do not "
+         "depend on it.")

@@ -102,13 +102,13 @@ def format_table(row: dict) -> str:
               help="Initial rotation: OpenCV 5-point RANSAC (then its inliers), or the truth perturbed.")
 @click.option("--perturb-deg", type=click.FloatRange(min=0), default=1.0, show_default=True,
               help="Perturbation angle for --init truth-perturbed.")
-@click.option("--ransac-threshold", "ransac_threshold_px", type=click.FloatRange(min=0, min_open=True),
-              default=2.0, show_default=True, help="RANSAC epipolar threshold (px).")
+@cli_options.ransac_max_error
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of RANSAC / the perturbation.")
 @click.option("--json", "as_json", is_flag=True, help="Print the numbers as JSON.")
 @cli_options.jobs
-def command(target: Path, init: str, perturb_deg: float, ransac_threshold_px: float, seed: int, as_json: bool,
-            jobs: int) -> None:
+@click.pass_context
+def command(ctx: click.Context, target: Path, init: str, perturb_deg: float, ransac_max_error: float, seed: int,
+            as_json: bool, jobs: int) -> None:
     """TRRM-refine the edges of a workspace, or the simulated edge of a .npz file.
 
     \b
@@ -119,7 +119,7 @@ def command(target: Path, init: str, perturb_deg: float, ransac_threshold_px: fl
              stored ground truth (the options below apply to this mode).
     """
     if target.is_dir():
-        from rotonly_cli.cli.run import echo_summary
+        from rotonly_cli.cli.run import echo_summary, show_progress
         from rotonly_cli.io.workspace import STATE_FILE
         from rotonly_cli.options import RunOptions
         from rotonly_cli.pipeline import resume
@@ -127,12 +127,14 @@ def command(target: Path, init: str, perturb_deg: float, ransac_threshold_px: fl
         if not (target / STATE_FILE).is_file():
             raise InputError(f"folder is not a rotonly workspace (no {STATE_FILE}; make one with "
                              "`rotonly identify INPUT -o OUT`)", path=target, field="TARGET")
-        echo_summary(resume(target, "refine", RunOptions(jobs=jobs)), target)
+        echo_summary(resume(target, "refine", RunOptions(jobs=jobs, progress=show_progress(ctx))), target)
         return
     if target.suffix.lower() != ".npz":
         raise InputError("expected a workspace folder (from `rotonly identify`) or a .npz from "
                          "`rotonly simulate twoview`", path=target, field="TARGET")
-    row = refine_simulation(target, init, perturb_deg, ransac_threshold_px, seed)
+    if ransac_max_error is None:
+        ransac_max_error = cli_options.SIMULATION_RANSAC_MAX_ERROR_PX
+    row = refine_simulation(target, init, perturb_deg, ransac_max_error, seed)
     if as_json:
         import json
 

@@ -11,18 +11,23 @@ import click
 from rotonly_cli.cli import options as cli_options
 
 
-def run_options(ctx: click.Context, matches_dir, image_path, min_inliers, reestimate, ransac_max_error, seed,
-                intrinsics, **extra):
+def run_options(ctx: click.Context, matches_dir, matches_file, image_path, min_inliers, reestimate, ransac_max_error,
+                seed, intrinsics, **extra):
     from rotonly_cli.options import AverageOptions, IntrinsicsOptions, LoadOptions, RunOptions
 
-    quiet = (ctx.obj or {}).get("verbosity", 0) < 0
     load = LoadOptions(reestimate=reestimate, ransac_max_error_px=ransac_max_error, seed=seed,
                        min_inliers=min_inliers)
     average = AverageOptions(max_residual_deg=extra.pop("max_residual_deg", AverageOptions.max_residual_deg))
     return RunOptions(matches_dir=None if matches_dir is None else str(matches_dir),
+                      matches_file=None if matches_file is None else str(matches_file),
                       image_path=None if image_path is None else str(image_path), load=load, average=average,
                       intrinsics=IntrinsicsOptions(mode=intrinsics),
-                      progress=sys.stderr.isatty() and not quiet, **extra)
+                      progress=show_progress(ctx), **extra)
+
+
+def show_progress(ctx: click.Context) -> bool:
+    """Progress bars: on a terminal, unless -q."""
+    return sys.stderr.isatty() and (ctx.find_root().obj or {}).get("verbosity", 0) >= 0
 
 
 def echo_summary(summary: dict, out_dir: Path) -> None:

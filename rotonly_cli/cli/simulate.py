@@ -71,20 +71,29 @@ def twoview(scene: str, noise_px: float, noise_model: str, num_points: int, seed
 @click.option("--init-noise-deg", type=click.FloatRange(min=0), default=0.5, show_default=True)
 @click.option("--corrupt-fraction", type=click.FloatRange(0, 1), default=0.0, show_default=True,
               help="Fraction of pairs given a random relative rotation (repeated-structure outliers).")
+@click.option("--epipolar-outlier-fraction", type=click.FloatRange(0, 1), default=0.0, show_default=True,
+              help="Fraction of every pair's matches moved 10-80 px along their epipolar line in the second view "
+                   "(wrong matches that pass any two-view check).")
+@click.option("--swapped-fraction", type=click.FloatRange(0, 1), default=0.0, show_default=True,
+              help="Fraction of each view's points that trade image positions with a look-alike point within 40 px "
+                   "(wrong observations shared by whole tracks).")
 @click.option("--format", "formats", type=click.Choice(["colmap", "openmvg"]), multiple=True,
               default=("colmap", "openmvg"), show_default=True, help="Which input projects to write.")
 @click.option("-o", "--output", "output", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="New folder: database.db, openmvg/, gt/sfm_data.json, simulation.json.")
 def multiview(setup: str, num_views: int, num_points: int, noise_px: float, noise_model: str, seed: int,
               focal: float, image_size: int, spacing: float, window: int, min_shared: int, init: str,
-              init_noise_deg: float, corrupt_fraction: float, formats: tuple[str, ...], output: Path) -> None:
+              init_noise_deg: float, corrupt_fraction: float, epipolar_outlier_fraction: float,
+              swapped_fraction: float, formats: tuple[str, ...], output: Path) -> None:
     """A multi-view scene as a COLMAP database and an OpenMVG project, plus GT sfm_data.json."""
     from rotonly_cli.simulation.layout_scenes import save_multiview, simulate_multiview
 
     problem = simulate_multiview(setup, num_views=num_views, num_points=num_points, noise_px=noise_px,
                                  focal=focal, image_size=image_size, rng=seed, spacing=spacing, window=window,
                                  min_shared=min_shared, init=init, init_noise_deg=init_noise_deg,
-                                 corrupt_fraction=corrupt_fraction, noise_model=noise_model)
+                                 corrupt_fraction=corrupt_fraction, noise_model=noise_model,
+                                 epipolar_outlier_fraction=epipolar_outlier_fraction,
+                                 swapped_fraction=swapped_fraction)
     save_multiview(output, problem, formats=tuple(formats))
     click.echo(f"{output}: {setup} views={num_views} points={len(problem.points_in_world)} "
                f"pairs={len(problem.scene.pairs)} corrupted={len(problem.corrupted_pairs)}")

@@ -5,6 +5,7 @@
     rotonly average OUT              # robust rotation averaging (+ outlier filter)
     rotonly optimize OUT             # GRRM
     rotonly translate OUT            # LiGT camera centres
+    rotonly reject OUT               # multi-view outlier rejection, then GRRM + LiGT again
     rotonly triangulate OUT          # points; writes OUT/sfm_data.json and OUT/sparse/
 
 Each updates OUT/state.npz, OUT/view_graph.json and OUT/reports/<stage>.json.
@@ -17,7 +18,7 @@ from pathlib import Path
 import click
 
 from rotonly_cli.cli import options as cli_options
-from rotonly_cli.cli.run import chain_command, echo_summary
+from rotonly_cli.cli.run import chain_command, echo_summary, show_progress
 
 identify = chain_command("identify", """Load INPUT (COLMAP .db or OpenMVG sfm_data.json), estimate the view graph and
     identify every edge's scene kind (REGULAR / PURE_ROTATION / ROTATION_SINGULAR) into OUT.""",
@@ -26,12 +27,12 @@ identify = chain_command("identify", """Load INPUT (COLMAP .db or OpenMVG sfm_da
 
 def _stage_command(stage: str, summary: str, *options):
     """`rotonly <stage> WORKSPACE [options]`: one stage on an OUT workspace, in place."""
-    def callback(workspace: Path, max_residual_deg: float | None = None, image_path: Path | None = None,
-                 gt_path: Path | None = None) -> None:
+    def callback(ctx: click.Context, workspace: Path, max_residual_deg: float | None = None,
+                 image_path: Path | None = None, gt_path: Path | None = None) -> None:
         from rotonly_cli.options import AverageOptions, RunOptions
         from rotonly_cli.pipeline import resume
 
-        kwargs: dict = {}
+        kwargs: dict = {"progress": show_progress(ctx)}
         if max_residual_deg is not None:
             kwargs["average"] = AverageOptions(max_residual_deg=max_residual_deg)
         if image_path is not None:
@@ -43,6 +44,7 @@ def _stage_command(stage: str, summary: str, *options):
     for option in reversed(options):
         callback = option(callback)
     callback = click.argument("workspace", metavar="WORKSPACE", type=click.Path(path_type=Path))(callback)
+    callback = click.pass_context(callback)
     return click.command(stage, help=f"{summary}\n\nWORKSPACE is an OUT folder made by `rotonly identify` or "
                          "`rotonly run`; its state.npz, view_graph.json and "
                          f"reports/{stage}.json are updated in place.")(callback)
@@ -54,8 +56,10 @@ optimize = _stage_command("optimize", "GRRM (the paper's Algorithm 4) refines th
                           "reprojection residuals of all REGULAR edges.")
 translate = _stage_command("translate", "Camera centres by LiGT from the rotations and the tracks of the REGULAR "
                            "edges.")
+reject = _stage_command("reject", "Drop the matches inconsistent with the global poses (Sampson error under the "
+                        "rotations and LiGT centres), then run GRRM and LiGT again, until nothing changes.")
 triangulate = _stage_command("triangulate", "Triangulate the tracks and write OUT/sfm_data.json and OUT/sparse/.",
                              cli_options.image_path, cli_options.gt)
 
 commands = {"identify": identify, "average": average, "optimize": optimize, "translate": translate,
-            "triangulate": triangulate}
+            "reject": reject, "triangulate": triangulate}

@@ -361,6 +361,7 @@ def robust_ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray
     keep = np.ones(obs_track.size, dtype=bool)
     rounds: list[dict] = []
     threshold = np.inf
+    best = None  # (sigma, result, used, error, threshold) of the best solve so far
     last = None
     while True:
         counts = np.bincount(obs_track[keep], minlength=int(obs_track.max()) + 1 if obs_track.size else 0)
@@ -376,12 +377,20 @@ def robust_ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray
             break
         error = observation_errors(R, result.centers, obs_track, obs_view, obs_xy, used) * obs_focal_px
         last = (result, used, error)
-        if len(rounds) >= options.robust_rounds:
-            break
         finite = used & np.isfinite(error)
         if not finite.any():
             break
         sigma, threshold = outlier_threshold_px(error[finite], options)
+        if best is not None and sigma > 2.0 * best[0]:
+            # the solve broke down (a view lost its constraints, the eigenvector collapsed): the
+            # errors of a wrecked solve would drop good observations; keep the best one
+            rounds[-1]["failed"] = f"the next solve broke down (sigma {sigma:.3g} px); this one is kept"
+            _, result, used, error, threshold = best
+            break
+        if best is None or sigma < best[0]:
+            best = (sigma, result, used, error, threshold)
+        if len(rounds) >= options.robust_rounds:
+            break
         new_keep = error <= threshold
         dropped, readmitted = int(np.count_nonzero(used & ~new_keep)), int(np.count_nonzero(~keep & new_keep))
         rounds.append({"observations": int(used.sum()), "sigma_px": sigma, "threshold_px": threshold,

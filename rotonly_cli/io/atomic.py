@@ -4,7 +4,8 @@ renamed into place, so a failed or interrupted write never leaves a partial outp
 * :func:`write_bytes` / :func:`write_text`: one file (temporary sibling, ``os.replace``);
 * :func:`file_path`: a temporary sibling path for writers that want a file name (numpy,
   SQLite), renamed over the target when the block ends without error;
-* :func:`staging_dir`: a folder that replaces the target folder as a whole;
+* :class:`Staging` / :func:`staging_dir`: a folder that replaces the target folder as a
+  whole, in one atomic exchange, and whose leftovers after a kill the next run removes;
 * :func:`filling_dir`: a folder whose files are moved into the target folder one by one
   (a new target appears by one rename): the writers of a project or a model into a
   folder that may hold other files.
@@ -15,14 +16,20 @@ Temporary files and folders get the permissions of ordinary ones (``mkstemp`` ma
 
 from __future__ import annotations
 
+import ctypes
+import errno
+import fcntl
+import json
 import os
+import re
 import shutil
+import sys
 import tempfile
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from rotonly_cli.errors import InputError
+from rotonly_cli.errors import InputError, write_error
 
 PathLike = str | os.PathLike
 
@@ -79,54 +86,300 @@ def write_text(path: PathLike, text: str) -> None:
     write_bytes(path, text.encode("utf-8"))
 
 
-def make_staging_dir(target: PathLike) -> Path:
-    """An empty folder beside ``target`` (same file system, so the final rename is atomic)."""
-    target = Path(target)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
-    ordinary_permissions(staging)
-    return staging
+def disk_full(path: PathLike) -> bool:
+    """Whether the file system of ``path`` has (almost) no room left: what a writer that
+    does not report its errors (pycolmap's C++ streams) most likely ran into."""
+    space = os.statvfs(path)
+    free = space.f_bavail * space.f_frsize
+    return free < max(2 ** 20, 0.001 * space.f_blocks * space.f_frsize)
+
+
+def unreported_write_error(path: PathLike, what: str) -> OSError:
+    """The OSError a silent writer should have raised under ``path``: ENOSPC on a full file
+    system, else EIO with ``what`` went wrong."""
+    if disk_full(path):
+        return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+    return OSError(errno.EIO, what, str(path))
+
+
+# ============================================================================ staging folders
+
+#: the file that marks a staging folder as rotonly's; locked (flock) by the run that uses it
+STAGING_MARKER = ".rotonly-staging"
+_AT_FDCWD = -100
+_RENAME_NOREPLACE, _RENAME_EXCHANGE = 1, 2
+
+
+def _libc_renameat2():
+    try:
+        return ctypes.CDLL(None, use_errno=True).renameat2
+    except (AttributeError, OSError):  # not Linux, or glibc < 2.28
+        return None
+
+
+_renameat2_function = _libc_renameat2() if sys.platform.startswith("linux") else None
+
+
+def _renameat2(source: Path, destination: Path, flags: int) -> bool:
+    """Linux ``renameat2(source, destination, flags)``; False where the system or the file
+    system does not have it (the caller then falls back on ``os.rename``)."""
+    if _renameat2_function is None:
+        return False
+    if _renameat2_function(_AT_FDCWD, os.fsencode(source), _AT_FDCWD, os.fsencode(destination), flags) == 0:
+        return True
+    error = ctypes.get_errno()
+    if error in (errno.ENOSYS, errno.EINVAL, errno.ENOTSUP):
+        return False
+    raise OSError(error, os.strerror(error), str(destination))
+
+
+def _create_parents(folder: Path) -> list[Path]:
+    """``mkdir -p folder``; the folders made, outermost first. InputError (-o) if an
+    existing ancestor is not a folder."""
+    missing = []
+    while not folder.exists():
+        if os.path.lexists(folder):  # a dangling symbolic link
+            raise InputError("is a broken symbolic link", path=str(folder), field="-o")
+        missing.append(folder)
+        folder = folder.parent
+    if not folder.is_dir():
+        raise InputError("is not a folder", path=str(folder), field="-o")
+    for made in reversed(missing):
+        try:
+            made.mkdir()
+        except FileExistsError:  # made by someone else meanwhile
+            missing.remove(made)
+    return list(reversed(missing))
+
+
+class Staging:
+    """A folder beside ``target`` that becomes it, for writers that must never leave a
+    partial ``target``: ``.{target.name}.XXXXXXXX.tmp/`` holding ``new/`` (the future
+    target), ``scratch/`` (private files of the run: never moved) and :data:`STAGING_MARKER`,
+    which names the target and stays locked (``flock``) while this process lives. A run that
+    is killed leaves the folder with an unlocked marker; the next staging of the same target
+    removes it (:func:`remove_stale`). Folders without the marker are never touched.
+
+    :meth:`commit` puts ``new/`` at ``target`` so that at every instant ``target`` is either
+    the old folder or the new one: ``renameat2(RENAME_EXCHANGE)`` swaps them in one step
+    (Linux; the old one then lies in the staging folder and goes with it), a new ``target``
+    appears by ``renameat2(RENAME_NOREPLACE)``. Where the file system has no ``renameat2``,
+    two renames keep the old folder inside the staging folder in between, and
+    :func:`remove_stale` puts it back if the run died there. Concurrent runs into one target
+    each swap their complete folder in: the last one stays, none is stranded.
+
+    Parents of ``target`` made for it are removed again when the staging is discarded."""
+
+    def __init__(self, target: PathLike):
+        self.target = Path(os.path.abspath(target))
+        self.committed = False
+        self.lock = None
+        self.created_parents: list[Path] = []
+        try:
+            self.created_parents = _create_parents(self.target.parent)
+            if self.target.is_dir() and os.stat(self.target).st_dev != os.stat(self.target.parent).st_dev:
+                raise InputError("is a mount point: it cannot be replaced in one step (give a folder inside it)",
+                                 path=str(self.target), field="-o")
+            remove_stale(self.target)
+            for _ in range(10):
+                self.root = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.", suffix=".tmp",
+                                                  dir=self.target.parent))
+                try:
+                    self.lock = _locked_marker(self.root, self.target.name)
+                    break
+                except FileNotFoundError:  # another run's remove_stale took it before its marker existed
+                    continue
+            else:
+                raise OSError(errno.EBUSY, "the staging folder keeps vanishing (other runs into it?)",
+                              str(self.target))
+            self.new = self.root / "new"
+            self.scratch = self.root / "scratch"
+            self.new.mkdir()
+            self.scratch.mkdir()
+        except OSError as exc:
+            self.discard()
+            raise write_error(exc, self.target) from None
+        except BaseException:
+            self.discard()
+            raise
+
+    def commit(self, check: Callable[[Path], None] | None = None) -> None:
+        """Put ``new/`` at the target (class docstring), then discard the rest. ``check``:
+        called on an existing target just before it is replaced (it may raise)."""
+        for _ in range(100):  # a concurrent run may create or swap the target in between
+            if not os.path.lexists(self.target):
+                try:
+                    if not _renameat2(self.new, self.target, _RENAME_NOREPLACE):
+                        os.rename(self.new, self.target)
+                    break
+                except FileExistsError:
+                    continue
+            if check is not None:
+                check(self.target)
+            try:
+                if not _renameat2(self.new, self.target, _RENAME_EXCHANGE):
+                    os.rename(self.target, self.root / "old")
+                    os.rename(self.new, self.target)
+                break
+            except FileNotFoundError:
+                continue
+        else:
+            raise OSError(errno.EBUSY, "the target keeps changing (other runs into it?)", str(self.target))
+        self.committed = True
+        self.discard()
+
+    def discard(self) -> None:
+        """Remove the staging folder (and the parents made for it, unless committed)."""
+        root = getattr(self, "root", None)
+        if root is not None:
+            shutil.rmtree(root, ignore_errors=True)
+        if self.lock is not None:
+            os.close(self.lock)
+            self.lock = None
+        if not self.committed:
+            for parent in reversed(self.created_parents):  # innermost first
+                try:
+                    parent.rmdir()
+                except OSError:  # not empty: someone else writes there too
+                    break
+            self.created_parents = []
+
+
+def _locked_marker(root: Path, target_name: str) -> int:
+    """Create ``root``/STAGING_MARKER already locked: it is written and locked under a
+    temporary name first, so no other run ever sees it unlocked while this one lives."""
+    handle, name = tempfile.mkstemp(prefix=".lock.", dir=root)
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        os.write(handle, json.dumps({"target": target_name, "pid": os.getpid()}).encode() + b"\n")
+        os.rename(name, root / STAGING_MARKER)
+    except BaseException:
+        os.close(handle)
+        raise
+    return handle
+
+
+#: what follows ``.{target name}.`` in a staging folder's name (tempfile.mkdtemp's 8 characters)
+_STAGING_NAME = re.compile(r"[a-z0-9_]{8}\.tmp")
+
+
+def _remove_unmarked(folder: Path) -> bool:
+    """Remove a staging folder that has no marker yet, if its run is dead: a kill between
+    ``mkdtemp`` and the marker's rename (:func:`_locked_marker`) leaves it empty or holding
+    only the marker's temporary ``.lock.*`` file, unlocked. A live run that loses its folder
+    in that instant makes a new one (:class:`Staging`). Anything else in it: not touched."""
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return False
+    if any(not name.startswith(".lock.") for name in names):
+        return False
+    for name in names:
+        try:
+            handle = os.open(folder / name, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+        except OSError:
+            return False
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)  # BlockingIOError: its run is alive
+            os.unlink(folder / name)
+        except OSError:
+            return False
+        finally:
+            os.close(handle)
+    try:
+        os.rmdir(folder)
+    except OSError:
+        return False
+    return True
+
+
+def remove_stale(target: PathLike) -> list[Path]:
+    """Remove the staging folders of ``target`` left by runs that died (module docstring of
+    :class:`Staging`): siblings ``.{name}.*.tmp`` whose marker names ``target`` and is not
+    locked. A folder holding the old target of a run that died between its two fallback
+    renames gives it back first. Returns the folders removed."""
+    target = Path(os.path.abspath(target))
+    removed = []
+    try:
+        siblings = list(os.scandir(target.parent))
+    except OSError:
+        return removed
+    prefix = f".{target.name}."
+    for entry in siblings:
+        if not (entry.name.startswith(prefix) and entry.name.endswith(".tmp")) or not entry.is_dir(
+                follow_symlinks=False):
+            continue
+        folder = Path(entry.path)
+        try:
+            handle = os.open(folder / STAGING_MARKER, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+        except OSError:  # no marker: being made, or its run was killed while making it
+            if _STAGING_NAME.fullmatch(entry.name[len(prefix):]) and _remove_unmarked(folder):
+                removed.append(folder)
+            continue
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)  # BlockingIOError: its run is alive
+            marker = json.loads(os.read(handle, 4096) or b"{}")
+            if not isinstance(marker, dict) or marker.get("target") != target.name:
+                continue
+            old = folder / "old"
+            if old.is_dir() and not os.path.lexists(target):
+                os.rename(old, target)  # the run died between its two fallback renames
+            shutil.rmtree(folder, ignore_errors=True)
+            removed.append(folder)
+        except (OSError, ValueError):
+            continue
+        finally:
+            os.close(handle)
+    return removed
 
 
 def check_replaceable(target: PathLike, allowed: set[str] | frozenset[str], what: str) -> None:
-    """``target`` may be absent, empty, or hold only ``allowed`` names (an earlier ``what``):
+    """``target`` may be absent, empty, or hold only ``allowed`` names (an earlier ``what``)
+    and the temporary files rotonly's writers make beside them (``.<name>.XXXX<suffix>``):
     never replace a folder rotonly did not write (e.g. a typo pointing at a project)."""
     target = Path(target)
-    if not target.exists():
+    if not os.path.lexists(target):
         return
     if not target.is_dir():
         raise InputError("exists and is not a folder", path=str(target), field="-o")
-    foreign = sorted(p.name for p in target.iterdir() if p.name not in allowed)
+    try:
+        names = [p.name for p in target.iterdir()]
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc.strerror}", path=str(target), field="-o") from None
+    foreign = sorted(name for name in names if name not in allowed and not _is_temporary_of(name, allowed))
     if foreign:
         raise InputError(f"exists and holds files that are not {what} ({', '.join(foreign[:3])}...)",
                          path=str(target), field="-o")
 
 
-def replace_dir(staging: PathLike, target: PathLike) -> None:
-    """Move the finished ``staging`` folder to ``target``, keeping any old ``target`` until
-    the new one is in place."""
-    staging, target = Path(staging), Path(target)
-    if target.exists():
-        old = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".old", dir=target.parent))
-        old.rmdir()
-        target.rename(old)
-        staging.rename(target)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        staging.rename(target)
+def _is_temporary_of(name: str, allowed) -> bool:
+    """A temporary sibling of an allowed name (:func:`file_path`, :func:`filling_dir`), left
+    by a stage command that was killed."""
+    return any(name.startswith(f".{entry}.") for entry in allowed)
 
 
 @contextmanager
-def staging_dir(target: PathLike) -> Iterator[Path]:
-    """Yield a staging folder beside ``target``; on success it replaces ``target``, on any
-    error it is removed and ``target`` is left as it was."""
-    tmp = make_staging_dir(target)
+def staging_dir(target: PathLike, check: Callable[[Path], None] | None = None) -> Iterator[Path]:
+    """Yield a folder that replaces ``target`` as a whole when the block ends without error
+    (:class:`Staging`; ``check`` as in :meth:`Staging.commit`); on any error it is removed
+    and ``target`` is left as it was."""
+    staging = Staging(target)
     try:
-        yield tmp
-        replace_dir(tmp, Path(target))
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        yield staging.new
+        staging.commit(check)
+    finally:
+        staging.discard()
+
+
+@contextmanager
+def scratch_dir(target: PathLike) -> Iterator[Path]:
+    """Yield a private folder beside ``target`` (in a :class:`Staging` folder, so a killed
+    run's leftovers are removed by the next one), removed when the block ends."""
+    staging = Staging(target)
+    try:
+        yield staging.scratch
+    finally:
+        staging.discard()
 
 
 @contextmanager
@@ -137,16 +390,15 @@ def filling_dir(target: PathLike) -> Iterator[Path]:
     target = Path(target)
     if target.exists() and not target.is_dir():
         raise InputError("exists and is not a directory", path=str(target))
-    staging = make_staging_dir(target)
+    staging = Staging(target)
     try:
-        yield staging
+        yield staging.new
         if not target.exists():
-            os.replace(staging, target)
+            staging.commit()
             return
         if not target.is_dir():
             raise InputError("exists and is not a directory", path=str(target))
-        for staged in sorted(staging.iterdir()):
+        for staged in sorted(staging.new.iterdir()):
             os.replace(staged, target / staged.name)
     finally:
-        if staging.exists():
-            shutil.rmtree(staging, ignore_errors=True)
+        staging.discard()

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from rotonly_cli.compat import StrEnum
 from rotonly_cli.errors import InputError
+from rotonly_cli.io.inputs import check_regular_file, open_input
 from rotonly_cli.scene.types import SfMScene
 
 PathLike = str | os.PathLike
@@ -24,12 +25,13 @@ class InputKind(StrEnum):
 
 
 def is_sqlite(path: PathLike) -> bool:
-    """True if the file starts with SQLite's magic; InputError if it cannot be read."""
-    try:
-        with open(path, "rb") as stream:
+    """True if the file starts with SQLite's magic; InputError if it cannot be read or is
+    not a regular file (a named pipe would block the read)."""
+    with open_input(path) as stream:
+        try:
             return stream.read(len(SQLITE_MAGIC)) == SQLITE_MAGIC
-    except OSError as exc:
-        raise InputError(f"cannot read: {exc.strerror}", path=str(path)) from None
+        except OSError as exc:
+            raise InputError(f"cannot read: {exc.strerror}", path=str(path)) from None
 
 
 def is_colmap_model(path: PathLike) -> bool:
@@ -80,7 +82,8 @@ def read_scene(path: PathLike, field: str | None = None, ground_truth: bool = Tr
     path = Path(path)
     if not path.exists():
         raise InputError("no such file or folder", path=str(path), field=field)
-    if path.is_file():
+    if not path.is_dir():
+        check_regular_file(path, field)
         if path.suffix.lower() != ".json":
             raise InputError("expected an OpenMVG sfm_data .json file or a folder", path=str(path), field=field)
         return _reader("openmvg", "read_sfm_data")(str(path))

@@ -20,6 +20,7 @@ import numpy as np
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.io.detect import GT_SUBDIR
+from rotonly_cli.io.inputs import check_camera, read_bytes
 from rotonly_cli.scene.types import Intrinsics, Pose, SfMScene, View
 
 PathLike = str | os.PathLike
@@ -30,9 +31,9 @@ def read_camera_file(path: PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray
     """(K, R_cam_to_world as written, C, (width, height) or None) of one ``.camera`` file."""
     path = Path(path)
     try:
-        values = np.array(path.read_text(encoding="ascii").split(), dtype=np.float64)
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read ({exc})", path=str(path)) from None
+        values = np.array(read_bytes(path).decode("ascii").split(), dtype=np.float64)
+    except UnicodeDecodeError:
+        raise InputError("not ASCII text (a Strecha camera file)", path=str(path)) from None
     except ValueError:
         raise InputError("non-numeric value in a Strecha camera file", path=str(path)) from None
     # evalQuality accepts 26 values (24 + width/height... minus its extra EOF push); we need
@@ -40,12 +41,20 @@ def read_camera_file(path: PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray
     if values.size < 24:
         raise InputError(f"{values.size} numbers, a Strecha camera needs at least 24 "
                          "(K, 3 distortion, R, C)", path=str(path))
-    if not np.all(np.isfinite(values[:24])):
-        raise InputError("non-finite value", path=str(path))
+    for start, stop, field in ((0, 9, "K"), (9, 12, "distortion"), (12, 21, "R"), (21, 24, "C")):
+        if not np.all(np.isfinite(values[start:stop])):
+            raise InputError(f"non-finite value ({', '.join(map(str, values[start:stop]))})", path=str(path),
+                             field=field)
     K = values[0:9].reshape(3, 3)
     R_cam_to_world = values[12:21].reshape(3, 3)
     center = values[21:24].copy()
-    size = (int(values[24]), int(values[25])) if values.size >= 26 else None
+    size = None
+    if values.size >= 26:
+        width, height = values[24:26]
+        if not all(np.isfinite(v) and v >= 0 and v == int(v) for v in (width, height)):
+            raise InputError(f"{width} {height}: expected two whole numbers >= 0", path=str(path),
+                             field="width height")
+        size = (int(width), int(height))
     return K, R_cam_to_world, center, size
 
 
@@ -76,6 +85,7 @@ def read_strecha_dir(path: PathLike) -> SfMScene:
             width, height = int(round(2 * (K[0, 2] + PIXEL_OFFSET))), int(round(
                 2 * (K[1, 2] + PIXEL_OFFSET)))
         params = np.array([K[0, 0], K[1, 1], K[0, 2] + PIXEL_OFFSET, K[1, 2] + PIXEL_OFFSET])
+        check_camera(camera_file, "K", width, height, params[:2], params[2:], params)
         scene.intrinsics[view_id] = Intrinsics(view_id, "PINHOLE", width, height, params)
         scene.views[view_id] = View(view_id, name, view_id, pose_id=view_id, width=width,
                                     height=height)

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import json
 import os
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,6 +20,7 @@ import numpy as np
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.io import atomic
+from rotonly_cli.io.inputs import open_input, parse_json
 from rotonly_cli.scene.types import View
 from rotonly_cli.scene.view_graph import Edge, ViewGraph
 
@@ -79,19 +82,34 @@ def _jsonable(value):
     return value
 
 
+#: state.npz arrays: name -> (dtype kind, shape with "E" edges, "E+1", "M" matches, "n" views)
+_STATE_ARRAYS = {
+    "meta_json": ("U", ()), "edge_views": ("i", ("E", 2)), "R_j_from_i": ("f", ("E", 3, 3)),
+    "t_dir": ("f", ("E", 3)), "match_offsets": ("i", ("E+1",)), "matches": ("i", ("M", 2)),
+    "rotations": ("f", ("n", 3, 3)), "centers": ("f", ("n", 3)),
+}
+#: meta_json keys -> their JSON types
+_META_TYPES = {"input_path": str, "input_kind": str, "matches_dir": (str, type(None)),
+               "image_path": (str, type(None)), "stages": list, "options": dict, "views": list,
+               "unregistered_views": list, "edges": list}
+
+
 def load_state(out_dir: str | os.PathLike) -> WorkspaceState:
-    """Read ``out_dir/state.npz``; InputError if ``out_dir`` is not a rotonly workspace."""
+    """Read ``out_dir/state.npz``; InputError (naming the file and the array or key) if
+    ``out_dir`` is not a rotonly workspace or its state is truncated or inconsistent."""
     path = Path(out_dir) / STATE_FILE
-    if not path.is_file():
+    if not os.path.lexists(path):
         raise InputError(f"not a rotonly workspace (no {STATE_FILE}; run `rotonly identify INPUT -o OUT` first)",
                          path=str(out_dir))
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {key: data[key] for key in data.files}
-        meta = json.loads(str(arrays["meta_json"]))
-    except (OSError, ValueError, KeyError) as exc:
-        raise InputError(f"unreadable workspace state ({exc})", path=str(path)) from None
-    graph = ViewGraph(views={int(v): View(int(v), name, int(intr)) for v, name, intr in meta["views"]},
+    arrays = _state_arrays(path)
+    meta = arrays.pop("meta")
+    views = meta["views"]
+    view_ids = {int(v[0]) for v in views}
+    for i, j in arrays["edge_views"].tolist():
+        if not (i < j and i in view_ids and j in view_ids):
+            raise InputError(f"edge ({i}, {j}) is not a pair of the workspace's views (smaller id first)",
+                             path=str(path), field="edge_views")
+    graph = ViewGraph(views={int(v): View(int(v), name, int(intr)) for v, name, intr in views},
                       unregistered_views=[int(v) for v in meta["unregistered_views"]])
     offsets = arrays["match_offsets"]
     for k, fields in enumerate(meta["edges"]):
@@ -107,6 +125,100 @@ def load_state(out_dir: str | os.PathLike) -> WorkspaceState:
                           None if np.all(np.isnan(rotations)) else rotations,
                           None if np.all(np.isnan(centers)) else centers, list(meta["stages"]),
                           dict(meta["options"]))
+
+
+def _state_arrays(path: Path) -> dict[str, np.ndarray]:
+    """The arrays of state.npz, each of the dtype and shape of _STATE_ARRAYS, consistent
+    with each other and with meta_json (offsets into the matches, one row per view), and
+    the parsed meta_json as ``meta``."""
+    try:
+        with open_input(path) as stream, np.load(stream, allow_pickle=False) as data:
+            missing = [name for name in _STATE_ARRAYS if name not in data.files]
+            if missing:
+                raise InputError(f"array {missing[0]} is missing (truncated or not written by rotonly)",
+                                 path=str(path), field=missing[0])
+            arrays = {name: data[name] for name in _STATE_ARRAYS}
+    except (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error) as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise InputError(f"unreadable workspace state ({type(exc).__name__}: {exc})", path=str(path)) from None
+    if arrays["meta_json"].dtype.kind != "U" or arrays["meta_json"].shape != ():
+        raise InputError("expected one string", path=str(path), field="meta_json")
+    meta = parse_json(str(arrays["meta_json"]), path, "meta_json")
+    _check_meta(path, meta, len(arrays["edge_views"]))
+    sizes = {"E": len(arrays["edge_views"]), "M": len(arrays["matches"]), "n": len(meta["views"])}
+    sizes["E+1"] = sizes["E"] + 1
+    for name, (kind, shape) in _STATE_ARRAYS.items():
+        array = arrays[name]
+        expected = tuple(sizes.get(d, d) for d in shape)
+        if array.dtype.kind != kind or array.shape != expected:
+            raise InputError(f"{array.dtype} array of shape {array.shape}, expected {kind} of shape {expected}",
+                             path=str(path), field=name)
+    offsets = arrays["match_offsets"]
+    if offsets[0] != 0 or offsets[-1] != sizes["M"] or np.any(np.diff(offsets) < 0):
+        raise InputError("not increasing from 0 to the number of matches", path=str(path), field="match_offsets")
+    if np.any(arrays["matches"] < 0):
+        raise InputError("negative keypoint index", path=str(path), field="matches")
+    for name in ("R_j_from_i", "t_dir"):
+        if not np.all(np.isfinite(arrays[name])):
+            raise InputError("not finite", path=str(path), field=name)
+    for name in ("rotations", "centers"):
+        rows = arrays[name].reshape(sizes["n"], -1)
+        finite = np.isfinite(rows)
+        if not np.all(finite.all(axis=1) | np.isnan(rows).all(axis=1)):
+            raise InputError("rows must be finite or all NaN (not estimated)", path=str(path), field=name)
+    arrays["meta"] = meta
+    return arrays
+
+
+def _check_meta(path: Path, meta, num_edges: int) -> None:
+    """meta_json: an object with the keys and types of _META_TYPES, views [id, name,
+    intrinsics id], one diagnostics object per edge; edges between listed views."""
+    def fail(field: str, message: str) -> InputError:
+        return InputError(message, path=str(path), field=f"meta_json.{field}")
+
+    if not isinstance(meta, dict):
+        raise InputError("expected a JSON object", path=str(path), field="meta_json")
+    for key, kind in _META_TYPES.items():
+        if key not in meta:
+            raise fail(key, "missing")
+        if not isinstance(meta[key], kind):
+            raise fail(key, f"expected {getattr(kind, '__name__', 'a string or null')}, got "
+                            f"{type(meta[key]).__name__}")
+    if meta["input_kind"] not in ("colmap-db", "openmvg"):
+        raise fail("input_kind", f"{meta['input_kind'][:40]!r}: expected colmap-db or openmvg")
+    if not all(isinstance(stage, str) for stage in meta["stages"]):
+        raise fail("stages", "expected stage names")
+    for k, view in enumerate(meta["views"]):
+        if not (isinstance(view, list) and len(view) == 3 and _is_int(view[0]) and isinstance(view[1], str)
+                and _is_int(view[2])):
+            raise fail(f"views[{k}]", "expected [id, name, intrinsics id]")
+    if not all(_is_int(v) for v in meta["unregistered_views"]):
+        raise fail("unregistered_views", "expected view ids")
+    if len(meta["edges"]) != num_edges:
+        raise fail("edges", f"{len(meta['edges'])} edges, the arrays hold {num_edges}")
+    for k, fields in enumerate(meta["edges"]):
+        if not isinstance(fields, dict) or not set(fields) <= set(_EDGE_FIELDS):
+            raise fail(f"edges[{k}]", f"expected an object with the keys {', '.join(_EDGE_FIELDS)}")
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def check_graph_fits(graph: ViewGraph, scene, path: str | os.PathLike) -> None:
+    """InputError unless every view and keypoint the workspace's edges use is in ``scene``
+    (the input re-read by a stage command: a workspace stays valid only while its input does)."""
+    for edge in graph.edges:
+        for view_id, column in ((edge.i, 0), (edge.j, 1)):
+            if view_id not in graph.views or view_id not in scene.views:
+                raise InputError(f"edge ({edge.i}, {edge.j}) uses view {view_id}, which the input does not hold",
+                                 path=str(path), field="edge_views")
+            count = len(scene.keypoints.get(view_id, ()))
+            if len(edge.matches) and edge.matches[:, column].max() >= count:
+                raise InputError(f"edge ({edge.i}, {edge.j}) uses keypoint {int(edge.matches[:, column].max())} of "
+                                 f"view {view_id}, which has {count} in the input (changed since?)",
+                                 path=str(path), field="matches")
 
 
 def view_graph_document(graph: ViewGraph) -> dict:

@@ -51,6 +51,14 @@ def fork_safe() -> bool:
         and threading.active_count() == 1 and not mp.current_process().daemon
 
 
+def would_fork(num_matches: int, jobs: int) -> bool:
+    """Whether :func:`plan` would give ``num_matches`` matches more than one process, were
+    no other thread running: ``jobs`` > 1 on Linux, and at least two parts of
+    ``MIN_MATCHES_PER_JOB`` matches."""
+    return (jobs > 1 and sys.platform.startswith("linux") and "fork" in mp.get_all_start_methods()
+            and num_matches // MIN_MATCHES_PER_JOB >= 2)
+
+
 def edge_parts(counts: np.ndarray, jobs: int, min_matches: int | None = None) -> list[tuple[int, int]]:
     """Contiguous edge ranges [e0, e1) with about equal numbers of matches: at most ``jobs``
     of them and no more than one per ``min_matches`` (default ``MIN_MATCHES_PER_JOB``)

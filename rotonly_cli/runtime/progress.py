@@ -8,6 +8,9 @@ refine in one process for the rest of a `rotonly run` that showed a bar. Bars co
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
 
 def progress_bar(iterable=None, **kwargs):
     """``tqdm.tqdm(iterable, **kwargs)`` with the monitor thread off."""
@@ -15,3 +18,16 @@ def progress_bar(iterable=None, **kwargs):
 
     tqdm.tqdm.monitor_interval = 0
     return tqdm.tqdm(iterable, **kwargs)
+
+
+@contextmanager
+def iteration_bar(show: bool, total: int, desc: str) -> Iterator[Callable[[object], None] | None]:
+    """A bar advanced by the callback it yields (None when ``show`` is false), for iterative
+    solvers that report each iteration (GRRM's ``on_iteration``); it fills up at the end, as
+    the solver may stop before ``total`` iterations."""
+    if not show:
+        yield None
+        return
+    with progress_bar(total=total, desc=desc, unit="it", leave=False) as bar:
+        yield lambda _record: bar.update(1)
+        bar.update(bar.total - bar.n)

@@ -193,6 +193,11 @@ def kind_counts(graph: ViewGraph, edges: list[int]) -> dict:
     return counts
 
 
+def kinds_text(counts: dict) -> str:
+    """``kind_counts`` for a log line: the kinds present, e.g. "REGULAR 27, PURE_ROTATION 1"."""
+    return ", ".join(f"{kind} {n}" for kind, n in counts.items() if n) or "none"
+
+
 def view_index(graph: ViewGraph) -> dict[int, int]:
     """view id -> row of the (n, ...) rotation / centre arrays (sorted view ids)."""
     return {v: k for k, v in enumerate(graph.view_ids())}

@@ -154,7 +154,9 @@ def simulate_multiview(setup: str = "circular", *, num_views: int = 100, num_poi
                        init_noise_deg: float = 0.5, corrupt_fraction: float = 0.0,
                        noise_model: str = "uniform", max_tilt_deg: float = 5.0, max_height: float = 400.0,
                        ring: tuple[float, float] = (200.0, 3000.0), ring_height: float = 200.0,
-                       ransac_threshold_px: float | None = None) -> MultiViewProblem:
+                       ransac_threshold_px: float | None = None, epipolar_outlier_fraction: float = 0.0,
+                       epipolar_shift_px: tuple[float, float] = (10.0, 80.0),
+                       swapped_fraction: float = 0.0, look_alike_px: float = 40.0) -> MultiViewProblem:
     """Draw one multi-view problem (module docstring)."""
     if setup not in SETUPS:
         raise InputError(f"unknown set-up {setup!r} (choose from {', '.join(SETUPS)})", field="setup")
@@ -164,8 +166,11 @@ def simulate_multiview(setup: str = "circular", *, num_views: int = 100, num_poi
         raise InputError(f"unknown noise model {noise_model!r}", field="noise_model")
     if num_views < 3 or num_points < 1 or window < 1:
         raise InputError("need num_views >= 3, num_points >= 1, window >= 1", field="num_views/num_points/window")
-    if not 0.0 <= corrupt_fraction <= 1.0:
-        raise InputError("must be in [0, 1]", field="corrupt_fraction")
+    fractions = {"corrupt_fraction": corrupt_fraction, "epipolar_outlier_fraction": epipolar_outlier_fraction,
+                 "swapped_fraction": swapped_fraction}
+    for name, value in fractions.items():
+        if not 0.0 <= value <= 1.0:
+            raise InputError("must be in [0, 1]", field=name)
     if isinstance(image_size, (int, np.integer)):
         image_size = (int(image_size), int(image_size))
     image_size = (int(image_size[0]), int(image_size[1]))
@@ -202,6 +207,7 @@ def simulate_multiview(setup: str = "circular", *, num_views: int = 100, num_poi
     # --- per-view keypoints (noise drawn once per observation)
     X_cam = np.einsum("vab,vnb->vna", R_cam_from_world, points[None] - centers[:, None])
     x_true = X_cam[..., :2] / X_cam[..., 2:3]
+    swapped = _swap_look_alikes(x_true, visibility, swapped_fraction, look_alike_px / focal, rng)
     scene = SfMScene(source="simulation")
     scene.intrinsics[0] = Intrinsics(id=0, model="PINHOLE", width=image_size[0], height=image_size[1],
                                      params=np.array([focal, focal, image_size[0] / 2, image_size[1] / 2]))
@@ -225,6 +231,10 @@ def simulate_multiview(setup: str = "circular", *, num_views: int = 100, num_poi
         R_true = R_cam_from_world[j] @ R_cam_from_world[i].T
         t_true = R_cam_from_world[j] @ (centers[i] - centers[j])
         t_true /= np.linalg.norm(t_true)
+        if epipolar_outlier_fraction > 0:
+            matches = _move_along_epipolar_lines(scene, matches, x_true[j], shared, R_true, t_true, focal, image_size,
+                                                 int(j), epipolar_outlier_fraction, epipolar_shift_px, noise_px,
+                                                 noise_model, rng)
         pair = PairMatches(i=int(i), j=int(j), matches=matches, config="CALIBRATED")
         if init == "ransac":
             est = five_point_ransac(scene.normalized[i][matches[:, 0]], scene.normalized[j][matches[:, 1]],
@@ -253,10 +263,75 @@ def simulate_multiview(setup: str = "circular", *, num_views: int = 100, num_poi
 
     parameters = dict(num_views=num_views, num_points=num_points, spacing=spacing, window=window,
                       min_shared=min_shared, init=init, init_noise_deg=init_noise_deg,
-                      corrupt_fraction=corrupt_fraction, noise_model=noise_model, max_tilt_deg=max_tilt_deg)
+                      corrupt_fraction=corrupt_fraction, noise_model=noise_model, max_tilt_deg=max_tilt_deg,
+                      epipolar_outlier_fraction=epipolar_outlier_fraction, epipolar_shift_px=list(epipolar_shift_px),
+                      swapped_fraction=swapped_fraction, look_alike_px=look_alike_px,
+                      num_swapped_observations=swapped)
     return MultiViewProblem(scene=scene, gt_poses=gt_poses, points_in_world=points, visibility=visibility,
                             corrupted_pairs=corrupted, setup=setup, noise_px=float(noise_px), focal=float(focal),
                             image_size=image_size, parameters=parameters)
+
+
+def _swap_look_alikes(x_true: np.ndarray, visibility: np.ndarray, fraction: float, radius: float,
+                      rng: np.random.Generator) -> int:
+    """Repeated structure seen by one camera: in each view, about ``fraction`` of the visible
+    points trade their image positions with a look-alike point within ``radius`` (normalized
+    units) of them, in place, so every match of that view through them is wrong the same way
+    and the wrong matches form whole consistent tracks. Returns the number of observations
+    moved."""
+    if fraction <= 0:
+        return 0
+    moved = 0
+    for v in range(x_true.shape[0]):
+        seen = np.flatnonzero(visibility[v])
+        if seen.size < 2:
+            continue
+        pts = x_true[v, seen]
+        order = rng.permutation(seen.size)
+        taken = np.zeros(seen.size, dtype=bool)
+        budget = int(round(fraction * seen.size / 2))
+        for a in order:
+            if budget == 0:
+                break
+            if taken[a]:
+                continue
+            distance = np.linalg.norm(pts - pts[a], axis=1)
+            near = np.flatnonzero((distance < radius) & (distance > 0) & ~taken)
+            if near.size == 0:
+                continue
+            b = near[rng.integers(near.size)]
+            ka, kb = seen[a], seen[b]
+            x_true[v, [ka, kb]] = x_true[v, [kb, ka]]
+            taken[[a, b]] = True
+            budget -= 1
+            moved += 2
+    return moved
+
+
+def _move_along_epipolar_lines(scene: SfMScene, matches: np.ndarray, x_j_true: np.ndarray, shared: np.ndarray,
+                               R_true: np.ndarray, t_true: np.ndarray, focal: float, image_size: tuple[int, int],
+                               j: int, fraction: float, shift_px: tuple[float, float], noise_px: float,
+                               noise_model: str, rng: np.random.Generator) -> np.ndarray:
+    """Wrong matches that pass any two-view check: ``fraction`` of the pair's matches get a
+    new keypoint in view j, the true one moved by U(shift_px) pixels (either way) along its
+    epipolar line (x_jᵀ E x_i = 0 still holds), with its own pixel noise. Returns the matches."""
+    count = int(round(fraction * len(matches)))
+    if count == 0:
+        return matches
+    rows = rng.choice(len(matches), size=count, replace=False)
+    x_j = np.c_[x_j_true[shared[rows]], np.ones(count)]
+    epipole = t_true / t_true[2] if abs(t_true[2]) > 1e-12 else None
+    # the epipolar line through x_j runs towards the epipole (or along t for a far epipole)
+    direction = (x_j - epipole)[:, :2] if epipole is not None else np.broadcast_to(t_true[:2], (count, 2))
+    direction = direction / np.linalg.norm(direction, axis=1, keepdims=True)
+    step = rng.uniform(*shift_px, size=count) * rng.choice([-1.0, 1.0], size=count) / focal
+    moved = add_pixel_noise(x_j[:, :2] + step[:, None] * direction, noise_px, focal, rng, noise_model)
+    first = len(scene.normalized[j])
+    scene.normalized[j] = np.concatenate([scene.normalized[j], moved])
+    scene.keypoints[j] = np.concatenate([scene.keypoints[j], normalized_to_pixels(moved, focal, image_size)])
+    matches = matches.copy()
+    matches[rows, 1] = first + np.arange(count)
+    return matches
 
 
 # ----------------------------------------------------------------------------- files

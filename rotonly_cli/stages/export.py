@@ -14,9 +14,9 @@ from rotonly_cli.scene.types import Pose, SfMScene, Structure
 
 
 def posed_scene(scene: SfMScene, view_ids: list[int], rotations: np.ndarray | None, centers: np.ndarray | None,
-                structure: Structure | None, image_root: Path | None) -> SfMScene:
+                structure: Structure | None, image_root: str | Path | None) -> SfMScene:
     """``scene`` with the estimated poses (rows of ``view_ids`` with a finite rotation and
-    centre), the points, no pairs, and ``root_path`` = the image folder (when known)."""
+    centre), the points, no pairs, and ``root_path`` = ``image_root`` (when given)."""
     poses = {}
     if rotations is not None and centers is not None:
         for row, view_id in enumerate(view_ids):
@@ -35,7 +35,7 @@ def write_outputs(out_dir: Path, scene: SfMScene, input_kind: InputKind) -> None
         raise AlgorithmError("no view received a pose (rotation and centre)")
     # COLMAP input: OpenMVG ids in file-name order (what OpenMVG's own tools, evalQuality
     # included, expect); the COLMAP model keeps the database's ids
-    openmvg_scene = (renumber_views_by_name(colmap.colmap_to_openmvg(scene)) if input_kind == InputKind.COLMAP_DB
-                     else scene)
+    openmvg_scene = (renumber_views_by_name(colmap.colmap_to_openmvg(scene))
+                     if input_kind in (InputKind.COLMAP_DB, InputKind.COLMAP_MODEL) else scene)
     openmvg.write_sfm_data(out_dir / "sfm_data.json", openmvg_scene)
     colmap.write_model(out_dir / "sparse", scene, binary=True)

@@ -16,7 +16,7 @@ import numpy as np
 
 from rotonly_cli.geometry.identification import IdentificationOptions, identify
 from rotonly_cli.runtime.parallel import map_edges, plan
-from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, filter_rotation_singular, kind_counts
+from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, filter_rotation_singular, kind_counts, kinds_text
 
 logger = logging.getLogger(__name__)
 
@@ -41,7 +41,7 @@ def identify_edges(graph: ViewGraph, normalized: dict[int, np.ndarray],
             edge.pure_rotation_ratio = float(result.pure_rotation_ratio[row])
     counts = kind_counts(graph, edges)
     num_singular = filter_rotation_singular(graph)
-    logger.info("identify: %d edges: %s; %d rotation-singular filtered", len(edges), counts, num_singular)
+    logger.info("identify: %d edges (%s); %d rotation-singular filtered", len(edges), kinds_text(counts), num_singular)
     return {"num_edges": len(edges), "kinds": counts, "num_filtered_rotation_singular": num_singular,
             "num_active_edges": len(graph.active_edges()), "unregistered_views": list(graph.unregistered_views),
             "rotation_singular_threshold": options.rotation_singular_threshold,

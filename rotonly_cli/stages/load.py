@@ -17,7 +17,6 @@ reason. It is per-edge C++ work, so a loop over edges is fine here.
 from __future__ import annotations
 
 import logging
-import os
 import time
 from pathlib import Path
 
@@ -36,23 +35,42 @@ logger = logging.getLogger(__name__)
 #: configurations whose stored cam2_from_cam1 comes from an essential matrix (formats.md §4.5)
 ESSENTIAL_CONFIGS = ("CALIBRATED", "E")
 
-def read_input(input_path: str | Path, matches_dir: str | Path | None = None) -> tuple[SfMScene, str]:
-    """(scene, kind) for a COLMAP database or an OpenMVG sfm_data.json (+ features, matches)."""
+def read_input(input_path: str | Path, matches_dir: str | Path | None = None,
+               matches_file: str | Path | None = None,
+               scratch_dir: str | Path | None = None) -> tuple[SfMScene, str]:
+    """(scene, kind) for a COLMAP database or an OpenMVG sfm_data.json (+ features, matches;
+    ``matches_file``: the matches file, -M, else the first of matches.e/f/putative).
+    ``scratch_dir``: where a database's private copy is made (default: a temporary folder)."""
     from rotonly_cli.io import colmap, openmvg
 
     input_path = Path(input_path)
     kind = detect_input(input_path)
     if kind == InputKind.COLMAP_DB:
-        return colmap.read_database(input_path), kind
+        return colmap.read_database(input_path, scratch_dir=scratch_dir), kind
     if kind == InputKind.OPENMVG:
         sfm_data = input_path / "sfm_data.json" if input_path.is_dir() else input_path
-        scene = openmvg.read_project(sfm_data, matches_dir)
+        scene = openmvg.read_project(sfm_data, matches_dir, matches_file)
         if not scene.pairs:
             raise InputError("no matches file (matches.e/f/putative .bin|.txt) beside the features",
                              path=str(matches_dir or sfm_data.parent), field="--matches-dir")
         return scene, kind
     raise InputError("a COLMAP model holds no matches; give the COLMAP database or an OpenMVG sfm_data.json",
                      path=str(input_path))
+
+
+def input_files(input_path: str | Path, kind: str, scene: SfMScene, matches_dir: str | Path | None = None,
+                matches_file: str | Path | None = None) -> dict:
+    """What :func:`read_input` read, for reports/load.json: ``input_files`` (the database, or
+    the sfm_data.json, each view's ``.feat`` and the matches file) and, for OpenMVG input,
+    ``matches_file``."""
+    from rotonly_cli.io import openmvg
+
+    input_path = Path(input_path)
+    if kind != InputKind.OPENMVG:
+        return {"input_files": [str(input_path)]}
+    sfm_data = input_path / "sfm_data.json" if input_path.is_dir() else input_path
+    files, chosen = openmvg.project_files(scene, sfm_data, matches_dir, matches_file)
+    return {"input_files": files, "matches_file": chosen}
 
 
 def focal_length(intrinsics: Intrinsics) -> float:
@@ -63,8 +81,16 @@ def focal_length(intrinsics: Intrinsics) -> float:
 def _relative_pose_ransac(x_i: np.ndarray, x_j: np.ndarray, focal_i: float, focal_j: float, max_error_px: float,
                           seed: int, options: LoadOptions):
     """pycolmap LO-RANSAC on normalized points through SIMPLE_PINHOLE(f, 0, 0) cameras, so
-    the threshold is in pixels. Returns (R_j_from_i, unit t, inlier mask) or None."""
+    the threshold is in pixels. Returns (R_j_from_i, unit t, inlier mask) or None.
+
+    Beyond ``options.ransac_max_matches`` matches RANSAC runs on a seeded random subset of
+    that size, and the inliers are every match within the threshold of its model (Sampson)."""
     import pycolmap
+
+    subset = None
+    if options.ransac_max_matches is not None and len(x_i) > options.ransac_max_matches:
+        subset = np.sort(np.random.default_rng(seed).choice(len(x_i), options.ransac_max_matches, replace=False))
+        all_i, all_j, x_i, x_j = x_i, x_j, x_i[subset], x_j[subset]
 
     cameras = [pycolmap.Camera(model=pycolmap.CameraModelId.SIMPLE_PINHOLE, width=2, height=2,
                                params=np.array([f, 0.0, 0.0])) for f in (focal_i, focal_j)]
@@ -78,21 +104,26 @@ def _relative_pose_ransac(x_i: np.ndarray, x_j: np.ndarray, focal_i: float, foca
     pose = result["cam2_from_cam1"]
     t = np.array(pose.translation, dtype=float)
     norm = np.linalg.norm(t)
-    return (np.array(pose.rotation.matrix(), dtype=float), t / norm if norm > 0 else t,
-            np.asarray(result["inlier_mask"], dtype=bool).ravel())
+    R, t = np.array(pose.rotation.matrix(), dtype=float), t / norm if norm > 0 else t
+    if subset is None:
+        return R, t, np.asarray(result["inlier_mask"], dtype=bool).ravel()
+    return R, t, pg.sampson_errors(R, t, all_i, all_j) * 0.5 * (focal_i + focal_j) <= max_error_px
 
 
-def _pool_map(function, items: list, progress: bool, desc: str) -> list:
-    """``function`` over ``items`` on one thread per core (pycolmap releases the GIL inside
-    RANSAC; every call is seeded, so the results do not depend on the scheduling)."""
+def _pool_map(function, items: list, progress: bool, desc: str, threads: int = 0) -> list:
+    """``function`` over ``items`` on ``threads`` threads (0: one per usable CPU; pycolmap
+    releases the GIL inside RANSAC; every call is seeded, so the results do not depend on the
+    scheduling)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    with ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1)) as pool:
+    from rotonly_cli.runtime.parallel import usable_cpus
+
+    with ThreadPoolExecutor(max_workers=threads or usable_cpus()) as pool:
         results = pool.map(function, items)
         if progress:
             from rotonly_cli.runtime.progress import progress_bar
 
-            results = progress_bar(results, total=len(items), desc=desc, unit="run")
+            results = progress_bar(results, total=len(items), desc=desc, unit="run", leave=False)
         return list(results)
 
 
@@ -118,7 +149,7 @@ def noise_sigma_px(pairs: list[tuple[np.ndarray, np.ndarray, float, float]], opt
         R, t, inliers = estimate
         return pg.sampson_errors(R, t, x_i[inliers], x_j[inliers]) * 0.5 * (focal_i + focal_j)
 
-    errors = np.concatenate([np.zeros(0)] + _pool_map(residuals, order, False, ""))
+    errors = np.concatenate([np.zeros(0)] + _pool_map(residuals, order, False, "", options.jobs))
     return 1.4826 * float(np.median(errors)) if errors.size >= MIN_NOISE_SAMPLES else None
 
 
@@ -185,7 +216,7 @@ def build_view_graph(scene: SfMScene, options: LoadOptions = LoadOptions()) -> t
         x_i, x_j, focal_i, focal_j = pairs[run[0]]
         return _relative_pose_ransac(x_i, x_j, focal_i, focal_j, threshold, run[1], options)
 
-    estimates = _pool_map(estimate_run, runs, options.progress, "relative poses (RANSAC)")
+    estimates = _pool_map(estimate_run, runs, options.progress, "relative poses (RANSAC)", options.jobs)
     num_failed = 0
     for n, k in enumerate(to_estimate):
         edge = graph.edges[k]
@@ -220,8 +251,8 @@ def build_view_graph(scene: SfMScene, options: LoadOptions = LoadOptions()) -> t
         "dropped_matches": dict(sorted(dropped.items())), "min_inliers": options.min_inliers,
         "time_s": time.perf_counter() - start,
     }
-    logger.info("view graph: %d views, %d pairs, %d re-estimated (%d failed) at %.2f px%s, %d active edges, "
-                "largest component %d views", len(scene.views), len(scene.pairs), len(to_estimate), num_failed,
-                threshold, "" if sigma is None else f" (noise sigma {sigma:.3f} px)", report["num_active_edges"],
-                len(component))
+    logger.info("load: %d views, %d pairs, %d re-estimated at %.2f px%s, %d failed; %d active edges%s",
+                len(scene.views), len(scene.pairs), len(to_estimate), threshold,
+                "" if sigma is None else f" (noise sigma {sigma:.3g})", num_failed, report["num_active_edges"],
+                f", {len(component)} views connected" if len(component) < len(scene.views) else "")
     return graph, report

@@ -59,8 +59,9 @@ def grrm_inputs(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_
 
 
 def optimize_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_world: np.ndarray,
-                   options=None) -> tuple[np.ndarray, dict]:
-    """GRRM-refined copy of ``R_cam_from_world`` (sorted-view-id rows); report with costs."""
+                   options=None, on_iteration=None) -> tuple[np.ndarray, dict]:
+    """GRRM-refined copy of ``R_cam_from_world`` (sorted-view-id rows); report with costs.
+    ``on_iteration``: called after each GRRM iteration (optimize_global_rotations)."""
     start = time.perf_counter()
     R_out = np.array(R_cam_from_world, dtype=float, copy=True)
     options = options or GRRMOptions()
@@ -74,7 +75,7 @@ def optimize_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_fr
     try:
         with np.errstate(all="ignore"):
             result = optimize_global_rotations(R0, inputs.edge_views, batch, inputs.obs_ids, fixed_view=0,
-                                               options=options)
+                                               options=options, on_iteration=on_iteration)
     except ValueError as exc:
         raise AlgorithmError(f"GRRM failed: {exc}") from exc
     from rotonly_cli.geometry import so3

@@ -16,7 +16,7 @@ from rotonly_cli.geometry import so3
 from rotonly_cli.geometry.identification import IdentificationOptions
 from rotonly_cli.geometry.trrm import TRRMOptions, refine
 from rotonly_cli.runtime.parallel import map_edges, plan
-from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, filter_rotation_singular, kind_counts
+from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, filter_rotation_singular, kind_counts, kinds_text
 
 logger = logging.getLogger(__name__)
 
@@ -60,7 +60,7 @@ def refine_edges(graph: ViewGraph, normalized: dict[int, np.ndarray], options: T
     report["num_active_edges"] = len(graph.active_edges())
     report["unregistered_views"] = list(graph.unregistered_views)
     report["time_s"] = time.perf_counter() - start
-    logger.info("refine (TRRM): %d edges, cost %.4g -> %.4g, rotation change median %.4f deg, kinds %s",
-                len(edges), report.get("cost_before", 0.0), report.get("cost_after", 0.0),
-                report.get("rotation_change_deg", {}).get("median", 0.0), report["kinds"])
+    logger.info("refine (TRRM): %d edges (%s), cost %.4g -> %.4g, median rotation change %.4f deg",
+                len(edges), kinds_text(report["kinds"]), report.get("cost_before", 0.0), report.get("cost_after", 0.0),
+                report.get("rotation_change_deg", {}).get("median", 0.0))
     return report

@@ -51,8 +51,8 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
         logger.debug("translate round %d: %d observations, sigma %.3f px, threshold %.2f px, %d dropped, "
                      "%d re-admitted", number, round_["observations"], round_["sigma_px"], round_["threshold_px"],
                      round_["dropped"], round_["readmitted"])
-    logger.info("translate (LiGT): %d tracks from %d REGULAR edges, %d views with a centre%s; %d of %d "
-                "observations kept after %d robust round(s)", tracks.num_tracks, len(edges),
+    logger.info("translate (LiGT): %d tracks, %d REGULAR edges, %d views with a centre%s; %d of %d "
+                "observations kept", tracks.num_tracks, len(edges),
                 report["num_views_with_centre"], f", {len(without)} without" if without else "",
-                report["num_observations_used"], tracks.num_observations, len(robust.rounds))
+                report["num_observations_used"], tracks.num_observations)
     return centers, report

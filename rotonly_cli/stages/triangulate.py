@@ -15,6 +15,7 @@ import numpy as np
 from rotonly_cli.geometry.ligt import LiGTOptions, observation_errors, outlier_threshold_px
 from rotonly_cli.geometry.tracks import Tracks, tracks_from_arrays
 from rotonly_cli.geometry.triangulation import TriangulationOptions, triangulate_tracks
+from rotonly_cli.io.images import image_file
 from rotonly_cli.scene.ids import observation_lists
 from rotonly_cli.scene.tracks import TrackCache, graph_tracks
 from rotonly_cli.scene.types import SfMScene, Structure
@@ -30,8 +31,8 @@ def _read_images(paths: list[Path], threads: int) -> Iterator[np.ndarray | None]
     few decoded images are alive at once."""
     import cv2
 
-    def read(path: Path) -> np.ndarray | None:
-        return cv2.imread(str(path), cv2.IMREAD_COLOR) if path.is_file() else None
+    def read(path: Path | None) -> np.ndarray | None:
+        return None if path is None else cv2.imread(str(path), cv2.IMREAD_COLOR)
 
     if threads < 2 or len(paths) < 2:
         yield from map(read, paths)
@@ -40,13 +41,22 @@ def _read_images(paths: list[Path], threads: int) -> Iterator[np.ndarray | None]
         yield from pool.map(read, paths)
 
 
+def _image_path(image_root: str | Path, name: str) -> Path | None:
+    """The file to read for image ``name``, None when missing or not to be read: names that
+    leave ``image_root`` or are not images are never opened (io/images), with a warning."""
+    path, reason = image_file(image_root, name)
+    if reason not in (None, "missing"):
+        logger.warning("triangulate: image %r not read for the point colours: %s", name, reason)
+    return path
+
+
 def keypoint_colors(scene: SfMScene, image_root: str | Path, view_ids: list[int],
                     threads: int = os.cpu_count() or 1) -> dict[int, np.ndarray | None]:
     """RGB (n, 3) uint8 of every keypoint of each view, from the pixel holding it (COLMAP
     pixel convention: (u, v) lies in pixel floor(u), floor(v)); None where the image (or
     the keypoints) cannot be read."""
     readable = [view_id for view_id in view_ids if view_id in scene.keypoints]
-    paths = [Path(image_root) / scene.views[view_id].name for view_id in readable]
+    paths = [_image_path(image_root, scene.views[view_id].name) for view_id in readable]
     colors: dict[int, np.ndarray | None] = dict.fromkeys(view_ids)
     for view_id, image in zip(readable, _read_images(paths, threads)):
         if image is None:

@@ -29,7 +29,6 @@ import argparse
 import json
 import os
 import resource
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -40,9 +39,9 @@ import numpy as np
 
 from rotonly_cli.bench import results_md
 from rotonly_cli.bench.common import code_version
-from rotonly_cli.io.atomic import make_staging_dir, replace_dir, staging_dir
+from rotonly_cli.io.atomic import staging_dir
 
-STAGES = ("load", "identify", "refine", "average", "optimize", "translate", "triangulate", "export")
+STAGES = ("load", "identify", "refine", "average", "optimize", "translate", "reject", "triangulate", "export")
 STAGE_TITLES = {"optimize": "GRRM"}
 GRRM_TARGET_S = 60.0
 GRRM_TARGET_GB = 4.0
@@ -91,8 +90,7 @@ def simulate_to(out_dir: Path, num_views: int, num_points: int, setup: str, wind
     problem = simulate_multiview(setup, num_views=num_views, num_points=num_points, window=window,
                                  max_height=max_height, init="perturbed", rng=seed)
     simulate_s = time.perf_counter() - start
-    tmp = make_staging_dir(out_dir)
-    try:
+    with staging_dir(out_dir) as tmp:
         start = time.perf_counter()
         write_database(tmp / "database.db", problem.scene)
         write_s = time.perf_counter() - start
@@ -109,10 +107,6 @@ def simulate_to(out_dir: Path, num_views: int, num_points: int, setup: str, wind
                 "simulate_s": simulate_s, "write_database_s": write_s,
                 "simulate_peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
         (tmp / "simulation.json").write_text(json.dumps(info, indent=1) + "\n")
-        replace_dir(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 # ============================================================================ subprocess: measure

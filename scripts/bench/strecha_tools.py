@@ -73,7 +73,7 @@ from rotonly_cli.scene.types import Pose, SfMScene, View
 #: OpenMVG 2.1 global SfM wall time on this machine type (data/strecha/README.md, "What the
 #: references reach"); the stored result is evaluated, the tool is not re-run.
 OPENMVG_GLOBAL_TIME_S = {"fountain-P11": 5.0, "Herz-Jesus-P8": 1.0, "entry-P10": 2.0}
-STAGE_NAMES = ("load", "identify", "refine", "average", "optimize", "translate", "triangulate")
+STAGE_NAMES = ("load", "identify", "refine", "average", "optimize", "translate", "reject", "triangulate")
 
 
 @dataclass

@@ -137,7 +137,7 @@ def test_same_input_twice_and_stage_by_stage_give_identical_sfm_data(herzjesu_ru
     # 28 pairs: one below --min-inliers in the input, one after the stable consensus
     assert json.loads((workspace / "reports" / "identify.json").read_text())["kinds"]["REGULAR"] == 26
     assert _rotonly("-q", "optimize", workspace) == 2  # refine and average not done yet
-    for stage in ("refine", "average", "optimize", "translate", "triangulate"):
+    for stage in ("refine", "average", "optimize", "translate", "reject", "triangulate"):
         assert _rotonly("-q", stage, workspace) == 0, stage
     assert (workspace / "sfm_data.json").read_bytes() == (out / "sfm_data.json").read_bytes()
 

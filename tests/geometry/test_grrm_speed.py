@@ -83,9 +83,9 @@ def test_exact_radial_curvature_same_optimum_fewer_iterations():
 
 def _grrm_log(caplog, *args, **kw):
     caplog.clear()
-    with caplog.at_level(logging.INFO, logger="rotonly.grrm"):
+    with caplog.at_level(logging.DEBUG, logger="rotonly.grrm"):
         res = grrm.optimize_global_rotations(*args, **kw)
-    phase = [r.getMessage() for r in caplog.records if "λ_min phase" in r.getMessage()]
+    phase = [r.getMessage() for r in caplog.records if "λ_min phase:" in r.getMessage()]
     assert len(phase) == 1
     return res, phase[0]
 

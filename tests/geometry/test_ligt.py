@@ -7,7 +7,7 @@ import pytest
 
 from rotonly_cli.errors import AlgorithmError
 from rotonly_cli.geometry import so3
-from rotonly_cli.geometry.ligt import LiGTOptions, ligt_normal_matrix, ligt_translations
+from rotonly_cli.geometry.ligt import LiGTOptions, ligt_normal_matrix, ligt_translations, robust_ligt_translations
 
 from helpers import make_street_scene, similarity_align_error
 
@@ -167,3 +167,43 @@ def test_base_views_are_the_max_parallax_pair():
     base_l, base_r, norm = _select_base_views(rays, np.array([0, 4, 5, 7]), max_views=64)
     assert base_l.tolist() == [0, -1, 5] and base_r.tolist() == [2, -1, 6]
     assert np.allclose(norm, [np.sin(np.radians(30)), 0.0, np.sin(np.radians(20))])
+
+
+def _with_wrong_observations(scene, fraction: float, rng):
+    """Every track's last observation replaced, for ``fraction`` of the tracks, by a point 30 px
+    (f = 1000) away in a random direction: wrong matches that tie a track to another point."""
+    obs = scene.obs_xy.copy()
+    last = np.flatnonzero(np.r_[scene.obs_point[1:] != scene.obs_point[:-1], True])
+    wrong = rng.choice(last, size=int(fraction * last.size), replace=False)
+    direction = rng.normal(size=(wrong.size, 2))
+    obs[wrong] += 0.03 * direction / np.linalg.norm(direction, axis=1, keepdims=True)
+    return obs, wrong
+
+
+def test_robust_rounds_remove_wrong_observations():
+    """3 % of the tracks with one wrong observation: the plain solve is off by several times the
+    noise level, the robust rounds drop those observations (and few others) and match the
+    solve on the clean tracks."""
+    rng = np.random.default_rng(7)
+    scene = make_street_scene(12, 600, seed=7)
+    clean = scene.obs_xy + rng.normal(scale=3e-4, size=scene.obs_xy.shape)  # 0.3 px
+    corrupted, wrong = _with_wrong_observations(type("S", (), {"obs_xy": clean, "obs_point": scene.obs_point})(),
+                                                0.03, rng)
+    R, tracks, views = scene.R_cam_from_world, scene.obs_point, scene.obs_view
+    reference, _ = similarity_align_error(ligt_translations(R, tracks, views, clean).centers, scene.centers)
+    plain, _ = similarity_align_error(ligt_translations(R, tracks, views, corrupted).centers, scene.centers)
+    robust = robust_ligt_translations(R, tracks, views, corrupted, 1000.0)
+    error, _ = similarity_align_error(robust.result.centers, scene.centers)
+    assert plain > 3 * reference
+    assert error < 1.5 * reference + 1e-3
+    assert robust.keep[wrong].mean() < 0.1  # a wrong ray in a two-view track can pass off as depth
+    assert robust.keep.sum() > 0.97 * (tracks.size - wrong.size)
+    assert robust.rounds and all(r["threshold_px"] >= 1.0 for r in robust.rounds)
+
+
+def test_robust_rounds_keep_clean_data_whole():
+    scene = make_street_scene(10, 300, seed=3)
+    robust = robust_ligt_translations(scene.R_cam_from_world, scene.obs_point, scene.obs_view, scene.obs_xy, 1000.0)
+    plain = ligt_translations(scene.R_cam_from_world, scene.obs_point, scene.obs_view, scene.obs_xy)
+    assert robust.keep.all() and len(robust.rounds) == 1
+    assert np.abs(robust.result.centers - plain.centers).max() < 1e-12

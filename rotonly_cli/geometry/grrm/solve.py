@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -126,8 +127,10 @@ def epipolar_phase(R: np.ndarray, edge_views: np.ndarray, batch: pg.EdgeBatch, f
 
 
 def optimize_global_rotations(R_cam_from_world, edge_views, batch: pg.EdgeBatch, obs_ids, fixed_view: int = 0,
-                              options: GRRMOptions = GRRMOptions()) -> GRRMResult:
-    """Alg. 4: minimise Σ_ik ρ(‖V_ik‖²) (eq:GRRMerror) over the rotations, one view fixed."""
+                              options: GRRMOptions = GRRMOptions(),
+                              on_iteration: Callable[[dict], None] | None = None) -> GRRMResult:
+    """Alg. 4: minimise Σ_ik ρ(‖V_ik‖²) (eq:GRRMerror) over the rotations, one view fixed.
+    ``on_iteration``: called with each LM iteration's history entry (progress bars)."""
     options.validate()
     R, edge_views, obs_ids = validate_inputs(R_cam_from_world, edge_views, batch, obs_ids)
     n = R.shape[0]
@@ -207,7 +210,7 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: pg.EdgeBatch,
             accepted, step, mu = first[0], first[6], first[7]
             in_basin = accepted and mu < options.initial_damping and step <= options.epipolar_trigger
             if in_basin:
-                log.info("GRRM λ_min phase: skipped (first GRRM step %.2e rad <= %.2e)", step,
+                log.debug("GRRM λ_min phase: skipped (first GRRM step %.2e rad <= %.2e)", step,
                          options.epipolar_trigger)
         if first is None or not in_basin:
             # the λ_min phase only proposes a start: keep it if GRRM's own cost (without the
@@ -221,7 +224,7 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: pg.EdgeBatch,
                 R, cost, first, start = R1, cost1, None, None
             else:
                 problem.batch = weighted  # the start is kept: so are its weights and first iteration
-            log.info("GRRM λ_min phase: %d iterations, start %s", it1, "taken" if R is R1 else "kept")
+            log.debug("GRRM λ_min phase: %d iterations, start %s", it1, "taken" if R is R1 else "kept")
     if start is None:
         problem.batch = weighted_batch(R)
         start = linearize(R, True, options.exact_curvature_below > 0)
@@ -232,7 +235,7 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: pg.EdgeBatch,
     mu = options.initial_damping
     converged = False
     iteration = 0
-    log.info("GRRM start: %d views, %d edges, %d observations, cost %.6e, loss %s (scale %.3e)",
+    log.debug("GRRM start: %d views, %d edges, %d observations, cost %.6e, loss %s (scale %.3e)",
              n, batch.num_edges, problem.num_groups, cost, options.loss, scale)
     for iteration in range(1, options.max_iterations + 1):
         t0 = time.perf_counter()
@@ -245,14 +248,18 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: pg.EdgeBatch,
         if not accepted:
             history.append({"iteration": iteration, "cost": cost, "step": 0.0, "damping": mu, "accepted": False,
                             "seconds": time.perf_counter() - t0})
-            log.info("GRRM iteration %d: no decrease possible (damping %.1e); stop", iteration, mu)
+            if on_iteration is not None:
+                on_iteration(history[-1])
+            log.debug("GRRM iteration %d: no decrease possible (damping %.1e); stop", iteration, mu)
             converged = True
             break
         decrease = cost - cost_c
         R, cost, JtJ, grad, remainder = R_cand, cost_c, JtJ_c, grad_c, rem_c
         history.append({"iteration": iteration, "cost": cost, "step": step, "damping": mu, "accepted": True,
                         "seconds": time.perf_counter() - t0})
-        log.info("GRRM iteration %d: cost %.6e (-%.2e), max step %.2e rad, %.2f s",
+        if on_iteration is not None:
+            on_iteration(history[-1])
+        log.debug("GRRM iteration %d: cost %.6e (-%.2e), max step %.2e rad, %.2f s",
                  iteration, cost, decrease, step, time.perf_counter() - t0)
         if decrease <= options.function_tolerance * max(cost, 1e-300) or step < options.step_tolerance:
             converged = True

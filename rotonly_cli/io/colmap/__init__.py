@@ -7,7 +7,8 @@ of ``images.bin``) with numpy (formats.md §4.8) and has pycolmap read them back
 errors and write the final model, instead of one Python object per point and observation.
 
 ``cameras`` converts camera models (and a COLMAP-read scene to OpenMVG's conventions),
-``database`` reads and writes databases, ``model`` sparse models.
+``database`` reads and writes databases (``database_check`` checks them first), ``model`` sparse
+models.
 
 Conventions kept at this boundary (architecture.md "Conventions", formats.md §4.3/§4.5):
 - view id = COLMAP image id, intrinsics id = COLMAP camera id (COLMAP ids are > 0, so a scene
@@ -29,9 +30,10 @@ from rotonly_cli.io.colmap.cameras import (
                                            to_colmap_intrinsics,
                                            to_openmvg_scene,
 )
-from rotonly_cli.io.colmap.database import REQUIRED_TABLES, check_database, id_offset, read_database, write_database
-from rotonly_cli.io.colmap.model import read_model, write_model
+from rotonly_cli.io.colmap.database import id_offset, read_database, write_database
+from rotonly_cli.io.colmap.database_check import REQUIRED_TABLES, check_database
+from rotonly_cli.io.colmap.model import read_model, scene_from_reconstruction, to_reconstruction, write_model
 
 __all__ = ["REQUIRED_TABLES", "check_database", "colmap_to_openmvg", "id_offset", "normalize_keypoints",
-           "pycolmap_camera", "read_database", "read_model", "to_colmap_intrinsics", "to_openmvg_scene",
-           "write_database", "write_model"]
+           "pycolmap_camera", "read_database", "read_model", "scene_from_reconstruction", "to_colmap_intrinsics",
+           "to_openmvg_scene", "to_reconstruction", "write_database", "write_model"]

@@ -3,6 +3,7 @@ COLMAP -> OpenMVG scene conversion."""
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 from dataclasses import replace
@@ -10,6 +11,7 @@ from dataclasses import replace
 import numpy as np
 
 from rotonly_cli.errors import InputError
+from rotonly_cli.io.inputs import check_camera
 from rotonly_cli.scene.ids import shift_ids
 from rotonly_cli.scene.types import Intrinsics, SfMScene
 
@@ -20,10 +22,40 @@ logger = logging.getLogger(__name__)
 def import_pycolmap():
     import pycolmap  # lazy: the CLI stays fast for commands that never touch COLMAP
 
+    # pycolmap's own log lines (glog warnings such as "Failed to open database ... Trying next
+    # registered factory") would precede rotonly's one-line errors; rotonly reports for it
+    pycolmap.logging.minloglevel = max(pycolmap.logging.minloglevel, 2)  # errors only
     return pycolmap
 
 
 # ============================================================================ camera models
+
+@functools.cache
+def colmap_camera_models() -> dict[int, tuple[str, int, tuple[int, ...], tuple[int, ...]]]:
+    """COLMAP model id -> (name, number of params, focal length indices, principal point
+    indices), from pycolmap itself (formats.md §4.4)."""
+    pycolmap = import_pycolmap()
+    models = {}
+    for name, model in pycolmap.CameraModelId.__members__.items():
+        if int(model) < 0:  # INVALID
+            continue
+        camera = pycolmap.Camera.create_from_model_id(1, model, 1.0, 2, 2)
+        models[int(model)] = (name, len(camera.params), tuple(camera.focal_length_idxs()),
+                              tuple(camera.principal_point_idxs()))
+    return models
+
+
+def check_colmap_camera(path: PathLike | None, field: str, model: str, width, height, params) -> None:
+    """io/inputs.check_camera for a COLMAP camera ``model`` (name) with ``params`` (its
+    parameter count must be right: the callers check it against the blob size)."""
+    models = {name: entry for name, *entry in colmap_camera_models().values()}
+    _, focal, principal = models[model]
+    params = np.asarray(params, dtype=np.float64).ravel()
+    if not principal:  # EQUIRECTANGULAR: no focal length, no principal point
+        check_camera(path, field, width, height, [], [0.0, 0.0], params)
+        return
+    check_camera(path, field, width, height, params[list(focal)], params[list(principal)], params)
+
 
 def to_colmap_intrinsics(intrinsics: Intrinsics) -> Intrinsics:
     """The nearest COLMAP camera model of an OpenMVG intrinsic (formats.md §4.4 mapping);
@@ -127,9 +159,9 @@ def to_openmvg_scene(scene: SfMScene) -> SfMScene:
                                np.array([focal, camera.principal_point_x,
                                          camera.principal_point_y]))
             resampled[intrinsic_id] = exact
-            logger.info("camera %d (%s %s) has no exact OpenMVG model: keypoints re-rendered "
-                        "through an undistorted pinhole f=%.6g", intrinsic_id, intrinsic.model,
-                        np.array2string(params, precision=6), focal)
+            logger.info("camera %d (%s): no exact OpenMVG model, written as a pinhole f=%.6g (keypoints "
+                        "re-rendered)", intrinsic_id, intrinsic.model, focal)
+            logger.debug("camera %d params %s", intrinsic_id, np.array2string(params, precision=6))
         intrinsics[intrinsic_id] = exact
     keypoints = dict(scene.keypoints)
     for view_id, view in scene.views.items():

@@ -2,96 +2,118 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import shutil
 import sqlite3
 import tempfile
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import closing, contextmanager, nullcontext
 from pathlib import Path
 
 import numpy as np
 
-from rotonly_cli.errors import InputError
+from rotonly_cli.errors import InputError, write_error
 from rotonly_cli.io import atomic
 from rotonly_cli.io.colmap.cameras import import_pycolmap, normalize_keypoints, pycolmap_camera, to_colmap_intrinsics
-from rotonly_cli.io.detect import is_sqlite
+from rotonly_cli.io.colmap.database_check import check_database
+from rotonly_cli.io.inputs import check_finite, check_regular_file
 from rotonly_cli.scene.types import Intrinsics, PairMatches, SfMScene, View
 
 PathLike = str | os.PathLike
 logger = logging.getLogger(__name__)
 
 
-# Tables read_database needs (formats.md §4.1).
-REQUIRED_TABLES = ("cameras", "images", "keypoints", "two_view_geometries")
 # OpenMVG PairMatches.config -> COLMAP TwoViewGeometry config name (formats.md §4.5). A
 # verified pair of unknown kind is written CALIBRATED: COLMAP skips UNDEFINED pairs.
 _CONFIG_FROM_OPENMVG = {"E": "CALIBRATED", "F": "UNCALIBRATED", "H": "PLANAR", None: "CALIBRATED"}
 # Verified-and-rejected configurations: not a usable pair.
 _REJECTED_CONFIGS = ("UNDEFINED", "DEGENERATE", "WATERMARK")
+# COLMAP 3.8's tables (its src/base/database.cc; data_fixtures/colmap38_herzjesu4 has them as
+# COLMAP 3.8 wrote them) and the columns write_database copies into them from pycolmap's.
+_COLMAP38_TABLES = (
+    "CREATE TABLE cameras (camera_id INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, model INTEGER NOT NULL, "
+    "width INTEGER NOT NULL, height INTEGER NOT NULL, params BLOB, prior_focal_length INTEGER NOT NULL)",
+    "CREATE TABLE images (image_id INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, name TEXT NOT NULL UNIQUE, "
+    "camera_id INTEGER NOT NULL, prior_qw REAL, prior_qx REAL, prior_qy REAL, prior_qz REAL, prior_tx REAL, "
+    "prior_ty REAL, prior_tz REAL, CONSTRAINT image_id_check CHECK(image_id >= 0 and image_id < 2147483647), "
+    "FOREIGN KEY(camera_id) REFERENCES cameras(camera_id))",
+    "CREATE TABLE keypoints (image_id INTEGER PRIMARY KEY NOT NULL, rows INTEGER NOT NULL, cols INTEGER NOT NULL, "
+    "data BLOB, FOREIGN KEY(image_id) REFERENCES images(image_id) ON DELETE CASCADE)",
+    "CREATE TABLE descriptors (image_id INTEGER PRIMARY KEY NOT NULL, rows INTEGER NOT NULL, cols INTEGER NOT NULL, "
+    "data BLOB, FOREIGN KEY(image_id) REFERENCES images(image_id) ON DELETE CASCADE)",
+    "CREATE TABLE matches (pair_id INTEGER PRIMARY KEY NOT NULL, rows INTEGER NOT NULL, cols INTEGER NOT NULL, "
+    "data BLOB)",
+    "CREATE TABLE two_view_geometries (pair_id INTEGER PRIMARY KEY NOT NULL, rows INTEGER NOT NULL, "
+    "cols INTEGER NOT NULL, data BLOB, config INTEGER NOT NULL, F BLOB, E BLOB, H BLOB, qvec BLOB, tvec BLOB)",
+    "CREATE UNIQUE INDEX index_name ON images(name)",
+)
+_COLMAP38_COLUMNS = {
+    "cameras": "camera_id, model, width, height, params, prior_focal_length", "images": "image_id, name, camera_id",
+    "keypoints": "image_id, rows, cols, data", "descriptors": "image_id, rows, cols, data",
+    "matches": "pair_id, rows, cols, data",
+    "two_view_geometries": "pair_id, rows, cols, data, config, F, E, H, qvec, tvec",
+}
 
 
 # ============================================================================ database: reading
 
-def check_database(path: PathLike) -> Path:
-    """InputError unless ``path`` is an existing SQLite file holding COLMAP's tables.
-    Reads through sqlite's read-only mode, which never writes."""
-    path = Path(path)
-    if not path.exists():
-        raise InputError("no such file", path=str(path))
-    if not path.is_file():
-        raise InputError("is not a file (expected a COLMAP database)", path=str(path))
-    if not is_sqlite(path):
-        raise InputError("not an SQLite file (expected a COLMAP database)", path=str(path))
-    try:
-        # immutable=1: no locks and no -wal/-shm sidecars next to the input (pycolmap
-        # databases are in WAL mode, where even a read-only open would create them).
-        connection = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro&immutable=1",
-                                     uri=True)
-        try:
-            tables = {row[0] for row in connection.execute(
-                "SELECT name FROM sqlite_master WHERE type = 'table'")}
-        finally:
-            connection.close()
-    except sqlite3.DatabaseError as exc:
-        raise InputError(f"unreadable SQLite database ({exc})", path=str(path)) from None
-    for table in REQUIRED_TABLES:
-        if table not in tables:
-            raise InputError("COLMAP database without this table", path=str(path), field=table)
-    return path
-
-
 @contextmanager
-def _open_database_copy(path: Path) -> Iterator:
-    """pycolmap Database on a private copy of ``path`` (the input stays byte-identical)."""
+def _open_database_copy(path: Path, scratch_dir: PathLike | None = None) -> Iterator:
+    """pycolmap Database on a private copy of ``path`` (pycolmap's ``Database.open`` writes to
+    the file it opens; the input stays byte-identical) in ``scratch_dir`` (default: a
+    temporary folder), removed when the block ends."""
     pycolmap = import_pycolmap()
-    with tempfile.TemporaryDirectory(prefix="rotonly-db-") as scratch:
+    with (contextlib.nullcontext(scratch_dir) if scratch_dir is not None
+          else tempfile.TemporaryDirectory(prefix="rotonly-db-")) as scratch:
         copy = Path(scratch) / "database.db"
-        shutil.copyfile(path, copy)
-        wal = Path(f"{path}-wal")  # committed-but-not-checkpointed pages of a WAL database
-        if wal.is_file():
-            shutil.copyfile(wal, Path(f"{copy}-wal"))
-        database = pycolmap.Database.open(str(copy))
+        copies = [copy, Path(f"{copy}-wal"), Path(f"{copy}-shm"), Path(f"{copy}-journal")]
         try:
-            yield database
+            wal = Path(f"{path}-wal")  # committed-but-not-checkpointed pages of a WAL database
+            try:
+                shutil.copyfile(path, copy)
+                if wal.is_file():
+                    check_regular_file(wal)
+                    shutil.copyfile(wal, copies[1])
+            except OSError as exc:
+                raise write_error(exc, scratch, field=None) from None
+            if wal.is_file():
+                check_database(copy, shown=path, immutable=False)  # the pages the input check did not see
+            try:
+                database = pycolmap.Database.open(str(copy))
+            except Exception:  # noqa: BLE001 - the copy passed check_database: the disk, not the input
+                error = atomic.unreported_write_error(scratch, "pycolmap cannot open the database copy")
+                raise write_error(error, scratch, field=None) from None
+            try:
+                yield database
+            finally:
+                database.close()
         finally:
-            database.close()
+            for leftover in copies:
+                leftover.unlink(missing_ok=True)
 
 
-def read_database(path: PathLike, include_unverified: bool = True) -> SfMScene:
+def read_database(path: PathLike, include_unverified: bool = True, scratch_dir: PathLike | None = None) -> SfMScene:
     """COLMAP database -> SfMScene (formats.md §4.1-§4.6).
 
     Verified pairs come from ``two_view_geometries`` (inlier matches, config name and, when
     stored, ``cam2_from_cam1`` as R_j_from_i / unit t_j_from_i); pairs verified and rejected
     (UNDEFINED, DEGENERATE, WATERMARK or no inlier) are dropped; with
     ``include_unverified`` the raw ``matches`` of pairs never verified come with
-    ``verified=False``.
+    ``verified=False``. The database is checked first (:func:`check_database`: nothing is
+    read that pycolmap would refuse), then read from a private copy in ``scratch_dir``
+    (default: a temporary folder). ``path`` may also be an open ``pycolmap.Database``
+    (read in place).
     """
     pycolmap = import_pycolmap()
-    path = check_database(path)
+    if isinstance(path, pycolmap.Database):
+        opened, path = nullcontext(path), Path("<pycolmap.Database>")
+    else:
+        path = check_database(path)
+        opened = _open_database_copy(path, scratch_dir)
     scene = SfMScene(source="colmap-db")
-    with _open_database_copy(path) as database:
+    with opened as database:
         cameras = {camera.camera_id: camera for camera in database.read_all_cameras()}
         for camera_id, camera in cameras.items():
             scene.intrinsics[camera_id] = Intrinsics(
@@ -109,6 +131,7 @@ def read_database(path: PathLike, include_unverified: bool = True) -> SfMScene:
                 keypoints = np.asarray(database.read_keypoints(image_id))[:, :2]
             else:
                 keypoints = np.zeros((0, 2))
+            check_finite(keypoints, path, f"keypoints of image {image_id}", "keypoint")
             scene.keypoints[image_id] = keypoints.astype(np.float64)
             scene.normalized[image_id] = normalize_keypoints(camera, scene.keypoints[image_id])
 
@@ -128,6 +151,9 @@ def read_database(path: PathLike, include_unverified: bool = True) -> SfMScene:
             relative = geometry.cam2_from_cam1
             if relative is not None:
                 pair.R_j_from_i = np.array(relative.rotation.matrix(), dtype=np.float64)
+                if not np.all(np.isfinite(pair.R_j_from_i)):
+                    raise InputError("qvec is not a rotation", path=str(path),
+                                     field=f"two_view_geometries of pair ({i}, {j})")
                 # A direction (scale unknown, §4.5): PLANAR/H decompositions store |t| != 1.
                 translation = np.array(relative.translation, dtype=np.float64)
                 norm = np.linalg.norm(translation)
@@ -172,12 +198,14 @@ def id_offset(ids) -> int:
 
 
 def write_database(path: PathLike, scene: SfMScene) -> None:
-    """SfMScene -> new COLMAP database at ``path`` (replaced atomically).
+    """SfMScene -> new COLMAP database at ``path`` (replaced atomically), in COLMAP 3.8's
+    layout (:func:`to_colmap38_layout`), which COLMAP 3.x opens and COLMAP / pycolmap 4.x
+    migrate on opening.
 
-    One camera per intrinsic (OpenMVG models mapped by ``to_colmap_intrinsics``), a trivial
-    rig per camera and frame per image, keypoints, ``matches`` for every pair and a
-    ``two_view_geometries`` row (inliers = the pair's matches, config, ``cam2_from_cam1``
-    when known) for verified pairs. View/camera ids < 1 are shifted (``id_offset``).
+    One camera per intrinsic (OpenMVG models mapped by ``to_colmap_intrinsics``), keypoints,
+    ``matches`` for every pair and a ``two_view_geometries`` row (inliers = the pair's matches,
+    config, ``cam2_from_cam1`` when known) for verified pairs. View/camera ids < 1 are
+    shifted (``id_offset``).
     """
     pycolmap = import_pycolmap()
     path = Path(path)
@@ -196,6 +224,28 @@ def write_database(path: PathLike, scene: SfMScene) -> None:
             connection.execute("PRAGMA journal_mode=DELETE")
         finally:
             connection.close()
+        to_colmap38_layout(staging)
+
+
+def to_colmap38_layout(path: PathLike) -> None:
+    """Rewrite a database pycolmap 4.x wrote in COLMAP 3.8's layout: the tables of 3.8 (no
+    rigs, frames or pose priors: pycolmap 4.x makes trivial ones when it opens the file, as
+    for any 3.x database; image pose priors empty, descriptor type dropped) with the same
+    rows. COLMAP 3.8 refuses 4.x's layout ("SQL logic error")."""
+    path = Path(path)
+    rebuilt = path.with_name(f"{path.name}.colmap38")
+    try:
+        with closing(sqlite3.connect(str(rebuilt))) as database:
+            for statement in _COLMAP38_TABLES:
+                database.execute(statement)
+            database.execute("ATTACH DATABASE ? AS old", (str(path),))
+            for table, columns in _COLMAP38_COLUMNS.items():
+                database.execute(f"INSERT INTO main.{table} ({columns}) SELECT {columns} FROM old.{table}")
+            database.commit()
+            database.execute("DETACH DATABASE old")
+        os.replace(rebuilt, path)
+    finally:
+        rebuilt.unlink(missing_ok=True)
 
 
 def _default_camera(pycolmap, view: View, camera_id: int):

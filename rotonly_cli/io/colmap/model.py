@@ -15,6 +15,7 @@ from rotonly_cli.errors import InputError
 from rotonly_cli.io import atomic
 from rotonly_cli.io.colmap.cameras import import_pycolmap, normalize_keypoints, pycolmap_camera, to_colmap_intrinsics
 from rotonly_cli.io.colmap.database import id_offset
+from rotonly_cli.io.colmap.model_check import check_model
 from rotonly_cli.io.detect import is_colmap_model
 from rotonly_cli.scene.types import Intrinsics, Pose, SfMScene, Structure, View
 
@@ -185,6 +186,7 @@ def _model_reconstruction(pycolmap, scene: SfMScene, workdir: Path):
     posed = [view_id for view_id in sorted(scene.views) if view_id in scene.poses]
     points, extra_points2D = _model_points(scene, posed)
     _reconstruction(pycolmap, scene, posed, extra_points2D).write_binary(str(workdir))
+    _check_written(workdir)
     images_path = workdir / "images.bin"
     images_path.write_bytes(_link_points2D(images_path.read_bytes(), points))
     (workdir / "points3D.bin").write_bytes(_points3D_bin(points))
@@ -214,6 +216,16 @@ def _observation_pixel(scene: SfMScene, point_index: int, row: int) -> np.ndarra
     return np.asarray(camera.img_from_cam(point_in_camera.reshape(1, 3)), dtype=np.float64)[0]
 
 
+def _check_written(folder: Path) -> None:
+    """pycolmap writes with C++ streams that ignore errors: on a full disk it leaves short
+    files and says nothing. The model it wrote is read back (model_check); a short one is the
+    OSError the write should have raised (ENOSPC when the file system is full, else EIO)."""
+    try:
+        check_model(folder)
+    except InputError as exc:
+        raise atomic.unreported_write_error(folder, f"pycolmap wrote an unreadable model ({exc})") from None
+
+
 def write_model(out_dir: PathLike, scene: SfMScene, binary: bool = True) -> None:
     """Write the posed views of ``scene`` as a COLMAP sparse model (cameras, images, points3D,
     rigs, frames; binary or text). Views without a pose are omitted. Staged in a temporary
@@ -228,6 +240,15 @@ def write_model(out_dir: PathLike, scene: SfMScene, binary: bool = True) -> None
             reconstruction.write_binary(str(staging))
         else:
             reconstruction.write_text(str(staging))
+        _check_written(staging)
+
+
+def to_reconstruction(scene: SfMScene):
+    """The posed views and the points of ``scene`` as a pycolmap.Reconstruction: the model
+    :func:`write_model` writes."""
+    pycolmap = import_pycolmap()
+    with tempfile.TemporaryDirectory(prefix="rotonly-model-") as workdir:
+        return _model_reconstruction(pycolmap, scene, Path(workdir))
 
 
 def read_model(path: PathLike) -> SfMScene:
@@ -240,10 +261,17 @@ def read_model(path: PathLike) -> SfMScene:
     if not is_colmap_model(path):
         raise InputError("not a COLMAP model (needs cameras, images, points3D .bin or .txt)",
                          path=str(path))
+    check_model(path)  # every file in a layout pycolmap reads: its own messages never reach the user
     try:
         reconstruction = pycolmap.Reconstruction(str(path))
-    except Exception as exc:  # pycolmap raises ValueError/RuntimeError on corrupt files
-        raise InputError(f"pycolmap cannot read the model ({exc})", path=str(path)) from None
+    except Exception:  # noqa: BLE001 - a disagreement check_model does not know; pycolmap's text is internal
+        raise InputError("pycolmap cannot read this model (its files disagree with each other)",
+                         path=str(path)) from None
+    return scene_from_reconstruction(reconstruction)
+
+
+def scene_from_reconstruction(reconstruction) -> SfMScene:
+    """A pycolmap.Reconstruction (in memory) as an SfMScene, as :func:`read_model` reads one."""
     scene = SfMScene(source="colmap-model")
     for camera_id, camera in reconstruction.cameras.items():
         scene.intrinsics[int(camera_id)] = Intrinsics(

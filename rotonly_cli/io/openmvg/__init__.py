@@ -20,13 +20,13 @@ from rotonly_cli.io.openmvg.cameras import (
 )
 from rotonly_cli.io.openmvg.features import read_feature_table, read_features, write_features
 from rotonly_cli.io.openmvg.matches import matches_bytes, read_matches, read_pairs, write_matches, write_pairs
-from rotonly_cli.io.openmvg.project import read_project, write_project
+from rotonly_cli.io.openmvg.project import image_root, project_files, read_project, write_project
 from rotonly_cli.io.openmvg.sfm_data import UNDEFINED_INDEX, read_sfm_data
 from rotonly_cli.io.openmvg.sfm_data_writer import sfm_data_bytes, sfm_data_document, write_sfm_data
 
 __all__ = [
     "INTRINSIC_DISTORTION_FIELDS", "PIXEL_OFFSET", "UNDEFINED_INDEX", "add_distortion", "distort_project",
-    "matches_bytes", "read_feature_table", "read_features", "read_matches", "read_pairs", "read_project",
-    "read_sfm_data", "remove_distortion", "sfm_data_bytes", "sfm_data_document", "undistort_normalize",
-    "write_features", "write_matches", "write_pairs", "write_project", "write_sfm_data",
+    "image_root", "matches_bytes", "project_files", "read_feature_table", "read_features", "read_matches",
+    "read_pairs", "read_project", "read_sfm_data", "remove_distortion", "sfm_data_bytes", "sfm_data_document",
+    "undistort_normalize", "write_features", "write_matches", "write_pairs", "write_project", "write_sfm_data",
 ]

@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import os
 import warnings
-from pathlib import Path
 
 import numpy as np
 
 from rotonly_cli.errors import InputError
-from rotonly_cli.io import atomic
+from rotonly_cli.io import atomic, inputs
 from rotonly_cli.io.openmvg.cameras import to_colmap_pixels, to_openmvg_pixels
 
 PathLike = str | os.PathLike
@@ -18,10 +17,8 @@ PathLike = str | os.PathLike
 # ============================================================================ .feat files
 
 def read_bytes(path: PathLike) -> bytes:
-    path = Path(path)
-    if not path.is_file():
-        raise InputError("file not found", path=str(path))
-    return path.read_bytes()
+    """The content of a regular file (io/inputs: pipes and devices are refused unopened)."""
+    return inputs.read_bytes(path)
 
 
 def _tokens_per_line(payload: bytes) -> tuple[np.ndarray, int]:
@@ -65,8 +62,21 @@ def read_feature_table(path: PathLike) -> np.ndarray:
     except ValueError:
         values = np.zeros(0)
     if values.size != num_tokens or not np.all(np.isfinite(values)):
-        raise InputError("non-numeric or non-finite value", path=str(path))
+        raise InputError("non-numeric or non-finite value", path=str(path), field=_first_bad_line(payload))
     return values.reshape(-1, 4)
+
+
+def _first_bad_line(payload: bytes) -> str | None:
+    """``line N`` of the first value that is not a finite number (the error path only)."""
+    for number, line in enumerate(payload.decode("ascii", errors="replace").splitlines(), start=1):
+        for token in line.split():
+            try:
+                finite = np.isfinite(float(token))
+            except ValueError:
+                finite = False
+            if not finite:
+                return f"line {number}"
+    return None
 
 
 def read_features(path: PathLike) -> np.ndarray:

@@ -10,6 +10,7 @@ import numpy as np
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.io import atomic
+from rotonly_cli.io.inputs import check_regular_file
 from rotonly_cli.io.openmvg.cameras import undistort_normalize
 from rotonly_cli.io.openmvg.features import read_features, write_features
 from rotonly_cli.io.openmvg.matches import read_matches, write_matches
@@ -86,9 +87,43 @@ def _choose_match_file(matches_dir: Path, matches_file: PathLike | None) -> Path
             raise InputError("matches file not found", path=str(candidate))
         return candidate
     for name, _, _ in _MATCH_FILE_PREFERENCE:
-        if (matches_dir / name).is_file():
+        if os.path.lexists(matches_dir / name):
+            check_regular_file(matches_dir / name)  # a pipe or a dangling link is an error, not "no file"
             return matches_dir / name
     return None
+
+
+def image_root(root_path: str, sfm_data_path: PathLike) -> Path | None:
+    """The image folder of an sfm_data file, found the way OpenMVG's tools find it:
+    ``root_path`` as written, a relative one from the current directory (formats.md §1.1);
+    when that is no folder, relative to the sfm_data file's folder (a project moved, or used
+    from another directory). None for an empty ``root_path``."""
+    if not root_path:
+        return None
+    root = Path(root_path)
+    if root.is_absolute() or root.is_dir():
+        return root
+    beside = Path(sfm_data_path).parent / root
+    return beside if beside.is_dir() else root
+
+
+def _matches_dir(sfm_data_path: PathLike, matches_dir: PathLike | None, matches_file: PathLike | None) -> Path:
+    if matches_dir is not None:
+        return Path(matches_dir)
+    return (Path(matches_file).parent if matches_file is not None and Path(matches_file).is_file()
+            else Path(sfm_data_path).parent)
+
+
+def project_files(scene: SfMScene, sfm_data_path: PathLike, matches_dir: PathLike | None = None,
+                  matches_file: PathLike | None = None) -> tuple[list[str], str | None]:
+    """The files :func:`read_project` reads for ``scene``: (the sfm_data file, each view's
+    ``.feat`` and the matches file when there is one, in that order; the matches file)."""
+    folder = _matches_dir(sfm_data_path, matches_dir, matches_file)
+    files = [str(sfm_data_path)] + [str(folder / f"{_feature_stem(scene.views[v])}.feat") for v in sorted(scene.views)]
+    match_path = _choose_match_file(folder, matches_file) if folder.is_dir() else None
+    if match_path is None:
+        return files, None
+    return files + [str(match_path)], str(match_path)
 
 
 def read_project(sfm_data_path: PathLike, matches_dir: PathLike | None = None,
@@ -100,10 +135,7 @@ def read_project(sfm_data_path: PathLike, matches_dir: PathLike | None = None,
     matches.putative.* is used (e/f -> verified, config "E"/"F"; putative -> unverified).
     """
     scene = read_sfm_data(sfm_data_path)
-    if matches_dir is None:
-        matches_dir = (Path(matches_file).parent if matches_file is not None
-                       and Path(matches_file).is_file() else Path(sfm_data_path).parent)
-    matches_dir = Path(matches_dir)
+    matches_dir = _matches_dir(sfm_data_path, matches_dir, matches_file)
     if not matches_dir.is_dir():
         raise InputError("matches directory not found", path=str(matches_dir))
 

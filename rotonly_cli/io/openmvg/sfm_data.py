@@ -3,14 +3,13 @@ names the file and the field of every error."""
 
 from __future__ import annotations
 
-import json
 import os
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from rotonly_cli.errors import InputError
+from rotonly_cli.io.inputs import Oversized, check_camera, load_json
 from rotonly_cli.io.openmvg.cameras import INTRINSIC_DISTORTION_FIELDS, to_colmap_pixels
 from rotonly_cli.scene.types import Intrinsics, Pose, SfMScene, Structure, View
 
@@ -25,6 +24,12 @@ CEREAL_MSB = 0x80000000  # msb_32bit: first occurrence of a name / of a pointed-
 
 
 # ======================================================================== sfm_data.json: reading
+
+def _shown(value: Any) -> str:
+    """``repr(value)``, cut to a readable length for error messages."""
+    text = repr(value)
+    return text if len(text) <= 60 else f"{text[:45]}... ({len(text)} characters)"
+
 
 class _JsonFields:
     """Typed access to a parsed JSON object; errors name the file and a field path."""
@@ -45,7 +50,8 @@ class _JsonFields:
     def typed(self, obj: Any, key: str, where: str, kind: type, label: str) -> Any:
         value = self.member(obj, key, where)
         if not isinstance(value, kind):
-            raise self.fail(f"{where}.{key}" if where else key, f"expected {label}, got {type(value).__name__}")
+            got = _shown(value) if isinstance(value, Oversized) else type(value).__name__
+            raise self.fail(f"{where}.{key}" if where else key, f"expected {label}, got {got}")
         return value
 
     def array(self, obj: Any, key: str, where: str) -> list:
@@ -55,25 +61,39 @@ class _JsonFields:
         # cereal reads unsigned fields with rapidjson GetUint(): JSON integers only (§1.2).
         value = self.member(obj, key, where)
         if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 0xFFFFFFFF:
-            raise self.fail(f"{where}.{key}", f"expected an unsigned 32-bit integer, got {value!r}")
+            raise self.fail(f"{where}.{key}", f"expected an unsigned 32-bit integer, got {_shown(value)}")
         return value
 
     def string(self, obj: Any, key: str, where: str) -> str:
         return self.typed(obj, key, where, str, "a string")
 
     def number(self, obj: Any, key: str, where: str) -> float:
+        """A finite JSON number (cereal writes no NaN or infinity)."""
         value = self.member(obj, key, where)
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise self.fail(f"{where}.{key}", f"expected a number, got {value!r}")
+        field = f"{where}.{key}" if where else key
+        if type(value) not in (int, float):  # bool, str, null, Oversized ...
+            raise self.fail(field, f"expected a number, got {_shown(value)}")
+        if not np.isfinite(float(value)):
+            raise self.fail(field, f"{value!r} is not a finite number")
         return float(value)
 
     def numbers(self, obj: Any, key: str, where: str, length: int | None = None) -> np.ndarray:
-        value = self.array(obj, key, where)
-        if any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in value):
-            raise self.fail(f"{where}.{key}", "expected an array of numbers")
+        """An array of finite JSON numbers (of ``length`` if given)."""
+        return self.number_list(self.member(obj, key, where), f"{where}.{key}" if where else key, length)
+
+    def number_list(self, value: Any, field: str, length: int | None = None) -> np.ndarray:
+        if not isinstance(value, list):
+            raise self.fail(field, f"expected an array, got {type(value).__name__}")
         if length is not None and len(value) != length:
-            raise self.fail(f"{where}.{key}", f"expected {length} numbers, got {len(value)}")
-        return np.array(value, dtype=np.float64)
+            raise self.fail(field, f"expected {length} numbers, got {len(value)}")
+        for k, v in enumerate(value):
+            if type(v) not in (int, float):  # bool, str, null, Oversized ...
+                raise self.fail(f"{field}[{k}]", f"expected a number, got {_shown(v)}")
+        array = np.array(value, dtype=np.float64)
+        if not np.all(np.isfinite(array)):
+            k = int(np.flatnonzero(~np.isfinite(array))[0])
+            raise self.fail(f"{field}[{k}]", f"{value[k]!r} is not a finite number")
+        return array
 
     def map_items(self, obj: Any, key: str) -> list[tuple[int, Any, str]]:
         """A cereal map: array of {"key": k, "value": v} -> [(k, v, field path)]; read by key,
@@ -131,17 +151,6 @@ class _PolymorphicReader:
         return self.pointers[ptr_id]
 
 
-def _load_json(path: PathLike) -> Any:
-    path = Path(path)
-    if not path.is_file():
-        raise InputError("file not found", path=str(path))
-    try:
-        with open(path, "rb") as handle:
-            return json.loads(handle.read())
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise InputError(f"malformed JSON ({error})", path=str(path)) from None
-
-
 def _read_intrinsic(fields: _JsonFields, intrinsic_id: int, model: str, data: dict,
                     where: str) -> Intrinsics:
     if model not in INTRINSIC_DISTORTION_FIELDS:
@@ -157,7 +166,13 @@ def _read_intrinsic(fields: _JsonFields, intrinsic_id: int, model: str, data: di
     distortion = (fields.numbers(data, distortion_field, where_data, num_distortion)
                   if distortion_field else np.zeros(0))
     params = np.concatenate([[focal], to_colmap_pixels(principal_point), distortion])
+    check_camera(fields.path, where_data, width, height, [focal], principal_point, params)
     return Intrinsics(intrinsic_id, model, width, height, params)
+
+
+def _is_rotation(R: np.ndarray, tolerance: float = 1e-3) -> bool:
+    """Orthonormal with determinant +1 up to ``tolerance`` (OpenMVG writes them to ~1e-15)."""
+    return bool(np.abs(R @ R.T - np.eye(3)).max() < tolerance and np.linalg.det(R) > 0)
 
 
 def read_sfm_data(path: PathLike) -> SfMScene:
@@ -167,7 +182,7 @@ def read_sfm_data(path: PathLike) -> SfMScene:
     ``View.pose_id`` keeps OpenMVG's pose id. Control points are not read.
     """
     fields = _JsonFields(path)
-    document = _load_json(path)
+    document = load_json(path)
     if not isinstance(document, dict):
         raise fields.fail("", "expected a JSON object at the top level")
     fields.string(document, "sfm_data_version", "")
@@ -191,6 +206,9 @@ def read_sfm_data(path: PathLike) -> SfMScene:
             width=fields.uint(data, "width", where_data),
             height=fields.uint(data, "height", where_data),
         )
+        for size in ("width", "height"):
+            if getattr(scene.views[view_id], size) == 0:
+                raise fields.fail(f"{where_data}.{size}", "0: an image size must be > 0")
 
     for intrinsic_id, value, where in fields.map_items(document, "intrinsics"):
         model = poly.type_name(value, where, "IntrinsicBase")
@@ -200,13 +218,12 @@ def read_sfm_data(path: PathLike) -> SfMScene:
     poses_by_pose_id: dict[int, Pose] = {}
     for pose_id, value, where in fields.map_items(document, "extrinsics"):
         rotation = fields.array(value, "rotation", where)
-        if len(rotation) != 3 or not all(isinstance(row, list) and len(row) == 3
-                                         for row in rotation):
+        if len(rotation) != 3:
             raise fields.fail(where + ".rotation", "expected 3 rows of 3 numbers")
-        try:
-            R_cam_from_world = np.array(rotation, dtype=np.float64)  # row-major (§1.5)
-        except (TypeError, ValueError):
-            raise fields.fail(where + ".rotation", "expected numbers") from None
+        R_cam_from_world = np.stack([fields.number_list(row, f"{where}.rotation[{r}]", 3)
+                                     for r, row in enumerate(rotation)])  # row-major (§1.5)
+        if not _is_rotation(R_cam_from_world):
+            raise fields.fail(where + ".rotation", "not a rotation matrix (R Rᵀ = I, det R = 1)")
         center = fields.numbers(value, "center", where, 3)
         poses_by_pose_id[pose_id] = Pose(R_cam_from_world, center)
     for view in scene.views.values():

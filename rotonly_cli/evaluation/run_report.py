@@ -1,0 +1,520 @@
+"""``OUT/report.html``: what a run did, on every run, in one self-contained page.
+
+Written with the workspace (``rotonly run``, ``rotonly identify`` and the stage commands) from
+the run's ``reports/*.json`` as written (so its numbers are theirs, and keys added to a report
+later appear without code here), the view graph and the output scene: a summary, the time
+per stage, the intrinsics before and after, reprojection errors and observation counts per
+image, histograms of the residuals and track lengths, the view graph with its filtered edges
+coloured by reason, a top view of the cameras, the ground-truth comparison with ``--gt``, and
+every stage report. Figures are SVG (evaluation/svg.py) or the eval PNGs, embedded as data URIs.
+
+Every number taken from a report carries ``data-source="<report>.<key>[.<key>...]"`` (list
+items by index), which is how the tests compare the page with ``reports/*.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from html import escape
+from pathlib import Path
+
+import numpy as np
+
+from rotonly_cli import __version__
+from rotonly_cli.evaluation import svg
+from rotonly_cli.scene.types import Intrinsics, SfMScene
+
+REPORT_FILE = "report.html"
+#: list items shown of a report value (the JSON file has them all)
+MAX_LIST_ITEMS = 24
+MAX_TABLE_ROWS = 300
+TOP_VIEW_POINTS = 4000
+
+
+# ============================================================================ statistics (reports/export.json)
+
+@dataclass
+class StructureStatistics:
+    """Reprojection errors and observation counts of an output scene. ``report`` is
+    reports/export.json's body; ``residuals_px`` every observation's error (for the histogram)."""
+
+    report: dict
+    residuals_px: np.ndarray
+
+
+def _focal_px(intrinsics: Intrinsics | None) -> float:
+    if intrinsics is None:
+        return float("nan")
+    from rotonly_cli.stages.load import focal_length
+
+    return focal_length(intrinsics)
+
+
+def _stats(values: np.ndarray) -> dict | None:
+    values = values[np.isfinite(values)]
+    if not values.size:
+        return None
+    return {"mean": float(values.mean()), "median": float(np.median(values)), "max": float(values.max()),
+            "rmse": float(np.sqrt(np.mean(values ** 2)))}
+
+
+def structure_statistics(scene: SfMScene, view_ids: list[int]) -> StructureStatistics:
+    """Per observation the distance between the keypoint and its point's projection, in
+    pixels of the undistorted image (normalized residual x focal length), and per view the
+    number of observations, for the views ``view_ids``."""
+    residuals = np.zeros(0)
+    per_view_errors: dict[int, np.ndarray] = {}
+    track_lengths = np.zeros(0, dtype=np.int64)
+    structure = scene.structure
+    if structure is not None and len(structure.points):
+        track_lengths, view_feature = structure.flat_observations()
+        track_lengths = np.asarray(track_lengths, dtype=np.int64)
+        point_of = np.repeat(np.arange(len(track_lengths)), track_lengths)
+        residuals = np.full(len(view_feature), np.nan)
+        points = np.asarray(structure.points, dtype=float)
+        by_view = np.argsort(view_feature[:, 0], kind="stable")  # observations grouped by view
+        views, first = np.unique(view_feature[by_view, 0], return_index=True)
+        for view_id, rows in zip(views.tolist(), np.split(by_view, first[1:])):
+            pose, observed = scene.poses.get(view_id), scene.normalized.get(view_id)
+            if pose is None or observed is None:
+                continue
+            x_cam = (points[point_of[rows]] - pose.center) @ np.asarray(pose.R_cam_from_world).T
+            with np.errstate(all="ignore"):
+                projected = x_cam[:, :2] / x_cam[:, 2:3]
+            error = np.linalg.norm(projected - observed[view_feature[rows, 1]], axis=1)
+            view = scene.views.get(view_id)
+            residuals[rows] = error * _focal_px(scene.intrinsics.get(view.intrinsics_id) if view else None)
+            per_view_errors[view_id] = residuals[rows]
+    per_view = []
+    for view_id in view_ids:
+        errors = per_view_errors.get(view_id, np.zeros(0))
+        stats = _stats(errors)
+        per_view.append({"id": int(view_id), "name": scene.views[view_id].name if view_id in scene.views else "",
+                         "registered": view_id in scene.poses, "num_observations": int(errors.size),
+                         "reprojection_error_px": None if stats is None else
+                         {k: stats[k] for k in ("mean", "median", "max")}})
+    lengths, counts = np.unique(track_lengths, return_counts=True)
+    report = {"num_views": len(view_ids), "num_registered": sum(1 for v in view_ids if v in scene.poses),
+              "num_points": int(len(track_lengths)), "num_observations": int(residuals.size),
+              "reprojection_error_px": _stats(residuals),
+              "track_lengths": {str(int(n)): int(c) for n, c in zip(lengths, counts)},
+              "root_path": scene.root_path, "per_view": per_view}
+    return StructureStatistics(report, residuals)
+
+
+# ============================================================================ reading the reports
+
+def read_reports(reports_dir: Path, stages_done: list[str]) -> dict[str, dict]:
+    """reports/<name>.json as written, in chain order (pipeline.STAGES, then export): the
+    stages done (a stage command leaves the later stages' files of an earlier run: stale, left
+    out), export only after triangulation, any other report, ``run`` last."""
+    found = {path.stem: path for path in sorted(reports_dir.glob("*.json"))} if reports_dir.is_dir() else {}
+    from rotonly_cli.pipeline import STAGES
+
+    def current(name: str) -> bool:
+        if name in STAGES:
+            return name in stages_done
+        return name != "export" or stages_done[-1:] == ["triangulate"]
+
+    order = (*STAGES, "export")
+    names = [n for n in order if n in found] + sorted(set(found) - set(order) - {"run"})
+    names += ["run"] if "run" in found else []
+    reports = {}
+    for name in names:
+        if current(name):
+            try:
+                reports[name] = json.loads(found[name].read_text())
+            except (OSError, ValueError):
+                continue
+    return reports
+
+
+# ============================================================================ HTML pieces
+
+def _fmt(value) -> str:
+    if value is None:
+        return "–"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
+def _get(reports: dict, path: str):
+    """The value at ``report.key.key...`` (list items by index), None when absent."""
+    value = reports
+    for key in path.split("."):
+        if isinstance(value, dict):
+            value = value.get(key)
+        elif isinstance(value, list) and key.isdigit() and int(key) < len(value):
+            value = value[int(key)]
+        else:
+            return None
+    return value
+
+
+def _num(reports: dict, path: str, suffix: str = "") -> str:
+    """A report number as a table cell's content, tagged with where it comes from."""
+    value = _get(reports, path)
+    if value is None or isinstance(value, (dict, list)):
+        return "–"
+    return f'<span data-source="{escape(path)}">{escape(_fmt(value))}</span>{suffix}'
+
+
+def _table(header: list[str] | None, rows: list[list[str]], cls: str = "") -> str:
+    head = "" if header is None else "<tr>" + "".join(f"<th>{escape(h)}</th>" for h in header) + "</tr>"
+    body = "\n".join("<tr>" + "".join(f"<td>{c}</td>" for c in row) + "</tr>" for row in rows)
+    return f'<table class="{cls}">{head}\n{body}\n</table>'
+
+
+def _figure(uri: str, caption: str, figure_id: str) -> str:
+    return (f'<figure id="{figure_id}"><img src="{uri}" alt="{escape(caption)}">'
+            f"<figcaption>{escape(caption)}</figcaption></figure>")
+
+
+def _value_html(value, path: str) -> str:
+    """A report value of any shape: scalars tagged with their path, dicts as nested tables,
+    lists of scalars inline (shortened), lists of dicts as tables."""
+    if isinstance(value, dict):
+        if not value:
+            return "{}"
+        rows = [[escape(str(k)), _value_html(v, f"{path}.{k}")] for k, v in value.items()]
+        return _table(["key", "value"], rows, "nested")
+    if isinstance(value, list):
+        if value and all(isinstance(v, dict) for v in value):
+            keys = list(dict.fromkeys(k for v in value for k in v))
+            rows = [[_value_html(v.get(k), f"{path}.{i}.{k}") for k in keys]
+                    for i, v in enumerate(value[:MAX_TABLE_ROWS])]
+            more = (f"<p>… {len(value) - MAX_TABLE_ROWS} more rows in the JSON file</p>"
+                    if len(value) > MAX_TABLE_ROWS else "")
+            return _table(keys, rows, "nested") + more
+        shown = ", ".join(_value_html(v, f"{path}.{i}") for i, v in enumerate(value[:MAX_LIST_ITEMS]))
+        more = f", … ({len(value)} items)" if len(value) > MAX_LIST_ITEMS else ""
+        return f"[{shown}{more}]"
+    return f'<span data-source="{escape(path)}">{escape(_fmt(value))}</span>'
+
+
+# ============================================================================ figures
+
+def _per_view_figures(per_view: list[dict]) -> list[str]:
+    registered = [v for v in per_view if v["registered"]]
+    if not registered:
+        return []
+    names = [v["name"] or str(v["id"]) for v in registered]
+    x = np.arange(len(registered))
+    width = int(min(1400, max(640, 60 + 18 * len(registered))))
+    median = np.array([(v["reprojection_error_px"] or {}).get("median", np.nan) for v in registered], dtype=float)
+    mean = np.array([(v["reprojection_error_px"] or {}).get("mean", np.nan) for v in registered], dtype=float)
+    top = float(np.nanmax(np.concatenate([mean, median, [0.0]]))) or 1.0
+    chart = svg.Chart(width, 360, (-0.6, len(registered) - 0.4), (0.0, 1.1 * top), categories=names,
+                      title="Reprojection error per image", ylabel="pixels (undistorted)")
+    chart.bars(x, median, width=0.4, offset=-0.2, color=svg.PALETTE[0], label="median")
+    chart.bars(x, mean, width=0.4, offset=0.2, color=svg.PALETTE[1], label="mean")
+    counts = np.array([v["num_observations"] for v in registered], dtype=float)
+    observations = svg.Chart(width, 340, (-0.6, len(registered) - 0.4), (0.0, 1.1 * max(counts.max(), 1.0)),
+                             categories=names, title="Observations per image (3D points seen)", ylabel="observations")
+    observations.bars(x, counts, color=svg.PALETTE[2])
+    return [_figure(svg.data_uri(chart.svg()), "Reprojection error per image (median, mean)", "fig-per-image-error"),
+            _figure(svg.data_uri(observations.svg()), "Observations per image", "fig-per-image-observations")]
+
+
+def _residual_histogram(residuals: np.ndarray) -> str | None:
+    residuals = residuals[np.isfinite(residuals)]
+    if not residuals.size:
+        return None
+    upper = float(np.quantile(residuals, 0.99)) or float(residuals.max()) or 1.0
+    edges = np.linspace(0.0, upper, 41)
+    counts, _ = np.histogram(np.minimum(residuals, upper), bins=edges)
+    chart = svg.Chart(640, 320, (0.0, upper), (0.0, 1.1 * counts.max()), title="Reprojection error of the observations",
+                      xlabel=f"pixels (last bin: >= {upper:.3g}, the 99th percentile)", ylabel="observations")
+    chart.bars((edges[:-1] + edges[1:]) / 2, counts, width=edges[1] - edges[0], color=svg.PALETTE[0])
+    return _figure(svg.data_uri(chart.svg()), "Histogram of the reprojection errors", "fig-residuals")
+
+
+def _track_histogram(track_lengths: dict) -> str | None:
+    if not track_lengths:
+        return None
+    lengths = np.array([int(k) for k in track_lengths])
+    counts = np.array([track_lengths[k] for k in track_lengths], dtype=float)
+    chart = svg.Chart(640, 320, (lengths.min() - 0.6, lengths.max() + 0.6), (0.0, 1.1 * counts.max()),
+                      title="Track lengths of the points", xlabel="views observing the point", ylabel="points")
+    chart.bars(lengths, counts, color=svg.PALETTE[2])
+    return _figure(svg.data_uri(chart.svg()), "Histogram of the track lengths", "fig-track-lengths")
+
+
+def _view_graph_figure(graph) -> str | None:
+    view_ids = graph.view_ids()
+    if len(view_ids) < 2:
+        return None
+    angle = np.pi / 2 - 2 * np.pi * np.arange(len(view_ids)) / len(view_ids)
+    position = {v: (np.cos(a), np.sin(a)) for v, a in zip(view_ids, angle)}
+    chart = svg.Chart(720, 640, (-1.35, 1.35), (-1.25, 1.25), title="View graph: edges by status (filtered: reason)",
+                      equal=True, axes=False, margins=(10, 10, 30, 10))
+    groups: dict[str, list] = {}
+    for edge in graph.edges:
+        if edge.status == "active":
+            key = f"active {edge.scene_kind}" if edge.scene_kind else "active"
+        else:
+            key = edge.reason or "filtered"
+        groups.setdefault(key, []).append(edge)
+    active = sorted(k for k in groups if k.startswith("active"))
+    filtered = sorted((k for k in groups if not k.startswith("active")), key=lambda k: -len(groups[k]))
+    colours = {"active": "#9aa7b8", "active REGULAR": "#9aa7b8", "active PURE_ROTATION": svg.PALETTE[4]}
+    width = 1.2 if len(graph.edges) < 400 else 0.5
+    for k, key in enumerate(active + filtered):
+        edges = groups[key]
+        colour = colours.get(key, svg.PALETTE[[3, 1, 5, 6, 8, 9, 0, 2][k % 8]] if key in filtered else svg.PALETTE[7])
+        x0, y0 = zip(*(position[e.i] for e in edges))
+        x1, y1 = zip(*(position[e.j] for e in edges))
+        chart.segments(x0, y0, x1, y1, color=colour, width=width if key in active else 1.6,
+                       dashed=key in filtered, label=f"{key} ({len(edges)})",
+                       opacity=0.6 if key in active else 0.9)
+    unregistered = set(graph.unregistered_views)
+    names = [graph.views[v].name for v in view_ids]
+    xy = np.array([position[v] for v in view_ids])
+    colour_of = np.array([v in unregistered for v in view_ids])
+    for mask, colour, label in ((~colour_of, svg.PALETTE[0], "view"),
+                                (colour_of, svg.PALETTE[3], "view outside the largest component")):
+        if mask.any():
+            chart.points(xy[mask, 0], xy[mask, 1], color=colour, radius=4 if len(view_ids) < 200 else 2,
+                         label=label, titles=[n for n, m in zip(names, mask) if m])
+    if len(view_ids) <= 60:
+        for (x, y), name in zip(xy, names):
+            chart.text(1.08 * x - (0.12 if x < -0.2 else 0.0), 1.08 * y, name, size=9)
+    return _figure(svg.data_uri(chart.svg()), "View graph (views on a circle in id order)", "fig-view-graph")
+
+
+def top_view_axes(R_cam_from_world: np.ndarray) -> np.ndarray:
+    """(2, 3) world directions of a top view: right and forward of the cameras, on the plane
+    normal to their mean up direction (image y points down, so up is -y)."""
+    R = np.asarray(R_cam_from_world, dtype=float)
+    up = -R[:, 1, :].mean(axis=0)
+    forward = R[:, 2, :].mean(axis=0)
+    up /= np.linalg.norm(up) or 1.0
+    forward = forward - (forward @ up) * up
+    if np.linalg.norm(forward) < 1e-9:
+        forward = np.cross(up, [1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.cross(up, [0.0, 1.0, 0.0])
+    forward /= np.linalg.norm(forward)
+    return np.stack([np.cross(forward, up), forward])
+
+
+def _top_view_figure(scene: SfMScene) -> str | None:
+    posed = sorted(scene.poses)
+    if len(posed) < 2:
+        return None
+    R = np.stack([scene.poses[v].R_cam_from_world for v in posed])
+    centres = np.stack([scene.poses[v].center for v in posed])
+    axes = top_view_axes(R)
+    c2 = centres @ axes.T
+    extent = float(np.ptp(c2, axis=0).max()) or 1.0
+    points2 = np.zeros((0, 2))
+    if scene.structure is not None and len(scene.structure.points):
+        points = np.asarray(scene.structure.points, dtype=float)
+        step = max(1, len(points) // TOP_VIEW_POINTS)
+        points2 = points[::step] @ axes.T
+        # the points' bulk, so that a few far points do not shrink the cameras to a dot
+        low, high = np.quantile(points2, 0.02, axis=0), np.quantile(points2, 0.98, axis=0)
+        points2 = points2[np.all((points2 >= low) & (points2 <= high), axis=1)]
+    both = np.concatenate([c2, points2]) if len(points2) else c2
+    pad = 0.08 * (float(np.ptp(both, axis=0).max()) or 1.0)
+    chart = svg.Chart(720, 620, (both[:, 0].min() - pad, both[:, 0].max() + pad),
+                      (both[:, 1].min() - pad, both[:, 1].max() + pad), title="Cameras and points, top view",
+                      xlabel="right (world units)", ylabel="forward (world units)", equal=True)
+    if len(points2):
+        chart.points(points2[:, 0], points2[:, 1], color="#b0b0b0", radius=1.0, opacity=0.6,
+                     label=f"points (1 in {step})" if step > 1 else "points")
+    direction = (R[:, 2, :] @ axes.T)
+    norm = np.linalg.norm(direction, axis=1, keepdims=True)
+    tips = c2 + 0.08 * extent * direction / np.where(norm > 0, norm, 1.0)
+    chart.segments(c2[:, 0], c2[:, 1], tips[:, 0], tips[:, 1], color=svg.PALETTE[3], width=1.5,
+                   label="viewing direction")
+    names = [scene.views[v].name for v in posed]
+    chart.points(c2[:, 0], c2[:, 1], color=svg.PALETTE[0], radius=3.5, label="camera centres", titles=names)
+    if len(posed) <= 40:
+        for (x, y), name in zip(c2, names):
+            chart.text(x, y, name, size=9)
+    return _figure(svg.data_uri(chart.svg()), "Camera centres and viewing directions, top view (estimated)",
+                   "fig-top-view")
+
+
+# ============================================================================ sections
+
+def _summary(reports: dict, graph) -> str:
+    counts = graph.counts()
+    reasons = counts.get("filtered_by_reason", {})
+    rows = [
+        ["views registered", _num(reports, "run.num_registered") + " of " + _num(reports, "run.num_views")
+         if "num_registered" in reports.get("run", {}) else "– of " + _num(reports, "load.num_views")],
+        ["points", _num(reports, "run.num_points")],
+        ["observations", _num(reports, "export.num_observations")],
+        ["edges active", _num(reports, "run.num_active_edges") + " of " + _num(reports, "load.num_pairs")],
+        ["edges filtered", ", ".join(f"{escape(r)}: {n}" for r, n in sorted(reasons.items())) or "none"],
+        ["views outside the largest component", escape(", ".join(map(str, counts["unregistered_views"]))) or "none"],
+        ["reprojection error [px]", "median " + _num(reports, "export.reprojection_error_px.median") + ", mean "
+         + _num(reports, "export.reprojection_error_px.mean") + ", RMSE "
+         + _num(reports, "export.reprojection_error_px.rmse") + ", max "
+         + _num(reports, "export.reprojection_error_px.max")],
+        ["rotation error vs ground truth [deg]", "mean " + _num(reports, "run.rotation_error_deg.mean") + ", median "
+         + _num(reports, "run.rotation_error_deg.median") if _get(reports, "run.rotation_error_deg") else "no --gt"],
+        ["total time", _num(reports, "run.time_s", " s")],
+    ]
+    return _table(None, rows, "summary")
+
+
+def _timings(reports: dict) -> str:
+    rows = []
+    total = _get(reports, "run.time_s") or 0.0
+    for name, report in reports.items():
+        if name == "run" or not isinstance(report.get("time_s"), (int, float)):
+            continue
+        share = 100.0 * report["time_s"] / total if total else 0.0
+        rows.append([escape(name), _num(reports, f"{name}.time_s"),
+                     f'<span class="bar" style="width:{min(share, 100):.0f}%"></span> {share:.0f} %'])
+    if "time_s" in reports.get("run", {}):
+        rows.append(["<b>run (total, with reading and writing)</b>", _num(reports, "run.time_s"), ""])
+    return _table(["stage", "time [s]", "share of the run"], rows, "timings")
+
+
+def _intrinsics(before: dict, after: dict) -> str:
+    ids = sorted(set(before) | set(after))
+    if not ids:
+        return "<p>No intrinsics.</p>"
+    rows = []
+    for k in ids:
+        first, last = before.get(k), after.get(k)
+
+        def cell(intrinsics: Intrinsics | None) -> str:
+            if intrinsics is None:
+                return "–"
+            params = ", ".join(f"{p:.6g}" for p in np.asarray(intrinsics.params, dtype=float).ravel())
+            return f"{escape(intrinsics.model)} {intrinsics.width}×{intrinsics.height}: {params}"
+
+        changed = first is None or last is None or first.model != last.model or not np.array_equal(
+            np.asarray(first.params, dtype=float), np.asarray(last.params, dtype=float))
+        rows.append([str(k), cell(first), cell(last), "changed" if changed else "unchanged"])
+    return _table(["camera", "before (input)", "after (written to sparse/)", ""], rows, "intrinsics")
+
+
+def _per_view_table(reports: dict) -> str:
+    per_view = _get(reports, "export.per_view") or []
+    rows = []
+    for k, view in enumerate(per_view[:MAX_TABLE_ROWS]):
+        base = f"export.per_view.{k}"
+        rows.append([escape(view.get("name", "")), _num(reports, f"{base}.id"), _num(reports, f"{base}.registered"),
+                     _num(reports, f"{base}.num_observations"),
+                     _num(reports, f"{base}.reprojection_error_px.median"),
+                     _num(reports, f"{base}.reprojection_error_px.mean"),
+                     _num(reports, f"{base}.reprojection_error_px.max")])
+    more = (f"<p>… {len(per_view) - MAX_TABLE_ROWS} more images in reports/export.json</p>"
+            if len(per_view) > MAX_TABLE_ROWS else "")
+    return _table(["image", "id", "registered", "observations", "median [px]", "mean [px]", "max [px]"], rows,
+                  "per-view") + more
+
+
+def _filtered_edges(graph) -> str:
+    filtered = [e for e in graph.edges if e.status != "active"]
+    if not filtered:
+        return "<p>No edge was filtered.</p>"
+    def name(view_id: int) -> str:
+        view = graph.views.get(view_id)
+        return escape(f"{view_id} ({view.name})" if view is not None else str(view_id))
+
+    rows = [[name(e.i), name(e.j), str(e.num_inliers), escape(e.reason)] for e in filtered[:MAX_TABLE_ROWS]]
+    more = (f"<p>… {len(filtered) - MAX_TABLE_ROWS} more in view_graph.json</p>"
+            if len(filtered) > MAX_TABLE_ROWS else "")
+    return _table(["view i", "view j", "inliers", "reason"], rows, "edges") + more
+
+
+def _ground_truth(directory: Path) -> str:
+    """The --gt comparison of OUT/eval/ (report.json and its PNG figures)."""
+    eval_dir = directory / "eval"
+    try:
+        evaluation = json.loads((eval_dir / "report.json").read_text())
+    except (OSError, ValueError):
+        return ""
+    from rotonly_cli.evaluation.report import FIGURES
+
+    rows = []
+    for key, label in (("rotation_error_deg", "rotation error (geodesic) [deg]"),
+                       ("relative_rotation_error_deg", "relative rotation error [deg]"),
+                       ("position_error", "position error [GT units]")):
+        stats = evaluation.get(key) or {}
+        rows.append([escape(label)] + [escape(_fmt(stats.get(s))) for s in ("min", "mean", "median", "max")])
+    figures = []
+    for name, caption in FIGURES.items():
+        if (eval_dir / name).is_file():
+            figures.append(_figure(svg.png_data_uri((eval_dir / name).read_bytes()), caption,
+                                   f"fig-gt-{Path(name).stem}"))
+    head = (f"<p>Ground truth <code>{escape(str(evaluation.get('gt_path', '')))}</code>: "
+            f"{escape(_fmt(evaluation.get('num_matched')))} of {escape(_fmt(evaluation.get('num_gt')))} cameras "
+            f'matched by image name. Full report: <a href="eval/report.html">eval/report.html</a>.</p>')
+    return ("<h2>Ground truth (--gt)</h2>" + head
+            + _table(["metric", "min", "mean", "median", "max"], rows, "gt") + "\n".join(figures))
+
+
+# ============================================================================ page
+
+STYLE = """
+body { font-family: sans-serif; margin: 2em auto; max-width: 1440px; padding: 0 1em; color: #222; }
+table { border-collapse: collapse; margin: 0.6em 0; }
+td, th { border: 1px solid #ccc; padding: 0.2em 0.55em; text-align: right; vertical-align: top; }
+td:first-child, th:first-child { text-align: left; }
+th { background: #eee; }
+table.summary td:first-child { font-weight: bold; }
+table.nested { margin: 0; font-size: 0.92em; }
+table.intrinsics td, table.nested td { text-align: left; }
+figure { display: inline-block; margin: 0.6em 1.2em 0.6em 0; vertical-align: top; }
+figcaption { font-size: 0.85em; color: #555; }
+img { max-width: 100%; border: 1px solid #ddd; }
+span.bar { display: inline-block; height: 0.7em; background: #1f77b4; vertical-align: middle; max-width: 12em; }
+details { margin: 0.4em 0; } summary { cursor: pointer; font-weight: bold; }
+code { background: #f4f4f4; padding: 0 0.2em; }
+"""
+
+
+def build_html(directory: Path, run, scene: SfMScene | None, statistics: StructureStatistics | None,
+               stages_done: list[str]) -> str:
+    reports = read_reports(directory / "reports", stages_done)
+    load = reports.get("load", {})
+    parts = [f"<h1>rotonly report</h1><p>Input <code>{escape(str(load.get('input', run.input_path)))}</code> "
+             f"({escape(str(load.get('input_kind', run.input_kind)))}); stages done: "
+             f"{escape(', '.join(stages_done))}; rotonly {escape(__version__)}.</p>",
+             "<h2>Summary</h2>", _summary(reports, run.graph), "<h2>Time per stage</h2>", _timings(reports)]
+    after = scene.intrinsics if scene is not None else run.scene.intrinsics
+    parts += ["<h2>Intrinsics</h2>", _intrinsics(run.input_intrinsics or run.scene.intrinsics, after)]
+    if "export" in reports:
+        parts += ["<h2>Per image</h2>", *_per_view_figures(reports["export"].get("per_view") or []),
+                  _per_view_table(reports)]
+        histograms = [f for f in (_residual_histogram(statistics.residuals_px) if statistics else None,
+                                  _track_histogram(reports["export"].get("track_lengths") or {})) if f]
+        parts += ["<h2>Residuals and tracks</h2>", *histograms]
+    parts += ["<h2>View graph</h2>", _view_graph_figure(run.graph) or "", _filtered_edges(run.graph)]
+    if scene is not None:
+        top = _top_view_figure(scene)
+        parts += ["<h2>Cameras</h2>", top] if top else []
+    parts.append(_ground_truth(directory) if run.options.gt and "triangulate" in stages_done else "")
+    parts.append("<h2>Stage reports</h2><p>Every number of <code>reports/&lt;stage&gt;.json</code>.</p>")
+    for name, report in reports.items():
+        parts.append(f'<details id="report-{escape(name)}"><summary>{escape(name)}</summary>'
+                     f"{_value_html(report, name)}</details>")
+    body = "\n".join(p for p in parts if p)
+    return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>rotonly report</title>'
+            f"<style>{STYLE}</style></head><body>\n{body}\n</body></html>\n")
+
+
+def write_run_report(directory: str | os.PathLike, run, scene: SfMScene | None,
+                     statistics: StructureStatistics | None, stages_done: list[str]) -> Path:
+    """``directory/report.html`` (atomically) for ``run`` after ``stages_done``; ``scene``: the
+    output scene when the chain reached triangulation."""
+    from rotonly_cli.io import atomic
+
+    path = Path(directory) / REPORT_FILE
+    page = build_html(Path(directory), run, scene, statistics, stages_done)
+    # file names that are not UTF-8 (surrogate escapes) are shown backslash-escaped, as in run.log
+    atomic.write_bytes(path, page.encode("utf-8", errors="backslashreplace"))
+    return path

@@ -1,0 +1,91 @@
+"""What `rotonly run` and the stage commands show while they work: a progress bar over the
+stages when stderr is a terminal (the RANSAC and GRRM stages add their own bars), and with
+``-v`` per-stage detail lines (time, edge counts per filter reason, the stage report's numbers).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import ExitStack, contextmanager
+
+logger = logging.getLogger(__name__)
+
+#: longest detail line; longer ones are continued on the next line
+DETAIL_WIDTH = 100
+
+
+class StageMonitor:
+    """``with StageMonitor(stages, progress) as monitor: with monitor.stage(name): ...``.
+    Set ``monitor.run`` once the run exists: the detail lines read its view graph."""
+
+    def __init__(self, stages: Sequence[str], progress: bool):
+        self.stages = list(stages)
+        self.progress = progress
+        self.run = None
+        self._bar = None
+        self._stack = ExitStack()
+
+    def __enter__(self) -> StageMonitor:
+        if self.progress:
+            from tqdm.contrib.logging import logging_redirect_tqdm
+
+            from rotonly_cli.runtime.progress import progress_bar
+
+            self._stack.enter_context(logging_redirect_tqdm())  # log lines print above the bars
+            self._bar = self._stack.enter_context(progress_bar(
+                total=len(self.stages), unit="stage", leave=False,
+                bar_format="{desc:<12} {n_fmt}/{total_fmt} stages |{bar:24}| {elapsed}"))
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stack.close()
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        if self._bar is not None:
+            self._bar.set_description_str(name, refresh=True)
+        start = time.perf_counter()
+        yield
+        if self._bar is not None:
+            self._bar.update(1)
+        if self.run is not None and logger.isEnabledFor(logging.DEBUG):
+            for line in stage_detail(name, self.run, time.perf_counter() - start):
+                logger.debug(line)
+
+
+def _short(value) -> str | None:
+    """A report value as a short text; None for lists and dicts (too long for a line)."""
+    if isinstance(value, bool) or value is None or isinstance(value, (int, str)):
+        return str(value)
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return None
+
+
+def _wrapped(head: str, items: list[str]) -> list[str]:
+    lines, line = [], head
+    for item in items:
+        if len(line) + len(item) + 2 > DETAIL_WIDTH and line != head:
+            lines.append(line.rstrip(","))
+            line = " " * len(head)
+        line += f" {item},"
+    lines.append(line.rstrip(","))
+    return lines
+
+
+def stage_detail(name: str, run, seconds: float) -> list[str]:
+    """The -v lines after stage ``name``: its time, the view graph's edge counts per filter
+    reason, and the stage report's scalar numbers (the full report is reports/<name>.json)."""
+    counts = run.graph.counts()
+    reasons = ", ".join(f"{reason} {n}" for reason, n in sorted(counts.get("filtered_by_reason", {}).items()))
+    lines = [f"{name}: {seconds:.3f} s; {counts['active_edges']} of {counts['edges']} edges active"
+             + (f" (filtered: {reasons})" if reasons else "")
+             + f"; {len(counts['unregistered_views'])} of {counts['views']} views outside the largest component"]
+    report = run.reports.get(name, {})
+    items = [f"{key}={text}" for key, value in sorted(report.items())
+             if key != "time_s" and (text := _short(value)) is not None]
+    if items:
+        lines += _wrapped(f"{name} report:", items)
+    return lines

@@ -1,0 +1,78 @@
+"""Stage `reject`: multi-view outlier rejection under the global poses.
+
+A wrong match that two-view RANSAC accepted (repeated structure a few pixels off its
+epipolar line) fits its own pair's geometry, which it helped estimate, but not the epipolar
+geometry E_ij = [t_ij]x R_ij that the global rotations and the LiGT centres give that pair
+(t_ij = R_j (c_i - c_j)): every pose there is fixed by all the other edges. Matches whose
+Sampson error under it exceeds max(``outlier_sigmas`` x sigma, ``min_threshold_px``) (sigma =
+1.4826 x the median over all matches, in pixels) are dropped (an edge that would keep fewer
+than ``min_inliers`` keeps them all), and the edges' rotations are checked against the global
+ones again. The
+pipeline then runs GRRM and LiGT on what is left, until a round drops nothing
+(pipeline.reject_stage).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from rotonly_cli.geometry import pairwise as pg
+from rotonly_cli.geometry import so3
+from rotonly_cli.options import RejectOptions
+from rotonly_cli.scene.view_graph import ViewGraph, largest_component, regular_edges, view_index
+
+logger = logging.getLogger(__name__)
+DROP_REASON = "inconsistent with the global poses"
+RESIDUAL_REASON = "rotation residual after multi-view rejection"
+
+
+def reject_round(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_world: np.ndarray,
+                 centers: np.ndarray, focal_px: np.ndarray, options: RejectOptions = RejectOptions(),
+                 min_inliers: int = 30, max_residual_deg: float = 5.0) -> dict:
+    """One round (module docstring) on the REGULAR edges between posed views, in place.
+    Returns the round's report (counts and threshold)."""
+    start = time.perf_counter()
+    index = view_index(graph)
+    posed = np.all(np.isfinite(R_cam_from_world.reshape(len(index), -1)), axis=1) & np.all(np.isfinite(centers), axis=1)
+    edges = [k for k in regular_edges(graph) if posed[index[graph.edges[k].i]] and posed[index[graph.edges[k].j]]]
+    errors = []
+    for k in edges:
+        edge = graph.edges[k]
+        i, j = index[edge.i], index[edge.j]
+        R_ij = R_cam_from_world[j] @ R_cam_from_world[i].T
+        t_ij = R_cam_from_world[j] @ (centers[i] - centers[j])
+        norm = np.linalg.norm(t_ij)
+        x_i = normalized[edge.i][edge.matches[:, 0]]
+        x_j = normalized[edge.j][edge.matches[:, 1]]
+        scale = 0.5 * (focal_px[i] + focal_px[j])
+        errors.append(pg.sampson_errors(R_ij, t_ij / norm, x_i, x_j) * scale if norm > 0
+                      else np.zeros(len(x_i)))
+    report = {"num_edges": len(edges), "num_matches": int(sum(len(e) for e in errors)), "num_dropped": 0,
+              "sigma_px": None, "threshold_px": None, "edges_filtered": {}}
+    if not errors or report["num_matches"] == 0:
+        return report
+    every = np.concatenate(errors)
+    sigma = 1.4826 * float(np.median(every))
+    threshold = max(options.outlier_sigmas * sigma, options.min_threshold_px)
+    filtered: dict[str, int] = {}
+    for k, error in zip(edges, errors):
+        edge = graph.edges[k]
+        keep = error <= threshold
+        if np.count_nonzero(keep) < min_inliers:
+            # an edge this round would empty keeps its matches: filtering it can cut a weakly
+            # connected view loose, and LiGT's centre for it with it (castle-P19, OpenMVG matches)
+            report["edges_kept_whole"] = report.get("edges_kept_whole", 0) + 1
+            continue
+        report["num_dropped"] += edge.drop_matches(keep, DROP_REASON)
+        # the view-graph check of the averaging, at the optimised rotations
+        R_ij = R_cam_from_world[index[edge.j]] @ R_cam_from_world[index[edge.i]].T
+        edge.residual_deg = float(np.degrees(so3.geodesic_angle(edge.R_j_from_i[None], R_ij[None])[0]))
+        if edge.residual_deg > max_residual_deg:
+            edge.filter(RESIDUAL_REASON)
+            filtered[RESIDUAL_REASON] = filtered.get(RESIDUAL_REASON, 0) + 1
+    largest_component(graph)
+    report.update(sigma_px=sigma, threshold_px=threshold, edges_filtered=filtered, time_s=time.perf_counter() - start)
+    return report

@@ -1,0 +1,53 @@
+"""Stage reject: matches off the epipolar geometry of the global poses are dropped, edges left
+with too few are filtered, clean matches stay."""
+
+import numpy as np
+
+from rotonly_cli.geometry import so3
+from rotonly_cli.options import RejectOptions
+from rotonly_cli.scene.types import View
+from rotonly_cli.scene.view_graph import Edge, ViewGraph
+from rotonly_cli.stages.reject import DROP_REASON, reject_round
+
+FOCAL = 1000.0
+
+
+def _graph(rng, wrong_px: float, num_wrong: int):
+    R = np.stack([so3.exp(rng.normal(scale=0.1, size=3)) for _ in range(3)])
+    C = np.array([[0.0, 0, 0], [1.0, 0.1, 0], [2.0, -0.1, 0.2]])
+    X = rng.uniform([-3, -3, 8], [3, 3, 12], size=(200, 3))
+    cam = np.einsum("vij,vnj->vni", R, X[None] - C[:, None])
+    x = cam[..., :2] / cam[..., 2:3] + rng.normal(scale=0.3 / FOCAL, size=(3, 200, 2))
+    normalized = {v: x[v].copy() for v in range(3)}
+    graph = ViewGraph(views={v: View(v, f"{v}.jpg", 0) for v in range(3)})
+    for i, j in ((0, 1), (1, 2), (0, 2)):
+        matches = np.stack([np.arange(200), np.arange(200)], axis=1)
+        graph.edges.append(Edge(i, j, R[j] @ R[i].T, np.zeros(3), matches, scene_kind="REGULAR"))
+    # wrong matches in edge (0, 1): new keypoints in view 1, off by wrong_px in a random direction
+    wrong = rng.normal(size=(num_wrong, 2))
+    normalized[1] = np.concatenate([normalized[1], x[1, :num_wrong] + wrong / np.linalg.norm(wrong, axis=1,
+                                                                                             keepdims=True)
+                                    * wrong_px / FOCAL])
+    graph.edges[0].matches[:num_wrong, 1] = 200 + np.arange(num_wrong)
+    return graph, normalized, R, C
+
+
+def test_wrong_matches_dropped_clean_ones_kept():
+    graph, normalized, R, C = _graph(np.random.default_rng(0), wrong_px=15.0, num_wrong=20)
+    report = reject_round(graph, normalized, R, C, np.full(3, FOCAL), RejectOptions(), min_inliers=30)
+    first = graph.edges[0]
+    # most of the 20 wrong ones go (those whose offset lies along their epipolar line may stay)
+    assert 12 <= first.dropped_matches[DROP_REASON] <= 20
+    assert report["num_dropped"] == sum(e.dropped_matches.get(DROP_REASON, 0) for e in graph.edges)
+    assert graph.edges[1].dropped_matches.get(DROP_REASON, 0) <= 2  # 0.3 px noise, 5-sigma threshold
+    assert report["threshold_px"] == 5 * report["sigma_px"] and 0.2 < report["sigma_px"] < 0.45  # 0.3 px noise
+    assert all(e.active for e in graph.edges)
+
+
+def test_edge_that_would_be_emptied_keeps_its_matches():
+    """Filtering it could cut a weakly connected view loose; it is reported instead."""
+    graph, normalized, R, C = _graph(np.random.default_rng(1), wrong_px=30.0, num_wrong=190)
+    report = reject_round(graph, normalized, R, C, np.full(3, FOCAL), RejectOptions(), min_inliers=30)
+    assert graph.edges[0].active and graph.edges[0].num_inliers == 200 and not graph.edges[0].dropped_matches
+    assert report["edges_kept_whole"] == 1
+    assert graph.edges[1].active and graph.edges[2].active
