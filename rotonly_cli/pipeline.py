@@ -109,7 +109,9 @@ def load_scene(scene: SfMScene, kind: InputKind, input_label: str, options: RunO
     the focal lengths the input marks as guesses calibrated (--intrinsics), the view graph built."""
     from rotonly_cli.stages.intrinsics import start_calibration
 
+    started = time.perf_counter()
     calibration = start_calibration(scene, options.intrinsics, jobs=options.jobs)
+    calibration.time_s += time.perf_counter() - started
     run = _build_graph(input_label, kind, calibration.scene, options)
     run.calibration = calibration
     run.input_intrinsics = copy.deepcopy(scene.intrinsics)
@@ -289,6 +291,7 @@ def calibrated_chain(loaded: Run, chain=_chain) -> Run:
     if calibration is None or options.mode == intrinsics.Mode.FIXED:
         return chain(loaded, STAGES[1:])
     guessed = bool(calibration.calibrate)
+    started = time.perf_counter()
     run = _rerun(loaded, loaded.scene, loaded, estimation=guessed, chain=chain)
     suspects = options.mode == intrinsics.Mode.AUTO and calibration.add_suspects(
         run.reports["triangulate"]["outlier_sigma_px_by_camera"], run.scene)
@@ -296,6 +299,7 @@ def calibrated_chain(loaded: Run, chain=_chain) -> Run:
         return run  # every camera fits: the intrinsics stay as given
     if not guessed:
         calibration.fallback = run  # the result if no change turns out significant
+        started = time.perf_counter()  # that pass would have been the result: not the calibration's time
     graph_run, full_load = loaded, True  # the run whose load stage (relative poses) the passes reuse
 
     def reload(estimation: bool) -> Run:
@@ -308,12 +312,14 @@ def calibrated_chain(loaded: Run, chain=_chain) -> Run:
     for round_ in range(options.max_rounds):
         settled = calibration.estimate(output_scene(run))
         if calibration.back_to_given():
+            calibration.time_s += time.perf_counter() - started
             return calibration.fallback
         if settled or round_ == options.max_rounds - 1:
             break
         if calibration.moved_from(graph_run.scene):  # the load stage's RANSAC ran with other intrinsics
             graph_run, full_load = reload(True), False
         run = _rerun(graph_run, calibration.scene, loaded, estimation=True, chain=chain)
+    calibration.time_s += time.perf_counter() - started
     if not full_load or calibration.moved_from(graph_run.scene):
         graph_run = reload(False)
     return _rerun(graph_run, calibration.scene, loaded, chain=chain)

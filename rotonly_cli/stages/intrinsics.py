@@ -405,6 +405,9 @@ class Calibration:
     settled: bool | None = None  #: whether the last round moved the intrinsics by little (None: no round)
     result: dict = field(default_factory=dict)
     jobs: int = 1  #: processes for the fundamental-matrix fits
+    #: wall time the calibration added to the run (view-graph focals, estimation passes and
+    #: rounds; not the pass whose result is written)
+    time_s: float = 0.0
 
     def _calibrate_focals(self, cameras_: dict[int, str]) -> None:
         focals, report = view_graph_focals(self.scene, set(cameras_), self.options, self.jobs)
@@ -497,7 +500,7 @@ class Calibration:
             "settled": self.settled, "suspect_threshold_px": self.suspect_threshold_px,
             "noise_sigma_px": self.noise_sigma_px,
             "kept_given_intrinsics": all(_same(final[c], k) for c, k in self.given.items()),
-            "warnings": warnings}
+            "warnings": warnings, "time_s": self.time_s}
         return self.result
 
     def changed(self) -> dict:
