@@ -10,8 +10,9 @@ The estimate is pycolmap's calibrated LO-RANSAC (``estimate_relative_pose``, for
 on normalized coordinates at a threshold measured on the input: ``inlier_threshold_sigmas``
 x the noise sigma of the matches (Sampson errors of a loose RANSAC on the largest pairs).
 Each edge runs ``consensus_runs`` seeded RANSACs and keeps the stable consensus: the matches
-that every run accepts (:func:`stable_consensus`). Dropped matches are counted per edge and
-reason. It is per-edge C++ work, so a loop over edges is fine here.
+that every run accepts (:func:`stable_consensus`); an edge whose first run falls short of
+``min_inliers`` gets no further runs (it would be filtered anyway). Dropped matches are counted
+per edge and reason. It is per-edge C++ work, so a loop over edges is fine here.
 """
 
 from __future__ import annotations
@@ -210,16 +211,36 @@ def build_view_graph(scene: SfMScene, options: LoadOptions = LoadOptions()) -> t
         sigma = noise_sigma_px(pairs, options) if pairs else None
         threshold = options.noise_ransac_max_error_px if sigma is None else \
             float(np.clip(options.inlier_threshold_sigmas * sigma, MIN_THRESHOLD_PX, options.noise_ransac_max_error_px))
-    runs = [(n, options.seed + r) for n in range(len(pairs)) for r in range(options.consensus_runs)]
 
     def estimate_run(run: tuple[int, int]):
         x_i, x_j, focal_i, focal_j = pairs[run[0]]
         return _relative_pose_ransac(x_i, x_j, focal_i, focal_j, threshold, run[1], options)
 
-    estimates = _pool_map(estimate_run, runs, options.progress, "relative poses (RANSAC)", options.jobs)
+    # The first run of every edge, then the other runs only where it found enough inliers: the
+    # stable consensus is a subset of every run's inliers, so an edge whose first run falls
+    # short of --min-inliers is filtered whatever the others find (weak pairs are also the ones
+    # whose RANSAC runs to its trial limit). The results are those of running them all.
+    first = _pool_map(estimate_run, [(n, options.seed) for n in range(len(pairs))], options.progress,
+                      "relative poses (RANSAC)", options.jobs)
+    promising = [n for n, estimate in enumerate(first)
+                 if estimate is not None and int(estimate[2].sum()) >= options.min_inliers]
+    more = _pool_map(estimate_run, [(n, options.seed + r) for n in promising for r in range(1, options.consensus_runs)],
+                     options.progress, "relative poses (consensus)", options.jobs)
+    estimates: list = [None] * (len(pairs) * options.consensus_runs)
+    for n, estimate in enumerate(first):
+        estimates[n * options.consensus_runs] = estimate
+    for m, n in enumerate(promising):
+        for r in range(1, options.consensus_runs):
+            estimates[n * options.consensus_runs + r] = more[m * (options.consensus_runs - 1) + r - 1]
     num_failed = 0
+    promising_set = set(promising)
     for n, k in enumerate(to_estimate):
         edge = graph.edges[k]
+        if first[n] is not None and n not in promising_set:
+            edge.R_j_from_i, edge.t_dir = first[n][0], first[n][1]
+            edge.drop_matches(first[n][2], "RANSAC outlier")
+            edge.pose_source = "ransac"
+            continue  # filtered below: too few inliers
         consensus = stable_consensus(estimates[n * options.consensus_runs:(n + 1) * options.consensus_runs])
         if consensus is None:
             num_failed += 1

@@ -1,0 +1,60 @@
+"""stages/load: the stable consensus of seeded RANSAC runs per edge, with the extra runs spent
+only on edges whose first run found enough inliers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rotonly_cli.io.colmap import read_database
+from rotonly_cli.options import LoadOptions
+from rotonly_cli.stages import load
+from tests.helpers import DATA_FIXTURES
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return read_database(DATA_FIXTURES / "herzjesu_p8" / "database.db")
+
+
+def test_weak_edges_skip_the_extra_runs_and_the_graph_is_that_of_every_run(scene, monkeypatch):
+    """An edge whose first RANSAC run has fewer inliers than --min-inliers is filtered whatever
+    the other runs find (the stable set is a subset of every run's inliers): those runs are
+    skipped, and every edge ends exactly as when all runs are made."""
+    options = LoadOptions(min_inliers=500)  # a third of the fixture's edges fall short (matches capped at 1000)
+    calls: list[int] = []
+    ransac = load._relative_pose_ransac
+
+    def counted(x_i, x_j, focal_i, focal_j, max_error_px, seed, options_):
+        calls.append(seed)
+        return ransac(x_i, x_j, focal_i, focal_j, max_error_px, seed, options_)
+
+    monkeypatch.setattr(load, "_relative_pose_ransac", counted)
+    graph, report = load.build_view_graph(scene, options)
+    monkeypatch.undo()
+    threshold = report["ransac_max_error_px"]
+
+    strong = weak = 0
+    for edge in graph.edges:
+        matches = np.asarray(scene.pairs[(edge.i, edge.j)].matches, dtype=np.int64).reshape(-1, 2)
+        if len(matches) < options.min_inliers:
+            continue  # filtered before any RANSAC
+        x_i, x_j = scene.normalized[edge.i][matches[:, 0]], scene.normalized[edge.j][matches[:, 1]]
+        focal_i = scene.intrinsics[scene.views[edge.i].intrinsics_id].focal_px
+        focal_j = scene.intrinsics[scene.views[edge.j].intrinsics_id].focal_px
+        runs = [ransac(x_i, x_j, focal_i, focal_j, threshold, options.seed + r, options)
+                for r in range(options.consensus_runs)]
+        R, _, stable = load.stable_consensus(runs)
+        if runs[0][2].sum() < options.min_inliers:
+            weak += 1
+            assert edge.status != "active" and edge.reason == "too few inliers"
+        elif stable.sum() >= options.min_inliers:
+            strong += 1
+            assert edge.status == "active"
+            np.testing.assert_array_equal(edge.R_j_from_i, R)
+            np.testing.assert_array_equal(edge.matches, matches[stable])
+        else:
+            assert edge.status != "active"
+    assert strong >= 3 and weak >= 2, (strong, weak)
+    extra_runs = sum(seed != options.seed for seed in calls)
+    assert extra_runs == (options.consensus_runs - 1) * (report["num_reestimated"] - weak)
