@@ -1,4 +1,4 @@
-"""`rotonly run`: the whole chain, and the workspace form of each stage.
+"""`rotonly run`: the whole chain (chain.py) into a workspace, and the workspace form of each stage.
 
 load (INPUT -> view graph, re-estimated relative poses, min-inlier filter)
 -> identify (scene kinds; ROTATION_SINGULAR filtered) -> refine (TRRM, batched)
@@ -19,18 +19,32 @@ write error (exit 1 for a full disk); anything else is a bug and keeps its trace
 
 from __future__ import annotations
 
-import copy
 import logging
 import sys
 import time
-from concurrent.futures import Future
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import numpy as np
-
-from rotonly_cli.errors import AlgorithmError, InputError, write_error
+from rotonly_cli.chain import (  # noqa: F401 - re-exported: the chain's names as pipeline.* too
+    STAGE_FUNCTIONS,
+    STAGES,
+    Run,
+    average_stage,
+    calibrated_chain,
+    identify_stage,
+    image_root,
+    load_scene,
+    load_stage,
+    optimize_stage,
+    output_root_path,
+    output_scene,
+    refine_stage,
+    reject_stage,
+    translate_stage,
+    triangulate_stage,
+)
+from rotonly_cli.errors import InputError, write_error
 from rotonly_cli.io import atomic
 from rotonly_cli.io.atomic import check_replaceable
 from rotonly_cli.io.detect import InputKind, detect_input
@@ -45,295 +59,17 @@ from rotonly_cli.io.workspace import (
 )
 from rotonly_cli.options import RunOptions
 from rotonly_cli.runtime.startup import collector_paused
-from rotonly_cli.scene.tracks import TrackCache
-from rotonly_cli.scene.types import SfMScene, Structure
-from rotonly_cli.scene.view_graph import ViewGraph, largest_component
+from rotonly_cli.scene.types import SfMScene
 
 if TYPE_CHECKING:
     from rotonly_cli.stages.intrinsics import Calibration
 
 logger = logging.getLogger(__name__)
-STAGES = ("load", "identify", "refine", "average", "optimize", "translate", "reject", "triangulate")
-#: files a workspace may hold; an existing OUT with anything else is not replaced
 WORKSPACE_ENTRIES = {"sfm_data.json", "sparse", "view_graph.json", "reports", "run.log", STATE_FILE, "eval",
                      "report.html"}
 
 
-@dataclass
-class Run:
-    """Everything the stages produce, in memory."""
-
-    input_path: str
-    input_kind: InputKind
-    scene: SfMScene
-    graph: ViewGraph
-    options: RunOptions
-    rotations: np.ndarray | None = None  # (n, 3, 3) sorted-view-id rows, NaN = unregistered
-    centers: np.ndarray | None = None
-    structure: Structure | None = None
-    reports: dict = field(default_factory=dict)
-    #: keypoint colours being decoded on a thread since loading (stages.triangulate)
-    keypoint_rgb: Future | None = None
-    #: tracks built by translate and reused by triangulate (scene/tracks)
-    tracks: TrackCache = field(default_factory=TrackCache)
-    #: the intrinsics as read, before any stage changed them (report.html)
-    input_intrinsics: dict = field(default_factory=dict)
-    #: the camera calibration of this run (stages/intrinsics.Calibration)
-    calibration: Calibration | None = None
-
-
-# ============================================================================ stages in memory
-
-def _ensure_two_views(graph: ViewGraph, after: str) -> None:
-    component = largest_component(graph)
-    if len(component) < 2:
-        usable = len(graph.views) - len(graph.unregistered_views)
-        raise AlgorithmError(f"fewer than two usable images after {after} ({usable} of {len(graph.views)} "
-                             f"connected by an edge); nothing to reconstruct")
-
-
-def load_stage(input_path: str | Path, options: RunOptions, scratch: Path | None = None) -> Run:
-    """``scratch``: where a database's private copy is made (the run's staging folder)."""
-    from rotonly_cli.stages.load import input_files, read_input
-
-    start = time.perf_counter()
-    scene, kind = read_input(input_path, options.matches_dir, options.matches_file, scratch)
-    sources = input_files(input_path, kind, scene, options.matches_dir, options.matches_file)
-    return load_scene(scene, kind, str(input_path), options, time.perf_counter() - start, sources)
-
-
-def load_scene(scene: SfMScene, kind: InputKind, input_label: str, options: RunOptions, read_time: float = 0.0,
-               sources: dict | None = None) -> Run:
-    """The load stage on a scene already read (``input_label``: its path, or what it was made
-    from; ``sources``: what it was read from, stages.load.input_files, for reports/load.json):
-    the focal lengths the input marks as guesses calibrated (--intrinsics), the view graph built."""
-    from rotonly_cli.stages.intrinsics import start_calibration
-
-    started = time.perf_counter()
-    calibration = start_calibration(scene, options.intrinsics, jobs=options.jobs)
-    calibration.time_s += time.perf_counter() - started
-    run = _build_graph(input_label, kind, calibration.scene, options)
-    run.calibration = calibration
-    run.input_intrinsics = copy.deepcopy(scene.intrinsics)
-    run.reports["load"].update(read_time_s=read_time, input=input_label, input_kind=kind,
-                               **(sources or {"input_files": []}))
-    return run
-
-
-def _build_graph(input_path: str, kind: InputKind, scene: SfMScene, options: RunOptions,
-                 estimation: bool = False) -> Run:
-    """The load stage's view graph of ``scene``; ``estimation``: for a pass that only
-    estimates intrinsics (ESTIMATION_LOAD: one RANSAC run per edge, fewer trials)."""
-    from rotonly_cli.stages.load import build_view_graph
-
-    load = replace(options.load, progress=options.progress, jobs=options.jobs,
-                   **(ESTIMATION_LOAD if estimation else {}))
-    graph, report = build_view_graph(scene, load)
-    run = Run(input_path, kind, scene, graph, options, reports={"load": report})
-    _ensure_two_views(graph, "loading")
-    return run
-
-
-def identify_stage(run: Run) -> None:
-    from rotonly_cli.stages.identify import identify_edges
-
-    run.reports["identify"] = identify_edges(run.graph, run.scene.normalized, run.options.identification,
-                                             jobs=run.options.jobs)
-    _ensure_two_views(run.graph, "scene identification")
-
-
-def refine_stage(run: Run) -> None:
-    from rotonly_cli.stages.refine import refine_edges
-
-    run.reports["refine"] = refine_edges(run.graph, run.scene.normalized, run.options.trrm,
-                                         run.options.identification, jobs=run.options.jobs)
-    _ensure_two_views(run.graph, "TRRM")
-
-
-def average_stage(run: Run) -> None:
-    from rotonly_cli.stages.average import average_graph
-
-    run.rotations, run.reports["average"] = average_graph(run.graph, run.options.average)
-
-
-def optimize_stage(run: Run) -> None:
-    from rotonly_cli.stages.optimize import optimize_graph
-
-    if not run.options.grrm:
-        run.reports["optimize"] = {"skipped": "disabled (--no-grrm)"}
-        return
-    from rotonly_cli.runtime.progress import iteration_bar
-
-    with iteration_bar(run.options.progress, run.options.optimize.max_iterations, "GRRM") as on_iteration:
-        run.rotations, run.reports["optimize"] = optimize_graph(run.graph, run.scene.normalized, run.rotations,
-                                                                run.options.optimize, on_iteration=on_iteration)
-
-
-def translate_stage(run: Run) -> None:
-    from rotonly_cli.stages.translate import translate_graph
-
-    run.centers, run.reports["translate"] = translate_graph(
-        run.graph, run.scene.normalized, run.rotations, run.options.translate, track_cache=run.tracks,
-        focal_px=run.scene.focal_px(run.graph.view_ids()))
-
-
-def image_root(run: Run) -> Path | None:
-    """--image-path; else COLMAP: ``images/`` beside the database; OpenMVG: root_path the way
-    OpenMVG's tools read it (from the current directory), else from the sfm_data.json folder."""
-    if run.options.image_path:
-        return Path(run.options.image_path)
-    input_path = Path(run.input_path)
-    if run.input_kind == InputKind.COLMAP_DB:
-        candidate = input_path.parent / "images"
-        return candidate if input_path.is_file() and candidate.is_dir() else None
-    if run.input_kind != InputKind.OPENMVG:
-        return None
-    from rotonly_cli.io.openmvg import image_root as openmvg_image_root
-
-    return openmvg_image_root(run.scene.root_path, input_path / "sfm_data.json" if input_path.is_dir() else input_path)
-
-
-def output_root_path(run: Run) -> str:
-    """``root_path`` of OUT/sfm_data.json: --image-path as given, an OpenMVG input's root_path
-    as it came (OpenMVG resolves both from the current directory), else the image folder found."""
-    if run.options.image_path:
-        return str(run.options.image_path)
-    if run.input_kind == InputKind.OPENMVG:
-        return run.scene.root_path
-    root = image_root(run)
-    return "" if root is None else str(root)
-
-
-def reject_stage(run: Run) -> None:
-    """Rounds of stages/reject (drop the matches inconsistent with the global poses) followed
-    by GRRM and LiGT on what is left, until a round drops nothing (RejectOptions.max_rounds).
-    The optimize and translate reports are those of the last solve."""
-    from rotonly_cli.stages.reject import reject_round
-
-    start = time.perf_counter()
-    rounds = []
-    focal_px = run.scene.focal_px(run.graph.view_ids())
-    for _ in range(run.options.reject.max_rounds):
-        if run.rotations is None or run.centers is None:
-            break
-        report = reject_round(run.graph, run.scene.normalized, run.rotations, run.centers, focal_px,
-                              run.options.reject, run.options.load.min_inliers, run.options.average.max_residual_deg)
-        rounds.append(report)
-        logger.info("reject: %d of %d matches inconsistent with the global poses (threshold %.2f px), edges "
-                    "filtered %s", report["num_dropped"], report["num_matches"], report["threshold_px"] or 0.0,
-                    report["edges_filtered"] or "none")
-        if report["num_dropped"] == 0 and not report["edges_filtered"]:
-            break
-        _ensure_two_views(run.graph, "multi-view rejection")
-        optimize_stage(run)
-        translate_stage(run)
-    run.reports["reject"] = {"rounds": rounds, "num_dropped": int(sum(r["num_dropped"] for r in rounds)),
-                             "time_s": time.perf_counter() - start}
-
-
-def triangulate_stage(run: Run) -> None:
-    from rotonly_cli.stages.triangulate import triangulate_graph
-
-    run.structure, run.reports["triangulate"] = triangulate_graph(run.graph, run.scene, run.rotations, run.centers,
-                                                                  image_root(run), run.options.triangulate,
-                                                                  keypoint_rgb=run.keypoint_rgb,
-                                                                  track_cache=run.tracks,
-                                                                  outliers=run.options.translate)
-
-
-STAGE_FUNCTIONS = {"identify": identify_stage, "refine": refine_stage, "average": average_stage,
-                   "optimize": optimize_stage, "translate": translate_stage, "reject": reject_stage,
-                   "triangulate": triangulate_stage}
-
-
-# ============================================================================ intrinsics
-
-def _chain(run: Run, stages: tuple[str, ...] | list[str]) -> Run:
-    for stage in stages:
-        STAGE_FUNCTIONS[stage](run)
-    return run
-
-
-#: a pass whose reconstruction only serves to estimate the intrinsics: the bundle adjustment
-#: that follows moves every pose and point, so the RANSAC poses stand in for TRRM's, GRRM
-#: and LiGT's robust rounds are left out (the estimates agree to 0.1 px: docs/tuning.md)
-ESTIMATION_STAGES = ("identify", "average", "translate", "triangulate")
-#: ... and when such a pass needs relative poses of its own (the intrinsics moved far since the
-#: last load stage), one RANSAC run per edge with fewer trials will do: far from the right
-#: intrinsics, RANSAC runs into its trial limit on every edge (docs/tuning.md)
-ESTIMATION_LOAD = {"consensus_runs": 1, "ransac_max_trials": 500}
-
-
-def _rerun(loaded: Run, scene: SfMScene, template: Run, estimation: bool = False, chain=_chain) -> Run:
-    """The stages after load on ``scene`` (new intrinsics) from a copy of ``loaded``'s view
-    graph: the edges, inlier matches and relative poses of its load stage, as the TRRM starts.
-    ``template``: the run of the load stage (keypoint colours, calibration, load report).
-    ``estimation``: only ESTIMATION_STAGES, with plain LiGT."""
-    report = {**template.reports["load"], **loaded.reports["load"]}
-    options = loaded.options
-    if estimation:
-        options = replace(options, translate=replace(options.translate, robust_rounds=0))
-    run = Run(loaded.input_path, loaded.input_kind, scene, copy.deepcopy(loaded.graph), options,
-              reports={"load": report}, keypoint_rgb=template.keypoint_rgb, calibration=template.calibration)
-    return chain(run, ESTIMATION_STAGES if estimation else STAGES[1:])
-
-
-def calibrated_chain(loaded: Run, chain=_chain) -> Run:
-    """identify ... triangulate with the intrinsics calibrated (stages/intrinsics.py): passes
-    of rotonly's stages, each followed by an estimate of the intrinsics from its
-    reconstruction, until they settle; then the final pass, whose rotations, centres and
-    points are the result. ``loaded``: the run after the load stage (not changed); ``chain``:
-    runs stages on a run (:func:`_chain`; run_stages adds the progress bars)."""
-    from rotonly_cli.stages import intrinsics
-
-    calibration = loaded.calibration
-    options = loaded.options.intrinsics
-    if calibration is None or options.mode == intrinsics.Mode.FIXED:
-        return chain(loaded, STAGES[1:])
-    guessed = bool(calibration.calibrate)
-    started = time.perf_counter()
-    run = _rerun(loaded, loaded.scene, loaded, estimation=guessed, chain=chain)
-    suspects = options.mode == intrinsics.Mode.AUTO and calibration.add_suspects(
-        run.reports["triangulate"]["outlier_sigma_px_by_camera"], run.scene)
-    if not suspects and not guessed:
-        return run  # every camera fits: the intrinsics stay as given
-    if not guessed:
-        calibration.fallback = run  # the result if no change turns out significant
-        started = time.perf_counter()  # that pass would have been the result: not the calibration's time
-    graph_run, full_load = loaded, True  # the run whose load stage (relative poses) the passes reuse
-
-    def reload(estimation: bool) -> Run:
-        return _build_graph(loaded.input_path, loaded.input_kind, calibration.scene, loaded.options, estimation)
-
-    if calibration.moved_from(graph_run.scene):
-        graph_run, full_load = reload(True), False
-    if calibration.scene is not run.scene:
-        run = _rerun(graph_run, calibration.scene, loaded, estimation=True, chain=chain)
-    for round_ in range(options.max_rounds):
-        settled = calibration.estimate(output_scene(run))
-        if calibration.back_to_given():
-            calibration.time_s += time.perf_counter() - started
-            return calibration.fallback
-        if settled or round_ == options.max_rounds - 1:
-            break
-        if calibration.moved_from(graph_run.scene):  # the load stage's RANSAC ran with other intrinsics
-            graph_run, full_load = reload(True), False
-        run = _rerun(graph_run, calibration.scene, loaded, estimation=True, chain=chain)
-    calibration.time_s += time.perf_counter() - started
-    if not full_load or calibration.moved_from(graph_run.scene):
-        graph_run = reload(False)
-    return _rerun(graph_run, calibration.scene, loaded, chain=chain)
-
-
 # ============================================================================ outputs
-
-def output_scene(run: Run) -> SfMScene:
-    """The input scene with the estimated poses (views with rotation and centre) and points."""
-    from rotonly_cli.stages.export import posed_scene
-
-    return posed_scene(run.scene, run.graph.view_ids(), run.rotations, run.centers, run.structure,
-                       output_root_path(run) or None)
-
 
 def write_outputs(out_dir: Path, run: Run) -> SfMScene:
     """OUT/sfm_data.json (OpenMVG) and OUT/sparse/ (COLMAP binary model)."""

@@ -2,7 +2,7 @@
 
 translate (LiGT) and triangulate ask for the tracks of the same edges at the same global
 rotations (unless PURE_ROTATION edges differ between them): a :class:`TrackCache`, owned by
-the run (``pipeline.Run.tracks``), builds them once. Without a cache every call builds afresh.
+the run (``chain.Run.tracks``), builds them once. Without a cache every call builds afresh.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Stage `intrinsics`: cameras as users have them (guessed focal lengths, unknown distortion).
 
 rotonly's rotation stages work on normalized coordinates, so they are only as good as the
-intrinsics that make them. This module holds the pieces that ``pipeline.py`` chains around
+intrinsics that make them. This module holds the pieces that ``chain.py`` chains around
 the other stages (``--intrinsics auto|refine``; docs/algorithms.md §8):
 
 1. **Which cameras are guesses** (:func:`cameras_to_calibrate`): COLMAP marks a focal it

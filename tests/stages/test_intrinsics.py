@@ -1,4 +1,4 @@
-"""stages/intrinsics.py and the calibrated chain of pipeline.py (issue 20): guessed focal lengths
+"""stages/intrinsics.py and the calibrated chain of chain.py (issue 20): guessed focal lengths
 and unknown distortion, on simulated user inputs (simulation/user_cameras.py) and the bundled
 calibrated fixtures. The small, fast version of scripts/bench/intrinsics.py is here."""
 
