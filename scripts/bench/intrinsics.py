@@ -152,7 +152,9 @@ def main(argv: list[str] | None = None) -> int:
         (out / "table.md").write_text(f"# Intrinsics: guessed focal, unknown distortion\n\n{body}\n\n{footer}\n")
     print(body)
     print(footer)
-    results_md.record(args.results_md, "intrinsics", "Intrinsics: guessed focal lengths and unknown distortion",
+    inputs = " and ".join({"colmap": "COLMAP databases", "openmvg": "OpenMVG projects"}[f] for f in args.formats)
+    results_md.record(args.results_md, "intrinsics-" + "-".join(args.formats),
+                      f"Intrinsics: guessed focal lengths and unknown distortion ({inputs})",
                       results_md.command_line("python scripts/bench/intrinsics.py", argv), f"{body}\n\n{footer}")
     cache.remove()
     return 0
