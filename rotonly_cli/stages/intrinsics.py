@@ -327,10 +327,12 @@ def shift_px(reference: Intrinsics, other: Intrinsics) -> float:
     return float(np.nanmax(distance)) if np.isfinite(distance).any() else float("inf")
 
 
-def gate(reference: Intrinsics, estimate: Intrinsics, options: IntrinsicsOptions) -> tuple[Intrinsics, dict]:
+def gate(reference: Intrinsics, estimate: Intrinsics, options: IntrinsicsOptions,
+         always: frozenset[str] = frozenset()) -> tuple[Intrinsics, dict]:
     """``reference`` with the parameter groups (focal, principal point, distortion) of
     ``estimate`` whose change alone moves the image by more than ``min_shift`` of its half
-    diagonal; both in refinement-model terms. Returns (camera, {group: shift in px})."""
+    diagonal, and the groups in ``always`` whatever their change; both in refinement-model
+    terms. Returns (camera, {group: shift in px})."""
     groups = cameras.parameter_groups(reference)
     limit = options.min_shift * half_diagonal(reference)
     params = np.array(reference.params, dtype=np.float64)
@@ -342,7 +344,7 @@ def gate(reference: Intrinsics, estimate: Intrinsics, options: IntrinsicsOptions
         candidate = np.array(reference.params, dtype=np.float64)
         candidate[index] = np.asarray(estimate.params)[index]
         shifts[group] = shift_px(reference, replace(reference, params=candidate))
-        if shifts[group] > limit:
+        if shifts[group] > limit or group in always:
             params[index] = np.asarray(estimate.params)[index]
     return replace(reference, params=params), shifts
 
@@ -454,7 +456,11 @@ class Calibration:
         estimated, report = estimate_intrinsics(posed, set(self.calibrate), self.options)
         changed, shifts, moved = {}, {}, 0.0
         for camera_id, estimate in estimated.items():
-            gated, shifts[camera_id] = gate(self.reference[camera_id], estimate, self.options)
+            # a focal the input marks as a guess has no value to protect: the view-graph focal
+            # is a start, and the estimate is better on average (algorithms.md §8 "Significant
+            # changes only"); the other groups change when significant
+            always = frozenset({"focal"}) if self.calibrate[camera_id] == "guess" else frozenset()
+            gated, shifts[camera_id] = gate(self.reference[camera_id], estimate, self.options, always)
             new = cameras.from_refinement_model(self.given[camera_id], gated)
             current = self.scene.intrinsics[camera_id]
             if not _same(new, current):

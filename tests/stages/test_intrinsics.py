@@ -56,6 +56,9 @@ def test_gate_keeps_only_significant_groups():
     assert shifts["principal_point"] == pytest.approx(np.hypot(8, 1)) and shifts["focal"] < 4.6
     big = Intrinsics(1, "SIMPLE_RADIAL", 1536, 1024, np.array([1500.0, 768.5, 512.0, -0.2]))
     assert stage.gate(CAMERA, big, options)[0].params.tolist() == [1500.0, 768.0, 512.0, -0.2]
+    # a guessed focal takes the estimate however small the change
+    assert stage.gate(CAMERA, estimate, options, frozenset({"focal"}))[0].params.tolist() == \
+        [1380.0 * 1.002, 760.0, 511.0, 0.0]
 
 
 def test_suspect_threshold_follows_the_noise():
