@@ -118,6 +118,10 @@ def parallel_map(fn: Callable, tasks: list, jobs: int, desc: str, progress: bool
                 for result in pool.imap(fn, tasks, chunksize=1):
                     out.append(result)
                     bar.update()
+                # let the workers exit: the context's terminate() sends SIGTERM, on which
+                # pycolmap's glog handler prints a stack trace per worker
+                pool.close()
+                pool.join()
                 return out
         out = []
         for t in tasks:
