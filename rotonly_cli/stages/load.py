@@ -224,31 +224,21 @@ def build_view_graph(scene: SfMScene, options: LoadOptions = LoadOptions()) -> t
                       "relative poses (RANSAC)", options.jobs)
     promising = [n for n, estimate in enumerate(first)
                  if estimate is not None and int(estimate[2].sum()) >= options.min_inliers]
-    more = _pool_map(estimate_run, [(n, options.seed + r) for n in promising for r in range(1, options.consensus_runs)],
-                     options.progress, "relative poses (consensus)", options.jobs)
-    estimates: list = [None] * (len(pairs) * options.consensus_runs)
-    for n, estimate in enumerate(first):
-        estimates[n * options.consensus_runs] = estimate
-    for m, n in enumerate(promising):
-        for r in range(1, options.consensus_runs):
-            estimates[n * options.consensus_runs + r] = more[m * (options.consensus_runs - 1) + r - 1]
+    extra = [(n, options.seed + r) for n in promising for r in range(1, options.consensus_runs)]
+    runs_of_edge = [[estimate] for estimate in first]
+    for (n, _), estimate in zip(extra, _pool_map(estimate_run, extra, options.progress, "relative poses (consensus)",
+                                                 options.jobs)):
+        runs_of_edge[n].append(estimate)
     num_failed = 0
-    promising_set = set(promising)
     for n, k in enumerate(to_estimate):
-        edge = graph.edges[k]
-        if first[n] is not None and n not in promising_set:
-            edge.R_j_from_i, edge.t_dir = first[n][0], first[n][1]
-            edge.drop_matches(first[n][2], "RANSAC outlier")
-            edge.pose_source = "ransac"
-            continue  # filtered below: too few inliers
-        consensus = stable_consensus(estimates[n * options.consensus_runs:(n + 1) * options.consensus_runs])
+        edge, runs = graph.edges[k], runs_of_edge[n]  # a weak edge: its one run, filtered below
+        consensus = stable_consensus(runs)
         if consensus is None:
             num_failed += 1
             edge.filter("relative pose estimation failed")
             continue
         edge.R_j_from_i, edge.t_dir, stable = consensus
-        inliers = estimates[n * options.consensus_runs + 0][2] if options.consensus_runs == 1 else \
-            np.logical_or.reduce([e[2] for e in estimates[n * options.consensus_runs:(n + 1) * options.consensus_runs]])
+        inliers = np.logical_or.reduce([run[2] for run in runs])
         edge.drop_matches(inliers, "RANSAC outlier")
         edge.drop_matches(stable[inliers], "unstable consensus")
         edge.pose_source = "ransac"
