@@ -263,6 +263,26 @@ def _locked_marker(root: Path, target_name: str) -> int:
 _STAGING_NAME = re.compile(r"[a-z0-9_]{8}\.tmp")
 
 
+@contextmanager
+def _unlocked(path: Path) -> Iterator[int | None]:
+    """A descriptor of ``path`` holding its ``flock``, or None when ``path`` cannot be opened
+    or another process holds the lock (the run that made it is alive)."""
+    try:
+        handle = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+    except OSError:
+        yield None
+        return
+    try:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            yield None
+            return
+        yield handle
+    finally:
+        os.close(handle)
+
+
 def _remove_unmarked(folder: Path) -> bool:
     """Remove a staging folder that has no marker yet, if its run is dead: a kill between
     ``mkdtemp`` and the marker's rename (:func:`_locked_marker`) leaves it empty or holding
@@ -275,17 +295,13 @@ def _remove_unmarked(folder: Path) -> bool:
     if any(not name.startswith(".lock.") for name in names):
         return False
     for name in names:
-        try:
-            handle = os.open(folder / name, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
-        except OSError:
-            return False
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)  # BlockingIOError: its run is alive
-            os.unlink(folder / name)
-        except OSError:
-            return False
-        finally:
-            os.close(handle)
+        with _unlocked(folder / name) as handle:
+            if handle is None:
+                return False
+            try:
+                os.unlink(folder / name)
+            except OSError:
+                return False
     try:
         os.rmdir(folder)
     except OSError:
@@ -310,26 +326,25 @@ def remove_stale(target: PathLike) -> list[Path]:
                 follow_symlinks=False):
             continue
         folder = Path(entry.path)
-        try:
-            handle = os.open(folder / STAGING_MARKER, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
-        except OSError:  # no marker: being made, or its run was killed while making it
+        marker_path = folder / STAGING_MARKER
+        if not os.path.lexists(marker_path):  # being made, or its run was killed while making it
             if _STAGING_NAME.fullmatch(entry.name[len(prefix):]) and _remove_unmarked(folder):
                 removed.append(folder)
             continue
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)  # BlockingIOError: its run is alive
-            marker = json.loads(os.read(handle, 4096) or b"{}")
-            if not isinstance(marker, dict) or marker.get("target") != target.name:
+        with _unlocked(marker_path) as handle:
+            if handle is None:  # its run is alive
                 continue
-            old = folder / "old"
-            if old.is_dir() and not os.path.lexists(target):
-                os.rename(old, target)  # the run died between its two fallback renames
-            shutil.rmtree(folder, ignore_errors=True)
-            removed.append(folder)
-        except (OSError, ValueError):
-            continue
-        finally:
-            os.close(handle)
+            try:
+                marker = json.loads(os.read(handle, 4096) or b"{}")
+                if not isinstance(marker, dict) or marker.get("target") != target.name:
+                    continue
+                old = folder / "old"
+                if old.is_dir() and not os.path.lexists(target):
+                    os.rename(old, target)  # the run died between its two fallback renames
+                shutil.rmtree(folder, ignore_errors=True)
+                removed.append(folder)
+            except (OSError, ValueError):
+                continue
     return removed
 
 
