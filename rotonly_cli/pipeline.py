@@ -262,25 +262,28 @@ def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptio
             monitor.run = run
         loaded, colours_after = run, colours_start_after(run, stages)
 
+        def start_colours() -> None:
+            """Decode the images for the point colours (on a thread), once per load stage."""
+            if loaded.keypoint_rgb is None:
+                from rotonly_cli.stages.triangulate import start_keypoint_colors
+
+                loaded.keypoint_rgb = start_keypoint_colors(loaded.scene, image_root(loaded))
+
         def chain(pass_run: Run, pass_stages: tuple[str, ...] | list[str]) -> Run:
             """Stages on a run of this load stage (a pass of the calibration, or the chain),
-            each under the monitor; the colours decoded once, after ``colours_after``."""
+            each under the monitor; the colours start after ``colours_after``."""
             monitor.run = pass_run  # the detail lines read this pass's reports
             for stage in pass_stages:
                 if pass_run.keypoint_rgb is None:
                     pass_run.keypoint_rgb = loaded.keypoint_rgb
                 with monitor.stage(stage):
                     STAGE_FUNCTIONS[stage](pass_run)
-                if stage == colours_after and loaded.keypoint_rgb is None:
-                    from rotonly_cli.stages.triangulate import start_keypoint_colors
-
-                    loaded.keypoint_rgb = start_keypoint_colors(loaded.scene, image_root(loaded))
+                if stage == colours_after:
+                    start_colours()
             return pass_run
 
         if colours_after == "load":
-            from rotonly_cli.stages.triangulate import start_keypoint_colors
-
-            run.keypoint_rgb = start_keypoint_colors(run.scene, image_root(run))
+            start_colours()
         if "triangulate" in stages:
             run = calibrated_chain(run, chain)
         else:
