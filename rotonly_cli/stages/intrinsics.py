@@ -281,6 +281,7 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int],
     ba.refine_rig_from_world = ba.refine_points3D = True
     ba.print_summary = False
     ba.ceres.solver_options.max_num_iterations = 100
+    ba.ceres.solver_options.function_tolerance = options.ba_function_tolerance
     ba.ceres.solver_options.num_threads = 1
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in reconstruction.reg_image_ids():
