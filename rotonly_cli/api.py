@@ -172,6 +172,7 @@ def run(input, out: str | os.PathLike | None = None, *, gt=None, matches_dir=Non
         summary = {"input": result.input_path, "num_views": len(result.scene.views), "num_registered": len(scene.poses),
                    "num_points": 0 if scene.structure is None else len(scene.structure.points),
                    "num_active_edges": len(result.graph.active_edges())}
+        pipeline.summarize_outcome(result, scene, summary)
         if gt_scene is not None:
             from rotonly_cli.evaluation.quality import evaluate
 

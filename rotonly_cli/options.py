@@ -296,6 +296,11 @@ class LiGTOptions:
     max_drop_fraction: float = 0.3
     #: the rounds stop once fewer than this fraction of observations change status
     min_change_fraction: float = 1e-3
+    #: a view whose centre's baselines to its neighbours point, in the median over its edges,
+    #: further than this from the edges' own two-view translation directions is reported (and
+    #: the run warns): LiGT's null vector put it somewhere its pairs do not (docs/tuning.md
+    #: "Baseline check"; clean Strecha runs: every edge within 3.4 deg)
+    max_baseline_disagreement_deg: float = 10.0
 
 
 @dataclass(frozen=True, kw_only=True)

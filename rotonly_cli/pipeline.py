@@ -299,6 +299,21 @@ def _written(out_dir: Path, write, *args, field: str | None = "-o"):
         raise write_error(exc, out_dir, field) from None
 
 
+def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
+    """Into ``summary`` (and run.reports): the intrinsics each camera started from and ended
+    with (reports/intrinsics.json), and the run's warnings (the calibration's, the baseline
+    check of the centres), each also logged."""
+    from rotonly_cli.stages.translate import baseline_warning
+
+    if run.calibration is not None:
+        run.reports["intrinsics"] = run.calibration.finish(scene)
+        summary.update(run.calibration.summary())
+    positions = baseline_warning(run.reports.get("translate"))
+    summary["warnings"] = summary.get("warnings", []) + ([positions] if positions else [])
+    for warning in summary["warnings"]:
+        logger.warning("%s", warning)
+
+
 def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: float,
             gt: SfMScene | None) -> dict:
     """Write outputs of a finished chain into ``directory`` (which becomes ``out_dir``);
@@ -319,11 +334,7 @@ def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: fl
             evaluation = evaluate_against(run.options.gt, gt, scene, directory / "eval",
                                           str(out_dir / "sfm_data.json"))
             summary["rotation_error_deg"] = evaluation.get("rotation_error_deg")
-        if run.calibration is not None:
-            run.reports["intrinsics"] = run.calibration.finish(scene)
-            summary.update(run.calibration.summary())
-            for warning in summary["warnings"]:
-                logger.warning("%s", warning)
+        summarize_outcome(run, scene, summary)
     summary["num_active_edges"] = len(run.graph.active_edges())
     summary["time_s"] = time.perf_counter() - start
     run.reports["run"] = summary

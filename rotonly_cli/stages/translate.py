@@ -10,7 +10,12 @@ import time
 import numpy as np
 
 from rotonly_cli.errors import AlgorithmError
-from rotonly_cli.geometry.ligt import LiGTOptions, robust_ligt_translations
+from rotonly_cli.geometry.ligt import (
+    LiGTOptions,
+    baseline_disagreement_deg,
+    robust_ligt_translations,
+    views_off_their_baselines,
+)
 from rotonly_cli.scene.tracks import TrackCache, graph_tracks
 from rotonly_cli.scene.view_graph import ViewGraph, regular_edges, view_index
 
@@ -38,6 +43,7 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
     result = robust.result
     centers = np.where(result.has_translation[:, None], result.centers, np.nan)
     ids = graph.view_ids()
+    baselines = baseline_report(graph, edges, index, R, centers, options or LiGTOptions())
     without = [ids[r] for r in np.flatnonzero(registered & ~result.has_translation)]
     report = {"num_edges": len(edges), "num_tracks": tracks.num_tracks, "num_observations": tracks.num_observations,
               "num_inconsistent_tracks": tracks.num_inconsistent,
@@ -46,7 +52,8 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
               "sign_votes": list(result.sign_votes), "robust_rounds": robust.rounds,
               "num_observations_used": int(robust.keep.sum()),
               "num_observations_dropped": int(tracks.num_observations - robust.keep.sum()),
-              "outlier_threshold_px": robust.threshold_px, "time_s": time.perf_counter() - start}
+              "outlier_threshold_px": robust.threshold_px, "baselines": baselines,
+              "time_s": time.perf_counter() - start}
     for number, round_ in enumerate(robust.rounds, 1):
         logger.debug("translate round %d: %d observations, sigma %.3f px, threshold %.2f px, %d dropped, "
                      "%d re-admitted", number, round_["observations"], round_["sigma_px"], round_["threshold_px"],
@@ -56,3 +63,36 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
                 report["num_views_with_centre"], f", {len(without)} without" if without else "",
                 report["num_observations_used"], tracks.num_observations)
     return centers, report
+
+
+def baseline_report(graph: ViewGraph, edges: list[int], index: dict[int, int], R_cam_from_world: np.ndarray,
+                    centers: np.ndarray, options: LiGTOptions) -> dict:
+    """The check of the centres against the edges' own translation directions
+    (ligt.baseline_disagreement_deg): the spread of the angles over the edges and the views
+    whose median exceeds ``options.max_baseline_disagreement_deg`` (by view id, with their
+    medians). LiGT's least-squares null vector can put a weakly constrained view far off
+    while the other centres shrink around one point (a collapse no reprojection error shows:
+    the points triangulate from the collapsed cameras all the same)."""
+    ends = np.array([[index[graph.edges[k].i], index[graph.edges[k].j]] for k in edges], dtype=np.int64)
+    t_dirs = np.array([graph.edges[k].t_dir for k in edges], dtype=float)
+    angles = baseline_disagreement_deg(R_cam_from_world, centers, ends, t_dirs)
+    medians, off = views_off_their_baselines(angles, ends, len(index), options.max_baseline_disagreement_deg)
+    ids = graph.view_ids()
+    finite = angles[np.isfinite(angles)]
+    return {"num_edges": int(finite.size),
+            "angle_deg": ({"median": float(np.median(finite)), "p90": float(np.percentile(finite, 90)),
+                           "max": float(finite.max())} if finite.size else None),
+            "threshold_deg": options.max_baseline_disagreement_deg,
+            "views_off": {str(ids[v]): float(medians[v]) for v in off.tolist()}}
+
+
+def baseline_warning(report: dict | None) -> str | None:
+    """The run summary's warning when the translate report's baseline check found views off."""
+    off = (report or {}).get("baselines", {}).get("views_off") or {}
+    if not off:
+        return None
+    shown = ", ".join(f"{v} ({angle:.0f} deg)" for v, angle in list(off.items())[:8])
+    return (f"positions may have collapsed: the centre(s) of {len(off)} view(s) disagree with their pairs' own "
+            f"translation directions by more than {report['baselines']['threshold_deg']:g} deg (median over their "
+            f"edges): view {shown}{' ...' if len(off) > 8 else ''}; LiGT may have shrunk the other centres around "
+            f"one point (reports/translate.json)")

@@ -31,8 +31,15 @@ import time
 from pathlib import Path
 
 import numpy as np
-from strecha_tools import (_round_dir, alternating_runs, byte_compile_rotonly, evaluate_scene, fmt,
-                           reconstruction_scene, rotonly_run_command)
+from strecha_tools import (
+    _round_dir,
+    alternating_runs,
+    byte_compile_rotonly,
+    evaluate_scene,
+    fmt,
+    reconstruction_scene,
+    rotonly_run_command,
+)
 
 from rotonly_cli.bench import results_md
 from rotonly_cli.bench.common import code_version

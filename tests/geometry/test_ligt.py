@@ -7,7 +7,14 @@ import pytest
 
 from rotonly_cli.errors import AlgorithmError
 from rotonly_cli.geometry import so3
-from rotonly_cli.geometry.ligt import LiGTOptions, ligt_normal_matrix, ligt_translations, robust_ligt_translations
+from rotonly_cli.geometry.ligt import (
+    LiGTOptions,
+    baseline_disagreement_deg,
+    ligt_normal_matrix,
+    ligt_translations,
+    robust_ligt_translations,
+    views_off_their_baselines,
+)
 
 from helpers import make_street_scene, similarity_align_error
 
@@ -207,3 +214,54 @@ def test_robust_rounds_keep_clean_data_whole():
     plain = ligt_translations(scene.R_cam_from_world, scene.obs_point, scene.obs_view, scene.obs_xy)
     assert robust.keep.all() and len(robust.rounds) == 1
     assert np.abs(robust.result.centers - plain.centers).max() < 1e-12
+
+
+def _edges_with_true_directions(scene, num_edges: int, seed: int):
+    """Random view pairs of ``scene`` with their exact t_ij = R_j (c_i - c_j), normalized."""
+    rng = np.random.default_rng(seed)
+    n = len(scene.centers)
+    ends = np.array([rng.choice(n, 2, replace=False) for _ in range(num_edges)])
+    R, C = scene.R_cam_from_world, scene.centers
+    t = np.einsum("eab,eb->ea", R[ends[:, 1]], C[ends[:, 0]] - C[ends[:, 1]])
+    return ends, t / np.linalg.norm(t, axis=1, keepdims=True)
+
+
+def test_baseline_check_agrees_with_true_centres_and_ignores_the_sign():
+    scene = make_street_scene(12, 50, seed=4)
+    ends, t_dirs = _edges_with_true_directions(scene, 40, seed=0)
+    t_dirs[::3] *= -1.0  # the two-view sign (chirality) is not the check's business
+    angles = baseline_disagreement_deg(scene.R_cam_from_world, scene.centers, ends, t_dirs)
+    assert np.nanmax(angles) < 1e-5
+    # a similarity of the centres changes no baseline direction
+    shrunk = 0.01 * scene.centers + np.array([3.0, -2.0, 1.0])
+    assert np.nanmax(baseline_disagreement_deg(scene.R_cam_from_world, shrunk, ends, t_dirs)) < 1e-5
+    medians, off = views_off_their_baselines(angles, ends, 12, 10.0)
+    assert off.size == 0 and np.nanmax(medians) < 1e-5
+
+
+def test_baseline_check_finds_the_view_a_collapse_throws_out():
+    # LiGT's collapse on castle-P19 (OpenMVG matches, 5 consensus runs, seed 3): one view far
+    # out, the others shrunk around a point; the baselines among the shrunk ones keep their
+    # directions, those of the far view do not
+    scene = make_street_scene(12, 50, seed=5)
+    ends, t_dirs = _edges_with_true_directions(scene, 60, seed=1)
+    collapsed = scene.centers.mean(axis=0) + 0.05 * (scene.centers - scene.centers.mean(axis=0))
+    collapsed[7] = scene.centers[7] + np.array([0.0, 40.0, 25.0])
+    angles = baseline_disagreement_deg(scene.R_cam_from_world, collapsed, ends, t_dirs)
+    touches_7 = (ends == 7).any(axis=1)
+    assert np.all(angles[touches_7] > 10.0) and np.nanmax(angles[~touches_7]) < 1e-5
+    medians, off = views_off_their_baselines(angles, ends, 12, 10.0)
+    assert off.tolist() == [7]
+    assert medians[7] > 10.0
+
+
+def test_baseline_check_skips_unknown_directions_and_missing_centres():
+    scene = make_street_scene(6, 30, seed=6)
+    ends, t_dirs = _edges_with_true_directions(scene, 10, seed=2)
+    t_dirs[0] = 0.0  # pure rotation: no direction
+    centers = scene.centers.copy()
+    centers[ends[1, 0]] = np.nan  # a view LiGT could not place
+    angles = baseline_disagreement_deg(scene.R_cam_from_world, centers, ends, t_dirs)
+    assert np.isnan(angles[0]) and np.isnan(angles[1])
+    medians, off = views_off_their_baselines(angles, ends, 6, 10.0)
+    assert off.size == 0
