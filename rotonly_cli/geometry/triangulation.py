@@ -132,6 +132,16 @@ def triangulate_tracks(R_cam_from_world: np.ndarray, centers: np.ndarray, obs_po
         raise InputError("obs_point must be sorted (observations grouped by point)", field="obs_point")
     if num_points is None:
         num_points = int(obs_point.max()) + 1 if obs_point.size else 0
+    # a wrecked pose set (a collapsed LiGT solve, a point at infinity) overflows here: those
+    # points come out NaN / not solvable and are rejected below, so numpy's warnings would
+    # only reach the user's terminal
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        return _triangulate(R, C, obs_point, obs_view, obs_xy, num_points, options)
+
+
+def _triangulate(R: np.ndarray, C: np.ndarray, obs_point: np.ndarray, obs_view: np.ndarray, obs_xy: np.ndarray,
+                 num_points: int, options: TriangulationOptions) -> TriangulationResult:
+    """triangulate_tracks on validated arrays."""
     counts = np.bincount(obs_point, minlength=num_points)
     offsets = np.zeros(num_points + 1, dtype=np.int64)
     np.cumsum(counts, out=offsets[1:])
