@@ -51,3 +51,59 @@ def test_edge_that_would_be_emptied_keeps_its_matches():
     assert graph.edges[0].active and graph.edges[0].num_inliers == 200 and not graph.edges[0].dropped_matches
     assert report["edges_kept_whole"] == 1
     assert graph.edges[1].active and graph.edges[2].active
+
+
+def _run_for_reject_stage(graph, normalized, R, C):
+    from rotonly_cli.chain import Run
+    from rotonly_cli.options import RunOptions
+    from rotonly_cli.scene.types import Intrinsics, SfMScene
+
+    scene = SfMScene(views=dict(graph.views), normalized=normalized,
+                     intrinsics={0: Intrinsics(0, "SIMPLE_PINHOLE", 2000, 2000, np.array([FOCAL, 1000.0, 1000.0]))})
+    run = Run("simulated", "simulation", scene, graph, RunOptions(), rotations=R, centers=C)
+    run.reports["translate"] = {"baselines": {"views_off": {}}, "solve": "first"}
+    return run
+
+
+def _fake_solves(monkeypatch, views_off: dict):
+    """optimize: rotations unchanged (a copy); translate: centres moved, the baseline check
+    reporting ``views_off``."""
+    from rotonly_cli import chain
+
+    def optimize(run):
+        run.rotations = run.rotations.copy()
+
+    def translate(run):
+        run.centers = run.centers * 0.01
+        run.reports["translate"] = {"baselines": {"views_off": dict(views_off)}, "solve": "after the round"}
+
+    monkeypatch.setattr(chain, "optimize_stage", optimize)
+    monkeypatch.setattr(chain, "translate_stage", translate)
+
+
+def test_round_whose_ligt_solve_collapses_is_undone(monkeypatch):
+    """A round after which the centres of some view contradict its pairs' baselines (none did
+    before) is undone: matches, rotations, centres and reports as they were."""
+    from rotonly_cli.chain import reject_stage
+
+    graph, normalized, R, C = _graph(np.random.default_rng(0), wrong_px=15.0, num_wrong=20)
+    run = _run_for_reject_stage(graph, normalized, R, C)
+    _fake_solves(monkeypatch, {"1": 40.0})
+    reject_stage(run)
+    first_round = run.reports["reject"]["rounds"][0]
+    assert first_round["num_dropped"] >= 12 and first_round["undone"] == {"views_off": ["1"]}
+    assert len(run.reports["reject"]["rounds"]) == 1
+    assert run.graph.edges[0].num_inliers == 200 and not run.graph.edges[0].dropped_matches
+    assert run.rotations is R and run.centers is C and run.reports["translate"]["solve"] == "first"
+
+
+def test_round_whose_solve_stays_sound_is_kept(monkeypatch):
+    from rotonly_cli.chain import reject_stage
+
+    graph, normalized, R, C = _graph(np.random.default_rng(0), wrong_px=15.0, num_wrong=20)
+    run = _run_for_reject_stage(graph, normalized, R, C)
+    _fake_solves(monkeypatch, {})
+    reject_stage(run)
+    assert "undone" not in run.reports["reject"]["rounds"][0]
+    assert run.graph.edges[0].num_inliers <= 188 and run.reports["translate"]["solve"] == "after the round"
+    assert np.allclose(run.centers, 0.01 * C)
