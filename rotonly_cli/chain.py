@@ -220,7 +220,8 @@ def reject_stage(run: Run) -> None:
             logger.info("reject: round undone, its LiGT solve put view(s) %s off their pairs' baselines",
                         ", ".join(off_after))
             break
-    run.reports["reject"] = {"rounds": rounds, "num_dropped": int(sum(r["num_dropped"] for r in rounds)),
+    run.reports["reject"] = {"rounds": rounds,  # an undone round's drops were put back
+                             "num_dropped": int(sum(r["num_dropped"] for r in rounds if "undone" not in r)),
                              "time_s": time.perf_counter() - start}
 
 
