@@ -26,6 +26,7 @@ from rotonly_cli.options import RunOptions
 from rotonly_cli.scene.tracks import TrackCache
 from rotonly_cli.scene.types import SfMScene, Structure
 from rotonly_cli.scene.view_graph import ViewGraph, largest_component
+from rotonly_cli.stages.load import NOT_MEASURED
 
 if TYPE_CHECKING:
     from rotonly_cli.stages.intrinsics import Calibration
@@ -83,12 +84,19 @@ def load_scene(scene: SfMScene, kind: InputKind, input_label: str, options: RunO
     """The load stage on a scene already read (``input_label``: its path, or what it was made
     from; ``sources``: what it was read from, stages.load.input_files, for reports/load.json):
     the focal lengths the input marks as guesses calibrated (--intrinsics), the view graph built."""
+    from rotonly_cli.options import Intrinsics
     from rotonly_cli.stages.intrinsics import start_calibration
+    from rotonly_cli.stages.load import measure_noise
 
     started = time.perf_counter()
     calibration = start_calibration(scene, options.intrinsics, jobs=options.jobs)
+    noise = NOT_MEASURED
+    if options.intrinsics.mode == Intrinsics.AUTO and not calibration.calibrate:
+        noise = measure_noise(scene, _load_options(options))
+        if _probe_for_suspects(input_label, kind, calibration, options, noise):
+            noise = NOT_MEASURED  # other intrinsics: the load stage measures again
     calibration.time_s += time.perf_counter() - started
-    run = _build_graph(input_label, kind, calibration.scene, options)
+    run = _build_graph(input_label, kind, calibration.scene, options, noise_sigma=noise)
     run.calibration = calibration
     run.input_intrinsics = copy.deepcopy(scene.intrinsics)
     run.reports["load"].update(read_time_s=read_time, input=input_label, input_kind=kind,
@@ -96,15 +104,38 @@ def load_scene(scene: SfMScene, kind: InputKind, input_label: str, options: RunO
     return run
 
 
+def _probe_for_suspects(input_label: str, kind: InputKind, calibration: Calibration, options: RunOptions,
+                        noise_sigma) -> bool:
+    """auto, no camera marked as a guess, the matches' noise under the essential-matrix model
+    (the load stage's measurement) above ``suspect_reprojection_px``: an estimation pass
+    (ESTIMATION_LOAD, ESTIMATION_STAGES) whose reprojection errors tell whether some camera's
+    intrinsics are wrong, before the full load stage and chain run with them (with a wrong
+    EXIF focal that pass costs a fifth of them: docs/tuning.md "Intrinsics"). True if some
+    camera joined the calibration. Calibrated inputs (noise 0.13-0.25 px on Strecha) never
+    probe."""
+    if not isinstance(noise_sigma, float) or noise_sigma <= options.intrinsics.suspect_reprojection_px:
+        return False
+    logger.info("intrinsics: the matches fit essential matrices at sigma %.2f px (> %.2f px): a quick estimation "
+                "pass checks the cameras first", noise_sigma, options.intrinsics.suspect_reprojection_px)
+    probe = _build_graph(input_label, kind, calibration.scene, options, estimation=True, noise_sigma=noise_sigma)
+    probe = _rerun(probe, calibration.scene, probe, estimation=True)
+    return calibration.add_suspects(probe.reports["triangulate"]["outlier_sigma_px_by_camera"], calibration.scene)
+
+
+def _load_options(options: RunOptions, estimation: bool = False):
+    """The load stage's options of a run; ``estimation``: with ESTIMATION_LOAD."""
+    return replace(options.load, progress=options.progress, jobs=options.jobs,
+                   **(ESTIMATION_LOAD if estimation else {}))
+
+
 def _build_graph(input_path: str, kind: InputKind, scene: SfMScene, options: RunOptions,
-                 estimation: bool = False) -> Run:
+                 estimation: bool = False, noise_sigma=NOT_MEASURED) -> Run:
     """The load stage's view graph of ``scene``; ``estimation``: for a pass that only
-    estimates intrinsics (ESTIMATION_LOAD: one RANSAC run per edge, fewer trials)."""
+    estimates intrinsics (ESTIMATION_LOAD: one RANSAC run per edge, fewer trials);
+    ``noise_sigma``: stages.load.measure_noise of this scene, if made already."""
     from rotonly_cli.stages.load import build_view_graph
 
-    load = replace(options.load, progress=options.progress, jobs=options.jobs,
-                   **(ESTIMATION_LOAD if estimation else {}))
-    graph, report = build_view_graph(scene, load)
+    graph, report = build_view_graph(scene, _load_options(options, estimation), noise_sigma)
     run = Run(input_path, kind, scene, graph, options, reports={"load": report})
     _ensure_two_views(graph, "loading")
     return run

@@ -437,7 +437,7 @@ class Calibration:
         the calibration, starting with their focal from the view graph. True if any did.
         The matches' noise (``scene``'s) is measured only if some sigma is above the floor."""
         per_camera = {int(c): float(v) for c, v in sigma_by_camera.items()}
-        self.first_reprojection_px = per_camera
+        self.first_reprojection_px = self.first_reprojection_px or per_camera  # a probe's came first
         noise = None
         if any(v > self.options.suspect_reprojection_px for v in per_camera.values()):
             noise = self.noise_sigma_px = fundamental_noise_sigma_px(scene, self.options)

@@ -136,9 +136,10 @@ MIN_THRESHOLD_PX = 0.05
 
 
 def noise_sigma_px(pairs: list[tuple[np.ndarray, np.ndarray, float, float]], options: LoadOptions) -> float | None:
-    """Noise sigma (px) of the matches: 1.4826 x the median Sampson error of the inliers of a
-    loose RANSAC (``options.noise_ransac_max_error_px``) on the largest ``noise_sample_edges``
-    pairs ``(x_i, x_j, focal_i, focal_j)``; None with too few inliers."""
+    """Noise sigma (px) of the matches under the essential-matrix model: 1.4826 x the median
+    Sampson error of the inliers of a loose RANSAC (``options.noise_ransac_max_error_px``) on
+    the largest ``noise_sample_edges`` pairs ``(x_i, x_j, focal_i, focal_j)``; None with too
+    few inliers."""
     order = sorted(range(len(pairs)), key=lambda k: -len(pairs[k][0]))[:options.noise_sample_edges]
 
     def residuals(k: int) -> np.ndarray:
@@ -172,11 +173,9 @@ def stable_consensus(estimates: list) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return best[0], best[1], stable
 
 
-def build_view_graph(scene: SfMScene, options: LoadOptions = LoadOptions()) -> tuple[ViewGraph, dict]:
-    """ViewGraph of the scene's pairs (re-estimating poses as the module docstring says),
-    with the min-inlier filter and the largest-component check applied."""
-    options.validate()
-    start = time.perf_counter()
+def _edges_to_estimate(scene: SfMScene, options: LoadOptions) -> tuple[ViewGraph, list[int], list[tuple]]:
+    """The view graph of every pair (edges filtered where the input rules them out), the
+    edges whose pose is re-estimated and their (x_i, x_j, focal_i, focal_j)."""
     graph = ViewGraph(views=dict(scene.views))
     to_estimate: list[int] = []
     for (i, j) in sorted(scene.pairs):
@@ -204,11 +203,35 @@ def build_view_graph(scene: SfMScene, options: LoadOptions = LoadOptions()) -> t
                 focal_length(scene.intrinsics[scene.views[edge.i].intrinsics_id]),
                 focal_length(scene.intrinsics[scene.views[edge.j].intrinsics_id]))
 
-    pairs = [edge_data(k) for k in to_estimate]
+    return graph, to_estimate, [edge_data(k) for k in to_estimate]
+
+
+#: :func:`measure_noise` found nothing to measure (a fixed threshold, no pair to re-estimate)
+NOT_MEASURED = object()
+
+
+def measure_noise(scene: SfMScene, options: LoadOptions):
+    """The noise sigma (px) :func:`build_view_graph` measures on ``scene`` with ``options``
+    (None: too few inliers; NOT_MEASURED: it measures none), to be looked at before the
+    relative poses are estimated and handed to it."""
+    if options.ransac_max_error_px is not None:
+        return NOT_MEASURED
+    _, _, pairs = _edges_to_estimate(scene, options)
+    return noise_sigma_px(pairs, options) if pairs else NOT_MEASURED
+
+
+def build_view_graph(scene: SfMScene, options: LoadOptions = LoadOptions(),
+                     noise_sigma=NOT_MEASURED) -> tuple[ViewGraph, dict]:
+    """ViewGraph of the scene's pairs (re-estimating poses as the module docstring says),
+    with the min-inlier filter and the largest-component check applied. ``noise_sigma``: the
+    :func:`measure_noise` of this scene and these options, when it was made already."""
+    options.validate()
+    start = time.perf_counter()
+    graph, to_estimate, pairs = _edges_to_estimate(scene, options)
     sigma = None
     threshold = options.ransac_max_error_px
     if threshold is None:
-        sigma = noise_sigma_px(pairs, options) if pairs else None
+        sigma = noise_sigma if noise_sigma is not NOT_MEASURED else noise_sigma_px(pairs, options) if pairs else None
         threshold = options.noise_ransac_max_error_px if sigma is None else \
             float(np.clip(options.inlier_threshold_sigmas * sigma, MIN_THRESHOLD_PX, options.noise_ransac_max_error_px))
 

@@ -134,6 +134,12 @@ def test_guessed_intrinsics_are_calibrated(user_inputs, reference_error, tmp_pat
     else:  # the given (EXIF) focal was wrong: said so
         assert any("focal moved" in w for w in summary["warnings"])
         assert camera["end"]["model"] == "pinhole_radial_k1"  # OpenMVG's pinhole gained its k1
+        # found by the quick estimation pass, before a full chain ran with it: no TRRM or GRRM
+        # before the view-graph focal
+        log = (tmp_path / "out" / "run.log").read_text()
+        calibrated_at = log.index("view-graph calibration")
+        assert log.index("quick estimation pass") < calibrated_at < log.index("refine (TRRM)")
+        assert log.index("optimize (GRRM)") > calibrated_at
 
 
 def test_fixed_uses_the_guess_and_warns(user_inputs, tmp_path):
@@ -177,6 +183,7 @@ def test_auto_leaves_calibrated_cameras_alone(tmp_path, input_name):
         outputs[mode] = (tmp_path / mode / "sfm_data.json").read_bytes()
         assert summary["warnings"] == []
     assert outputs["auto"] == outputs["fixed"]
+    assert "quick estimation pass" not in (tmp_path / "auto" / "run.log").read_text()
     report = json.loads((tmp_path / "auto" / "reports" / "intrinsics.json").read_text())
     assert report["kept_given_intrinsics"] and not report["rounds"]
 
