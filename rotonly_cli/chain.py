@@ -117,8 +117,12 @@ def _probe_for_suspects(input_label: str, kind: InputKind, calibration: Calibrat
         return False
     logger.info("intrinsics: the matches fit essential matrices at sigma %.2f px (> %.2f px): a quick estimation "
                 "pass checks the cameras first", noise_sigma, options.intrinsics.suspect_reprojection_px)
-    probe = _build_graph(input_label, kind, calibration.scene, options, estimation=True, noise_sigma=noise_sigma)
-    probe = _rerun(probe, calibration.scene, probe, estimation=True)
+    try:
+        probe = _build_graph(input_label, kind, calibration.scene, options, estimation=True, noise_sigma=noise_sigma)
+        probe = _rerun(probe, calibration.scene, probe, estimation=True)
+    except AlgorithmError as exc:  # the full chain decides, as without the probe
+        logger.info("intrinsics: the quick estimation pass found no reconstruction (%s)", exc)
+        return False
     return calibration.add_suspects(probe.reports["triangulate"]["outlier_sigma_px_by_camera"], calibration.scene)
 
 

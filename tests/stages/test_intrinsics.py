@@ -199,3 +199,27 @@ def test_views_of_one_camera_change_together():
     np.testing.assert_allclose(copy.normalized[1], [[0.2, 0.0]])
     np.testing.assert_allclose(copy.normalized[2], [[0.2, 0.0]])
     np.testing.assert_allclose(scene.normalized[1], [[0.1, 0.0]])  # the original is untouched
+
+
+def test_a_failed_quick_estimation_pass_falls_back_to_the_full_chain(user_inputs, tmp_path, monkeypatch):
+    """The quick pass runs on intrinsics that may be far off; if it finds no reconstruction,
+    the run goes on as without it (the full chain with the given intrinsics decides)."""
+    from rotonly_cli import chain
+    from rotonly_cli.errors import AlgorithmError
+
+    _, guessed, _ = user_inputs
+    rerun, calls = chain._rerun, []
+
+    def failing_first(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:
+            raise AlgorithmError("fewer than two usable images after scene identification")
+        return rerun(*args, **kwargs)
+
+    monkeypatch.setattr(chain, "_rerun", failing_first)
+    summary = run_pipeline(guessed["openmvg"], tmp_path / "out", _options())
+    assert summary["num_registered"] == 6 and len(calls) > 1
+    log = (tmp_path / "out" / "run.log").read_text()
+    assert "quick estimation pass found no reconstruction" in log
+    end = next(iter(summary["intrinsics"].values()))["end"]
+    assert end[0] == pytest.approx(1380.0, rel=0.005)  # found by the first reconstruction instead
