@@ -242,6 +242,10 @@ def reject_stage(run: Run) -> None:
                     report["edges_filtered"] or "none")
         if report["num_dropped"] == 0 and not report["edges_filtered"]:
             break
+        if report["num_dropped"] < run.options.reject.min_dropped_to_resolve and not report["edges_filtered"]:
+            run.graph = before[0]  # too few to move the rotations: not worth a re-solve, not applied
+            report["not_applied"] = f"fewer than {run.options.reject.min_dropped_to_resolve} matches"
+            break
         _ensure_two_views(run.graph, "multi-view rejection")
         optimize_stage(run)
         translate_stage(run)
@@ -256,7 +260,8 @@ def reject_stage(run: Run) -> None:
                         ", ".join(off_after))
             break
     run.reports["reject"] = {"rounds": rounds,  # an undone round's drops were put back
-                             "num_dropped": int(sum(r["num_dropped"] for r in rounds if "undone" not in r)),
+                             "num_dropped": int(sum(r["num_dropped"] for r in rounds
+                                                    if "undone" not in r and "not_applied" not in r)),
                              "time_s": time.perf_counter() - start}
 
 

@@ -439,6 +439,10 @@ class RejectOptions:
     outlier_sigmas: float = 5.0
     #: ... and never within this many pixels
     min_threshold_px: float = 1.0
+    #: a round that would drop fewer matches than this (and filter no edge) is not applied and
+    #: the rounds end: fewer matches than one edge needs (--min-inliers' default) cannot move
+    #: the rotations, and the GRRM + LiGT re-solve costs 10-20 % of a run (docs/tuning.md)
+    min_dropped_to_resolve: int = 30
 
 
 @dataclass(frozen=True)
