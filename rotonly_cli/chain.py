@@ -90,13 +90,18 @@ def load_scene(scene: SfMScene, kind: InputKind, input_label: str, options: RunO
 
     started = time.perf_counter()
     calibration = start_calibration(scene, options.intrinsics, jobs=options.jobs)
-    noise = NOT_MEASURED
-    if options.intrinsics.mode == Intrinsics.AUTO and not calibration.calibrate:
-        noise = measure_noise(scene, _load_options(options))
-        if _probe_for_suspects(input_label, kind, calibration, options, noise):
-            noise = NOT_MEASURED  # other intrinsics: the load stage measures again
     calibration.time_s += time.perf_counter() - started
+    noise, noise_time = NOT_MEASURED, 0.0
+    if options.intrinsics.mode == Intrinsics.AUTO and not calibration.calibrate:
+        started = time.perf_counter()
+        noise = measure_noise(scene, _load_options(options))  # the load stage's own, made early
+        noise_time = time.perf_counter() - started
+        probed = _probe_for_suspects(input_label, kind, calibration, options, noise)
+        calibration.time_s += time.perf_counter() - started - noise_time
+        if probed:  # other intrinsics: the load stage measures again, and the first was the calibration's
+            noise, calibration.time_s, noise_time = NOT_MEASURED, calibration.time_s + noise_time, 0.0
     run = _build_graph(input_label, kind, calibration.scene, options, noise_sigma=noise)
+    run.reports["load"]["time_s"] += noise_time
     run.calibration = calibration
     run.input_intrinsics = copy.deepcopy(scene.intrinsics)
     run.reports["load"].update(read_time_s=read_time, input=input_label, input_kind=kind,
