@@ -274,3 +274,27 @@ def test_probe_grrm_structure_on_fixture(tmp_path, capsys):
     # the fixture's .feat files come from the database's keypoints (scale column 1): one bin
     assert scale and sum(int(row[1]) for row in scale) > 15000
     assert all(0.05 < float(row[4]) < 2.0 and abs(float(row[2])) < 0.05 for row in scale)
+
+
+# ============================================================================ probe_seed_sensitivity
+
+probe_seeds = _load_script("probe_seed_sensitivity")
+
+
+def test_probe_seed_sensitivity_on_fixture(capsys):
+    """On the clean fixture GRRM ends where it ends whatever the start or the loss scale (the
+    castle-P19 OpenMVG rows of scripts/research/README.md part by 0.06 deg); the edge swap
+    between two seeds moves nothing."""
+    assert probe_seeds.main(["--root", str(FIXTURES), "--scene", "herzjesu_p8", "--input", "database",
+                             "--seeds", "0", "1"]) == 0
+    out = capsys.readouterr().out
+    swaps = [float(line.split(" | ")[-1].rstrip(" |")) for line in out.split("## loss")[0].splitlines()
+             if line.startswith("| (")]
+    assert len(swaps) >= 10 and max(swaps) - min(swaps) < 0.002
+    rows = [line.split(" | ") for line in out.split("## loss")[1].splitlines() if line.startswith("| 0 ")
+            or line.startswith("| 1 ")]
+    assert len(rows) == 2
+    for cells in rows:
+        averaged, default, tight, wide, cauchy, from_gt = map(float, cells[1:7])
+        assert default < averaged and max(default, tight, wide, cauchy, from_gt) < 0.025
+        assert abs(from_gt - default) < 0.001  # the start does not matter on clean data
