@@ -105,12 +105,12 @@ def main(argv: list[str] | None = None) -> int:
             R0 = run.rotations[rows]
             R_gt, _ = gt_poses_for(gt, run.scene, inputs.views)
 
-            def solve(start: np.ndarray, **options):
+            def solve(start: np.ndarray, inputs=inputs, **options):
                 with np.errstate(all="ignore"):
                     return optimize_global_rotations(start, inputs.edge_views, inputs.batch, inputs.obs_ids, 0,
                                                      replace(GRRMOptions(), **options))
 
-            def err(R: np.ndarray) -> float:
+            def err(R: np.ndarray, R_gt=R_gt) -> float:
                 return float(rotation_errors_after_alignment(R, R_gt)[0].mean())
 
             default = solve(R0)
