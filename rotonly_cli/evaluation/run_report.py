@@ -457,6 +457,16 @@ def _ground_truth(directory: Path) -> str:
             + _table(["metric", "min", "mean", "median", "max"], rows, "gt") + "\n".join(figures))
 
 
+def _warnings(reports: dict) -> str:
+    """The run's warnings (the summary's, as the terminal and run.log show them), first on
+    the page; empty without any."""
+    warnings = _get(reports, "run.warnings") or []
+    if not warnings:
+        return ""
+    items = "".join(f"<li>{escape(str(w))}</li>" for w in warnings)
+    return f'<div class="warnings" id="warnings"><h2>Warnings</h2><ul>{items}</ul></div>'
+
+
 # ============================================================================ page
 
 STYLE = """
@@ -474,6 +484,7 @@ img { max-width: 100%; border: 1px solid #ddd; }
 span.bar { display: inline-block; height: 0.7em; background: #1f77b4; vertical-align: middle; max-width: 12em; }
 details { margin: 0.4em 0; } summary { cursor: pointer; font-weight: bold; }
 code { background: #f4f4f4; padding: 0 0.2em; }
+div.warnings { background: #fff4e5; border: 1px solid #f0a040; padding: 0 1em; margin: 1em 0; }
 """
 
 
@@ -484,7 +495,8 @@ def build_html(directory: Path, run, scene: SfMScene | None, statistics: Structu
     parts = [f"<h1>rotonly report</h1><p>Input <code>{escape(str(load.get('input', run.input_path)))}</code> "
              f"({escape(str(load.get('input_kind', run.input_kind)))}); stages done: "
              f"{escape(', '.join(stages_done))}; rotonly {escape(__version__)}.</p>",
-             "<h2>Summary</h2>", _summary(reports, run.graph), "<h2>Time per stage</h2>", _timings(reports)]
+             _warnings(reports), "<h2>Summary</h2>", _summary(reports, run.graph),
+             "<h2>Time per stage</h2>", _timings(reports)]
     after = scene.intrinsics if scene is not None else run.scene.intrinsics
     parts += ["<h2>Intrinsics</h2>", _intrinsics(run.input_intrinsics or run.scene.intrinsics, after)]
     if "export" in reports:

@@ -43,3 +43,5 @@ def test_a_collapsed_solve_is_reported_and_warned(monkeypatch, tmp_path):
     warnings = [w for w in result.summary["warnings"] if w.startswith("positions")]
     assert len(warnings) == 1 and f"{first_view} (" in warnings[0]
     assert "positions" in (tmp_path / "out" / "run.log").read_text()
+    report = (tmp_path / "out" / "report.html").read_text()
+    assert 'id="warnings"' in report and "positions may have collapsed" in report
