@@ -28,16 +28,15 @@ import argparse
 import copy
 import sys
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 
 
 def main(argv: list[str] | None = None) -> int:
+    from strecha_gt import add_scene_arguments, gt_poses_for, gt_track_residuals, scene_input
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--root", type=Path, required=True, help="folder of Strecha scenes (data/strecha layout)")
-    parser.add_argument("--scene", default="Herz-Jesus-P8")
-    parser.add_argument("--input", choices=("openmvg", "database"), default="openmvg")
+    add_scene_arguments(parser)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     import logging
@@ -45,18 +44,12 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING)  # the stages log at INFO; this prints a table
 
     from rotonly_cli.geometry.alignment import rotation_errors_after_alignment
-    from rotonly_cli.io.detect import read_ground_truth
     from rotonly_cli.pipeline import STAGE_FUNCTIONS, Run, RunOptions, load_stage
     from rotonly_cli.scene.view_graph import view_index
     from rotonly_cli.stages.load import focal_length
 
-    from strecha_gt import gt_poses_for, gt_track_residuals
 
-    scene_dir = args.root / args.scene
-    input_path = scene_dir / ("openmvg/sfm_data.json" if args.input == "openmvg" else "database.db")
-    if not input_path.is_file():
-        parser.error(f"--root/--scene: no {input_path}")
-    gt = read_ground_truth(scene_dir)
+    input_path, gt = scene_input(parser, args)
 
     options = RunOptions(progress=False)
     run = load_stage(input_path, options)

@@ -120,10 +120,10 @@ def average_directions(n: int, edge_views: np.ndarray, d_world: np.ndarray, roun
 
 
 def main(argv: list[str] | None = None) -> int:
+    from strecha_gt import add_scene_arguments, averaged_run, gt_poses_for, gt_track_residuals, scene_input
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--root", type=Path, required=True, help="folder of Strecha scenes (data/strecha layout)")
-    parser.add_argument("--scene", default="Herz-Jesus-P8")
-    parser.add_argument("--input", choices=("openmvg", "database"), default="openmvg")
+    add_scene_arguments(parser)
     parser.add_argument("--tables", nargs="+", choices=TABLES, default=list(TABLES))
     args = parser.parse_args(argv)
     import logging
@@ -132,24 +132,16 @@ def main(argv: list[str] | None = None) -> int:
 
     from rotonly_cli.geometry import kernels, so3
     from rotonly_cli.geometry.alignment import rotation_errors_after_alignment
-    from rotonly_cli.io.detect import read_ground_truth
-    from rotonly_cli.pipeline import STAGE_FUNCTIONS, RunOptions, load_stage
+    from rotonly_cli.pipeline import STAGE_FUNCTIONS
     from rotonly_cli.scene.view_graph import edge_batch, regular_edges
     from rotonly_cli.stages.load import focal_length
     from rotonly_cli.stages.optimize import optimize_graph
     from rotonly_cli.stages.translate import translate_graph
 
     from grrm_fixed_translations import optimize_graph_with_translations
-    from strecha_gt import gt_poses_for, gt_track_residuals
 
-    scene_dir = args.root / args.scene
-    input_path = scene_dir / ("openmvg/sfm_data.json" if args.input == "openmvg" else "database.db")
-    if not input_path.is_file():
-        parser.error(f"--root/--scene: no {input_path}")
-    gt = read_ground_truth(scene_dir)
-    run = load_stage(input_path, RunOptions(progress=False))
-    for stage in ("identify", "refine", "average"):
-        STAGE_FUNCTIONS[stage](run)
+    input_path, gt = scene_input(parser, args)
+    run = averaged_run(input_path)
     graph, scene = run.graph, run.scene
     view_ids = graph.view_ids()
     row = {v: r for r, v in enumerate(view_ids)}

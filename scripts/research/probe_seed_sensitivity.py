@@ -33,22 +33,11 @@ import numpy as np
 TABLES = ("edges", "loss")
 
 
-def averaged_run(input_path: Path, seed: int):
-    """rotonly's run after load, identify, refine and average with the load stage's ``seed``."""
-    from rotonly_cli.options import LoadOptions
-    from rotonly_cli.pipeline import STAGE_FUNCTIONS, RunOptions, load_stage
-
-    run = load_stage(input_path, RunOptions(progress=False, load=LoadOptions(seed=seed)))
-    for stage in ("identify", "refine", "average"):
-        STAGE_FUNCTIONS[stage](run)
-    return run
-
-
 def main(argv: list[str] | None = None) -> int:
+    from strecha_gt import add_scene_arguments, averaged_run, gt_poses_for, scene_input
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--root", type=Path, required=True, help="folder of Strecha scenes (data/strecha layout)")
-    parser.add_argument("--scene", default="castle-P19")
-    parser.add_argument("--input", choices=("openmvg", "database"), default="openmvg")
+    add_scene_arguments(parser, "castle-P19")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 3], help="load-stage seeds (edges: the first two)")
     parser.add_argument("--tables", nargs="+", choices=TABLES, default=list(TABLES))
     args = parser.parse_args(argv)
@@ -58,17 +47,11 @@ def main(argv: list[str] | None = None) -> int:
 
     from rotonly_cli.geometry.alignment import rotation_errors_after_alignment
     from rotonly_cli.geometry.grrm import optimize_global_rotations
-    from rotonly_cli.io.detect import read_ground_truth
     from rotonly_cli.options import GRRMOptions
     from rotonly_cli.stages.optimize import grrm_inputs, optimize_graph
 
-    from strecha_gt import gt_poses_for
 
-    scene_dir = args.root / args.scene
-    input_path = scene_dir / ("openmvg/sfm_data.json" if args.input == "openmvg" else "database.db")
-    if not input_path.is_file():
-        parser.error(f"--root/--scene: no {input_path}")
-    gt = read_ground_truth(scene_dir)
+    input_path, gt = scene_input(parser, args)
     runs = {seed: averaged_run(input_path, seed) for seed in dict.fromkeys(args.seeds)}
 
     def error(run, R: np.ndarray) -> float:

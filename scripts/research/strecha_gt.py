@@ -44,3 +44,34 @@ def gt_track_residuals(structure, view_ids, normalized: dict, R_gt: np.ndarray, 
     cam = np.einsum("nij,nj->ni", R_gt[view_row], X[point] - C_gt[view_row])
     return {"view_row": view_row, "keypoint": keypoint, "point": point, "observed": observed,
             "projected": cam[:, :2] / cam[:, 2:3]}
+
+
+def add_scene_arguments(parser, default_scene: str = "Herz-Jesus-P8") -> None:
+    """The probes' --root, --scene and --input."""
+    parser.add_argument("--root", type=Path, required=True, help="folder of Strecha scenes (data/strecha layout)")
+    parser.add_argument("--scene", default=default_scene)
+    parser.add_argument("--input", choices=("openmvg", "database"), default="openmvg")
+
+
+def scene_input(parser, args):
+    """(input path, ground truth) of the probe's --root/--scene/--input; a usage error
+    (exit 2) when the input is missing."""
+    from rotonly_cli.io.detect import read_ground_truth
+
+    scene_dir = args.root / args.scene
+    input_path = scene_dir / ("openmvg/sfm_data.json" if args.input == "openmvg" else "database.db")
+    if not input_path.is_file():
+        parser.error(f"--root/--scene: no {input_path}")
+    return input_path, read_ground_truth(scene_dir)
+
+
+def averaged_run(input_path: Path, seed: int = 0):
+    """rotonly's run after load, identify, refine and average (the GRRM start), with the load
+    stage's ``seed``."""
+    from rotonly_cli.options import LoadOptions
+    from rotonly_cli.pipeline import STAGE_FUNCTIONS, RunOptions, load_stage
+
+    run = load_stage(input_path, RunOptions(progress=False, load=LoadOptions(seed=seed)))
+    for stage in ("identify", "refine", "average"):
+        STAGE_FUNCTIONS[stage](run)
+    return run
