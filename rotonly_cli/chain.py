@@ -91,15 +91,18 @@ def load_scene(scene: SfMScene, kind: InputKind, input_label: str, options: RunO
     started = time.perf_counter()
     calibration = start_calibration(scene, options.intrinsics, jobs=options.jobs)
     calibration.time_s += time.perf_counter() - started
-    noise, noise_time = NOT_MEASURED, 0.0
+    noise, noise_time = NOT_MEASURED, 0.0  # the load stage's own noise measurement, if made early
     if options.intrinsics.mode == Intrinsics.AUTO and not calibration.calibrate:
         started = time.perf_counter()
-        noise = measure_noise(scene, _load_options(options))  # the load stage's own, made early
+        noise = measure_noise(scene, _load_options(options))
         noise_time = time.perf_counter() - started
-        probed = _probe_for_suspects(input_label, kind, calibration, options, noise)
-        calibration.time_s += time.perf_counter() - started - noise_time
-        if probed:  # other intrinsics: the load stage measures again, and the first was the calibration's
-            noise, calibration.time_s, noise_time = NOT_MEASURED, calibration.time_s + noise_time, 0.0
+        started = time.perf_counter()
+        if _probe_for_suspects(input_label, kind, calibration, options, noise):
+            # other intrinsics: the load stage measures again; this measurement served the calibration
+            noise = NOT_MEASURED
+            calibration.time_s += noise_time
+            noise_time = 0.0
+        calibration.time_s += time.perf_counter() - started
     run = _build_graph(input_label, kind, calibration.scene, options, noise_sigma=noise)
     run.reports["load"]["time_s"] += noise_time
     run.calibration = calibration
@@ -220,16 +223,12 @@ def output_root_path(run: Run) -> str:
     return "" if root is None else str(root)
 
 
-def _views_off(translate_report: dict | None) -> list[str]:
-    """The views the translate stage's baseline check found off (stages/translate.baseline_report)."""
-    return list(((translate_report or {}).get("baselines") or {}).get("views_off") or {})
-
-
 def reject_stage(run: Run) -> None:
     """Rounds of stages/reject (drop the matches inconsistent with the global poses) followed
     by GRRM and LiGT on what is left, until a round drops nothing (RejectOptions.max_rounds).
     The optimize and translate reports are those of the last solve."""
     from rotonly_cli.stages.reject import reject_round
+    from rotonly_cli.stages.translate import views_off
 
     start = time.perf_counter()
     rounds = []
@@ -237,8 +236,9 @@ def reject_stage(run: Run) -> None:
     for _ in range(run.options.reject.max_rounds):
         if run.rotations is None or run.centers is None:
             break
-        before = (copy.deepcopy(run.graph), run.rotations, run.centers,
-                  {k: run.reports.get(k) for k in ("optimize", "translate")})
+        # what an undone round restores (reject_round changes the graph in place)
+        graph_before, rotations_before, centers_before = copy.deepcopy(run.graph), run.rotations, run.centers
+        reports_before = {k: run.reports.get(k) for k in ("optimize", "translate")}
         report = reject_round(run.graph, run.scene.normalized, run.rotations, run.centers, focal_px,
                               run.options.reject, run.options.load.min_inliers, run.options.average.max_residual_deg)
         rounds.append(report)
@@ -248,18 +248,18 @@ def reject_stage(run: Run) -> None:
         if report["num_dropped"] == 0 and not report["edges_filtered"]:
             break
         if report["num_dropped"] < run.options.reject.min_dropped_to_resolve and not report["edges_filtered"]:
-            run.graph = before[0]  # too few to move the rotations: not worth a re-solve, not applied
+            run.graph = graph_before  # too few to move the rotations: not worth a re-solve, not applied
             report["not_applied"] = f"fewer than {run.options.reject.min_dropped_to_resolve} matches"
             break
         _ensure_two_views(run.graph, "multi-view rejection")
         optimize_stage(run)
         translate_stage(run)
-        off_before, off_after = (_views_off(reports.get("translate")) for reports in (before[3], run.reports))
-        if len(off_after) > len(off_before):
+        off_after = list(views_off(run.reports.get("translate")))
+        if len(off_after) > len(views_off(reports_before["translate"])):
             # LiGT's solve on the cleaned tracks collapsed where the previous one had not (castle-P19,
             # OpenMVG matches, 5 consensus runs, seed 3: 17.6 GT units): the round is undone
-            run.graph, run.rotations, run.centers = before[:3]
-            run.reports.update(before[3])
+            run.graph, run.rotations, run.centers = graph_before, rotations_before, centers_before
+            run.reports.update(reports_before)
             report["undone"] = {"views_off": off_after}
             logger.info("reject: round undone, its LiGT solve put view(s) %s off their pairs' baselines",
                         ", ".join(off_after))

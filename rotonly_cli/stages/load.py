@@ -231,7 +231,9 @@ def build_view_graph(scene: SfMScene, options: LoadOptions = LoadOptions(),
     sigma = None
     threshold = options.ransac_max_error_px
     if threshold is None:
-        sigma = noise_sigma if noise_sigma is not NOT_MEASURED else noise_sigma_px(pairs, options) if pairs else None
+        if noise_sigma is NOT_MEASURED:
+            noise_sigma = noise_sigma_px(pairs, options) if pairs else None
+        sigma = noise_sigma
         threshold = options.noise_ransac_max_error_px if sigma is None else \
             float(np.clip(options.inlier_threshold_sigmas * sigma, MIN_THRESHOLD_PX, options.noise_ransac_max_error_px))
 

@@ -86,9 +86,15 @@ def baseline_report(graph: ViewGraph, edges: list[int], index: dict[int, int], R
             "views_off": {str(ids[v]): float(medians[v]) for v in off.tolist()}}
 
 
+def views_off(report: dict | None) -> dict[str, float]:
+    """The views a translate report's baseline check found off ({view id: median angle});
+    empty for no report or one without the check."""
+    return ((report or {}).get("baselines") or {}).get("views_off") or {}
+
+
 def baseline_warning(report: dict | None) -> str | None:
     """The run summary's warning when the translate report's baseline check found views off."""
-    off = (report or {}).get("baselines", {}).get("views_off") or {}
+    off = views_off(report)
     if not off:
         return None
     shown = ", ".join(f"{v} ({angle:.0f} deg)" for v, angle in list(off.items())[:8])
