@@ -7,7 +7,7 @@ Usage: python scripts/bench/guessed_focal.py --scene DATA/strecha/fountain-P11
 
 Both tools get the same database (``SCENE/database_guessed_focal.db`` by default: COLMAP 3.8's
 CLI defaults, ``SIMPLE_RADIAL``, f guessed as 1.2 x the image size, ``prior_focal_length =
-0``), each on a private copy, in N alternating rounds (strecha_tools.alternating_runs: a slow
+0``), the mapper on a private copy, in N alternating rounds (strecha_tools.alternating_runs: a slow
 stretch of the shared machine falls on both alike), timed as whole processes:
 
 * ``rotonly -q run DB -o OUT`` (default settings: ``--intrinsics auto`` calibrates the guess);
@@ -106,11 +106,10 @@ def main(argv: list[str] | None = None) -> int:
             shutil.copyfile(database, folder / "database.db")
             return colmap_mapper_command(args.colmap, folder / "database.db", scene / "images", folder / "sparse")
 
-        def rotonly_run(k: int) -> list[str]:
+        def rotonly_run(k: int) -> list[str]:  # rotonly never writes into its input: no copy
             folder = _round_dir(work, "rotonly", k)
             folder.mkdir()
-            shutil.copyfile(database, folder / "database.db")
-            return rotonly_run_command(folder / "database.db", folder / "out")
+            return rotonly_run_command(database, folder / "out")
 
         runs = alternating_runs({"rotonly": rotonly_run, "colmap": mapper_run}, args.rounds)
         last = args.rounds - 1
@@ -121,8 +120,8 @@ def main(argv: list[str] | None = None) -> int:
     per_round = np.array(times["rotonly"]) / np.array(times["colmap"])
     lines = ["| tool | wall time median (s) | min-max (s) | rotation error mean / median (deg) | "
              "registered | focal (px) |", "|---|---|---|---|---|---|"]
-    for name, result, focal in (("rotonly run", ours, ours_focal), ("colmap mapper", theirs, theirs_focal)):
-        key = "rotonly" if name.startswith("rotonly") else "colmap"
+    for name, key, result, focal in (("rotonly run", "rotonly", ours, ours_focal),
+                                     ("colmap mapper", "colmap", theirs, theirs_focal)):
         t = times[key]
         score = "failed" if result is None or result.error else (
             f"{fmt(result.rotation_mean_deg)} / {fmt(result.rotation_median_deg)}")
