@@ -360,6 +360,9 @@ class LoadOptions:
     #: (unverified raw matches) would otherwise run pycolmap's 100 000 trials
     ransac_max_trials: int = 2000
     ransac_confidence: float = 0.9999
+    #: pycolmap multiplies its adaptive trial count (the count that reaches the confidence at
+    #: the best model's inlier ratio) by this margin
+    ransac_trials_multiplier: float = 1.0
     seed: int = 0
     min_inliers: int = 30  #: edges with fewer inlier matches are filtered
     progress: bool = False

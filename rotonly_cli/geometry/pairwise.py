@@ -442,6 +442,19 @@ def epipolar_residuals(R_j_from_i: np.ndarray, batch: EdgeBatch, with_jacobian: 
 
 
 # ----------------------------------------------------------------------------- pure rotation
+def ransac_trials_needed(inlier_ratio: float, sample_size: int, confidence: float) -> float:
+    """Trials after which a RANSAC has drawn at least one all-inlier sample with probability
+    ``confidence`` when a fraction ``inlier_ratio`` of the data are inliers:
+    log(1 - confidence) / log(1 - ratio^sample_size) (Fischler & Bolles 1981; the same count
+    COLMAP's adaptive stopping uses). inf for a ratio of 0, 1 for a ratio of 1."""
+    p_sample = float(np.clip(inlier_ratio, 0.0, 1.0)) ** sample_size
+    if p_sample >= 1.0:
+        return 1.0
+    if p_sample <= 0.0:
+        return float("inf")
+    return float(np.ceil(np.log1p(-confidence) / np.log1p(-p_sample)))
+
+
 def sampson_errors(R_j_from_i: np.ndarray, t: np.ndarray, x_i: np.ndarray, x_j: np.ndarray) -> np.ndarray:
     """First-order geometric distance of each match to the epipolar geometry E = [t]x R_ij
     (Sampson), in normalized image units (x pixels / focal length): (m,)."""

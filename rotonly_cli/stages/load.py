@@ -35,6 +35,8 @@ logger = logging.getLogger(__name__)
 
 #: configurations whose stored cam2_from_cam1 comes from an essential matrix (formats.md §4.5)
 ESSENTIAL_CONFIGS = ("CALIBRATED", "E")
+#: matches per sample of the five-point essential-matrix solver
+ESSENTIAL_SAMPLE_SIZE = 5
 
 def read_input(input_path: str | Path, matches_dir: str | Path | None = None,
                matches_file: str | Path | None = None,
@@ -88,6 +90,13 @@ def _relative_pose_ransac(x_i: np.ndarray, x_j: np.ndarray, focal_i: float, foca
     that size, and the inliers are every match within the threshold of its model (Sampson)."""
     import pycolmap
 
+    # an edge needs min_inliers of its matches to survive: a RANSAC that has not drawn a model
+    # with that many after the trials such an inlier ratio needs has, at this confidence, an
+    # edge that is filtered anyway (weak pairs are the ones that run to the trial limit)
+    trials_needed = pg.ransac_trials_needed(options.min_inliers / max(len(x_i), 1), ESSENTIAL_SAMPLE_SIZE,
+                                            options.ransac_confidence)
+    max_trials = int(np.clip(trials_needed, options.ransac_min_trials,
+                             max(options.ransac_max_trials, options.ransac_min_trials)))
     subset = None
     if options.ransac_max_matches is not None and len(x_i) > options.ransac_max_matches:
         subset = np.sort(np.random.default_rng(seed).choice(len(x_i), options.ransac_max_matches, replace=False))
@@ -96,8 +105,9 @@ def _relative_pose_ransac(x_i: np.ndarray, x_j: np.ndarray, focal_i: float, foca
     cameras = [pycolmap.Camera(model=pycolmap.CameraModelId.SIMPLE_PINHOLE, width=2, height=2,
                                params=np.array([f, 0.0, 0.0])) for f in (focal_i, focal_j)]
     ransac = pycolmap.RANSACOptions(max_error=max_error_px, random_seed=seed, min_num_trials=options.ransac_min_trials,
-                                    max_num_trials=max(options.ransac_max_trials, options.ransac_min_trials),
-                                    confidence=options.ransac_confidence)
+                                    max_num_trials=max_trials,
+                                    confidence=options.ransac_confidence,
+                                    dyn_num_trials_multiplier=options.ransac_trials_multiplier)
     result = pycolmap.estimate_relative_pose(cameras[0], np.ascontiguousarray(x_i * focal_i), cameras[1],
                                              np.ascontiguousarray(x_j * focal_j), ransac)
     if result is None:

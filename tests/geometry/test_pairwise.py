@@ -396,3 +396,15 @@ def test_cauchy_loss_resists_wrong_matches():
             errs[loss].append(np.rad2deg(so3.geodesic_angle(res.rotation, p.R_j_from_i)))
     assert np.mean(errs["cauchy"]) < 0.05
     assert np.mean(errs["cauchy"]) < 0.5 * np.mean(errs["none"])
+
+
+def test_ransac_trials_needed_reaches_the_confidence():
+    # 1 - (1 - r^5)^k >= confidence at the returned k, and not at k - 1
+    for ratio, confidence in [(0.5, 0.99), (0.3, 0.9999), (0.9, 0.9999), (30 / 52, 0.9999)]:
+        k = pg.ransac_trials_needed(ratio, 5, confidence)
+        assert k == int(k) and k >= 1
+        assert 1 - (1 - ratio ** 5) ** k >= confidence
+        assert 1 - (1 - ratio ** 5) ** (k - 1) < confidence
+    assert pg.ransac_trials_needed(0.5, 5, 0.99) == 146  # log(0.01) / log(31/32) = 145.05
+    assert pg.ransac_trials_needed(1.0, 5, 0.9999) == 1
+    assert pg.ransac_trials_needed(0.0, 5, 0.9999) == float("inf")
