@@ -97,6 +97,22 @@ def test_normal_equations_equal_explicit_jacobian_products(chunk, monkeypatch):
     assert np.max(np.abs(g - g_ref)) <= 1e-12 * np.abs(g_ref).max()
 
 
+@pytest.mark.parametrize("residual", ["bearing", "image"])
+def test_cost_alone_equals_cost_with_normal_equations(residual):
+    """LM judges a retried candidate by the cost alone and linearises it only once accepted:
+    the two costs must be the same number, or a step could be accepted on one and the run
+    continue from the other."""
+    p, prob, R_gt = _problem(noise=1.0, seed=5, views=8, window=3)
+    problem = grrm.GRRMSystem(8, prob.edge_views, prob.batch, prob.obs_ids, residual)
+    rng = np.random.default_rng(4)
+    for _ in range(3):
+        R = so3.exp(rng.normal(scale=0.01, size=(8, 3))) @ R_gt
+        alone = problem.linearize(R, "geman_mcclure", 1e-3, True, False)
+        full = problem.linearize(R, "geman_mcclure", 1e-3, True, True, True)
+        assert alone[1] is None and full[1] is not None
+        assert alone[0] == full[0]
+
+
 def test_robust_hessian_same_optimum_fewer_iterations():
     """The loss's second-order term (Triggs' correction) changes the steps, not the minimum."""
     p, prob, R_gt = _problem("circular", noise=2.0, seed=9, views=10, window=3)

@@ -178,6 +178,7 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: pg.EdgeBatch,
         Returns (accepted, R, cost, JᵀWJ, JᵀWV, remainder, step, damping) of the candidate."""
         JtJ, remainder = restrict(JtJ), restrict(remainder)
         grad = grad[free]
+        retry = False
         while True:
             delta_free = _solve_damped(JtJ, grad, mu, remainder)
             if delta_free is not None:
@@ -185,14 +186,25 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: pg.EdgeBatch,
                 delta[free] = delta_free
                 R_cand = so3.exp(delta.reshape(n, 3)) @ R_at
                 step = float(np.max(np.linalg.norm(delta.reshape(n, 3), axis=1)))
-                # the candidate's normal equations come with its cost (accepted steps, the usual
-                # case, reuse them), except after a step below step_tolerance, after which LM
-                # stops if it is accepted
-                cost_c, JtJ_c, grad_c, rem_c = linearize(R_cand, step >= options.step_tolerance,
-                                                         step < options.exact_curvature_below)
+                # an iteration's first candidate comes with its normal equations (accepted
+                # steps, the usual case, reuse them), except after a step below
+                # step_tolerance, after which LM stops if it is accepted. A retry at a higher
+                # damping is costed alone first (a quarter of a linearisation): near the
+                # optimum the robust loss's quadratic model can fail several times in a row
+                # while the damping climbs back from ~1e-7 (castle-P19: five retries in one
+                # iteration, 1e-7 to 1e-2), each rejected candidate a full Jacobian otherwise
+                with_jacobian = step >= options.step_tolerance
+                exact = step < options.exact_curvature_below
+                if retry:
+                    cost_c, JtJ_c, grad_c, rem_c = linearize(R_cand, False)
+                    if cost_c <= cost_now and with_jacobian:
+                        cost_c, JtJ_c, grad_c, rem_c = linearize(R_cand, True, exact)
+                else:
+                    cost_c, JtJ_c, grad_c, rem_c = linearize(R_cand, with_jacobian, exact)
                 if cost_c <= cost_now:
                     return True, R_cand, cost_c, JtJ_c, grad_c, rem_c, step, max(mu / 10.0, 1e-15)
             mu *= 10.0
+            retry = True
             if mu > options.max_damping:
                 return False, R_at, cost_now, None, None, None, 0.0, mu
 
