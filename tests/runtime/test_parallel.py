@@ -32,7 +32,7 @@ def _edges(num_edges: int = 24, num_points: int = 150, seed: int = 3):
 
 @pytest.fixture
 def small_parts(monkeypatch):
-    """Let small test batches split (the default needs 1e5 matches per part)."""
+    """Let small test batches split (the default needs 20 000 matches per part)."""
     monkeypatch.setattr(parallel, "MIN_MATCHES_PER_JOB", 500)
     calls = []
     fork_map = parallel.fork_map
