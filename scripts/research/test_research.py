@@ -298,3 +298,20 @@ def test_probe_seed_sensitivity_on_fixture(capsys):
         averaged, default, tight, wide, cauchy, from_gt = map(float, cells[1:7])
         assert default < averaged and max(default, tight, wide, cauchy, from_gt) < 0.025
         assert abs(from_gt - default) < 0.001  # the start does not matter on clean data
+
+
+# ============================================================================ probe_weak_pairs
+
+probe_weak = _load_script("probe_weak_pairs")
+
+
+def test_probe_weak_pairs_on_fixture(capsys):
+    """Pairs dropped only for their count (--min-inliers 300 on the clean fixture) are good
+    pairs: most of their matches lie on the global and the GT epipolar geometry (castle-P19's
+    database: 220 of 2552, scripts/research/README.md)."""
+    assert probe_weak.main(["--root", str(FIXTURES), "--scene", "herzjesu_p8", "--input", "database",
+                            "--min-inliers", "300"]) == 0
+    row = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| ") and line[2].isdigit()]
+    pairs, matches, near_global, near_both, used = map(int, row[0].strip("| ").split(" | "))
+    assert pairs > 0 and used > matches
+    assert near_global >= 0.8 * matches and near_both >= 0.95 * near_global
