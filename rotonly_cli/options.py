@@ -377,6 +377,8 @@ class LoadOptions:
             raise InputError("must be > 0", field="ransac_max_error_px")
         if not (self.inlier_threshold_sigmas > 0 and self.noise_ransac_max_error_px > 0):
             raise InputError("must be > 0", field="inlier_threshold_sigmas")
+        if not self.ransac_trials_multiplier > 0:
+            raise InputError("must be > 0", field="ransac_trials_multiplier")
         if self.consensus_runs < 1 or self.noise_sample_edges < 1:
             raise InputError("must be >= 1", field="consensus_runs")
         if self.min_inliers < MIN_MATCHES:

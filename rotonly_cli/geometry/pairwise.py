@@ -441,7 +441,7 @@ def epipolar_residuals(R_j_from_i: np.ndarray, batch: EdgeBatch, with_jacobian: 
     return out
 
 
-# ----------------------------------------------------------------------------- pure rotation
+# ----------------------------------------------------------------------------- RANSAC
 def ransac_trials_needed(inlier_ratio: float, sample_size: int, confidence: float) -> float:
     """Trials after which a RANSAC has drawn at least one all-inlier sample with probability
     ``confidence`` when a fraction ``inlier_ratio`` of the data are inliers:
@@ -455,6 +455,7 @@ def ransac_trials_needed(inlier_ratio: float, sample_size: int, confidence: floa
     return float(np.ceil(np.log1p(-confidence) / np.log1p(-p_sample)))
 
 
+# ----------------------------------------------------------------------------- pure rotation
 def sampson_errors(R_j_from_i: np.ndarray, t: np.ndarray, x_i: np.ndarray, x_j: np.ndarray) -> np.ndarray:
     """First-order geometric distance of each match to the epipolar geometry E = [t]x R_ij
     (Sampson), in normalized image units (x pixels / focal length): (m,)."""

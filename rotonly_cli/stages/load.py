@@ -11,7 +11,8 @@ on normalized coordinates at a threshold measured on the input: ``inlier_thresho
 x the noise sigma of the matches (Sampson errors of a loose RANSAC on the largest pairs).
 Each edge runs ``consensus_runs`` seeded RANSACs and keeps the stable consensus: the matches
 that every run accepts (:func:`stable_consensus`); an edge whose first run falls short of
-``min_inliers`` gets no further runs (it would be filtered anyway). Dropped matches are counted
+``min_inliers`` gets no further runs (it would be filtered anyway), and no run goes on beyond
+the trials an inlier ratio of ``min_inliers`` / its matches needs. Dropped matches are counted
 per edge and reason. It is per-edge C++ work, so a loop over edges is fine here.
 """
 
@@ -37,6 +38,7 @@ logger = logging.getLogger(__name__)
 ESSENTIAL_CONFIGS = ("CALIBRATED", "E")
 #: matches per sample of the five-point essential-matrix solver
 ESSENTIAL_SAMPLE_SIZE = 5
+
 
 def read_input(input_path: str | Path, matches_dir: str | Path | None = None,
                matches_file: str | Path | None = None,
