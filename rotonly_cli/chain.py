@@ -226,11 +226,16 @@ def output_root_path(run: Run) -> str:
 def reject_stage(run: Run) -> None:
     """Rounds of stages/reject (drop the matches inconsistent with the global poses) followed
     by GRRM and LiGT on what is left, until a round drops nothing (RejectOptions.max_rounds).
-    The optimize and translate reports are those of the last solve."""
+    The optimize and translate reports are those of the last solve, with ``time_s`` the time
+    of every solve (first and re-solves, undone ones too) and ``solves`` their number; the
+    reject report's ``time_s`` is its own checks: the stage times add up to the run's."""
     from rotonly_cli.stages.reject import reject_round
     from rotonly_cli.stages.translate import views_off
 
     start = time.perf_counter()
+    solve_time = {k: float((run.reports.get(k) or {}).get("time_s") or 0.0) for k in ("optimize", "translate")}
+    solves = 1
+    resolving = 0.0  # seconds of this stage spent in GRRM and LiGT re-solves
     rounds = []
     focal_px = run.scene.focal_px(run.graph.view_ids())
     for _ in range(run.options.reject.max_rounds):
@@ -252,8 +257,13 @@ def reject_stage(run: Run) -> None:
             report["not_applied"] = f"fewer than {run.options.reject.min_dropped_to_resolve} matches"
             break
         _ensure_two_views(run.graph, "multi-view rejection")
+        resolve_start = time.perf_counter()
         optimize_stage(run)
         translate_stage(run)
+        resolving += time.perf_counter() - resolve_start
+        solves += 1
+        for key in solve_time:
+            solve_time[key] += float((run.reports.get(key) or {}).get("time_s") or 0.0)
         off_after = list(views_off(run.reports.get("translate")))
         if len(off_after) > len(views_off(reports_before["translate"])):
             # LiGT's solve on the cleaned tracks collapsed where the previous one had not (castle-P19,
@@ -264,10 +274,14 @@ def reject_stage(run: Run) -> None:
             logger.info("reject: round undone, its LiGT solve put view(s) %s off their pairs' baselines",
                         ", ".join(off_after))
             break
+    if solves > 1:
+        for key, seconds in solve_time.items():
+            if isinstance(run.reports.get(key), dict) and "time_s" in run.reports[key]:
+                run.reports[key] = {**run.reports[key], "time_s": seconds, "solves": solves}
     run.reports["reject"] = {"rounds": rounds,  # an undone round's drops were put back
                              "num_dropped": int(sum(r["num_dropped"] for r in rounds
                                                     if "undone" not in r and "not_applied" not in r)),
-                             "time_s": time.perf_counter() - start}
+                             "time_s": time.perf_counter() - start - resolving}
 
 
 def triangulate_stage(run: Run) -> None:

@@ -123,3 +123,30 @@ def test_round_dropping_fewer_matches_than_an_edge_needs_is_not_applied(monkeypa
     assert run.reports["reject"]["num_dropped"] == 0
     assert run.graph.edges[0].num_inliers == 200 and not run.graph.edges[0].dropped_matches
     assert run.centers is C and run.reports["translate"]["solve"] == "first"  # no re-solve
+
+
+def test_stage_times_add_up_over_the_re_solves(monkeypatch):
+    """optimize.json and translate.json carry the time of every solve and their number; the
+    reject stage's own time leaves the re-solves out (the report's stage times add up)."""
+    from rotonly_cli import chain
+    from rotonly_cli.chain import reject_stage
+
+    graph, normalized, R, C = _graph(np.random.default_rng(0), wrong_px=15.0, num_wrong=60)
+    run = _run_for_reject_stage(graph, normalized, R, C)
+    run.reports["optimize"] = {"time_s": 1.0}
+    run.reports["translate"]["time_s"] = 1.5
+
+    def optimize(run):
+        run.rotations = run.rotations.copy()
+        run.reports["optimize"] = {"time_s": 2.0, "solve": "after the round"}
+
+    def translate(run):
+        run.reports["translate"] = {"baselines": {"views_off": {}}, "time_s": 3.0, "solve": "after the round"}
+
+    monkeypatch.setattr(chain, "optimize_stage", optimize)
+    monkeypatch.setattr(chain, "translate_stage", translate)
+    reject_stage(run)
+    assert len(run.reports["reject"]["rounds"]) == 2  # the second round finds nothing more
+    assert run.reports["optimize"] == {"time_s": 3.0, "solve": "after the round", "solves": 2}
+    assert run.reports["translate"]["time_s"] == 4.5 and run.reports["translate"]["solves"] == 2
+    assert 0.0 <= run.reports["reject"]["time_s"] < 1.0
