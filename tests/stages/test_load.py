@@ -58,3 +58,27 @@ def test_weak_edges_skip_the_extra_runs_and_the_graph_is_that_of_every_run(scene
     assert strong >= 3 and weak >= 2, (strong, weak)
     extra_runs = sum(seed != options.seed for seed in calls)
     assert extra_runs == (options.consensus_runs - 1) * (report["num_reestimated"] - weak)
+
+
+def test_ransac_stops_at_the_trials_min_inliers_needs(monkeypatch):
+    """A pair of 40 matches can only keep an edge with 30 inliers (ratio 0.75): its RANSAC gets
+    the trials that ratio needs, not --ransac-max-trials; a pair of 5000 matches gets the cap."""
+    import pycolmap
+
+    given = []
+    real = pycolmap.RANSACOptions
+
+    def recording(**kwargs):
+        given.append(kwargs["max_num_trials"])
+        return real(**kwargs)
+
+    monkeypatch.setattr(pycolmap, "RANSACOptions", recording)
+    rng = np.random.default_rng(0)
+    options = LoadOptions(min_inliers=30)
+    for n in (40, 5000):
+        x = rng.normal(size=(n, 2))
+        load._relative_pose_ransac(x, x + rng.normal(scale=0.01, size=(n, 2)), 1000.0, 1000.0, 1.0, 0, options)
+    from rotonly_cli.geometry import pairwise as pg
+
+    assert given[0] == pg.ransac_trials_needed(30 / 40, 5, options.ransac_confidence) == 34
+    assert given[1] == options.ransac_max_trials
