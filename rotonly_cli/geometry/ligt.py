@@ -368,8 +368,15 @@ def views_off_their_baselines(angles_deg: np.ndarray, edge_views: np.ndarray, nu
     median = np.full(num_views, np.nan)
     view_of = np.concatenate([ends[finite, 0], ends[finite, 1]])
     angle_of = np.concatenate([angles[finite], angles[finite]])
-    for view in np.unique(view_of):  # one median per view: n small, edges per view few
-        median[view] = float(np.median(angle_of[view_of == view]))
+    # every view's angles sorted within its run of the sorted views: the median is the mean of
+    # the run's two middle entries (one entry for an odd count), as np.median takes it
+    order = np.lexsort((angle_of, view_of))
+    sorted_angles = angle_of[order]
+    counts = np.bincount(view_of, minlength=num_views)
+    has = np.flatnonzero(counts)
+    starts = (np.cumsum(counts) - counts)[has]
+    low, high = sorted_angles[starts + (counts[has] - 1) // 2], sorted_angles[starts + counts[has] // 2]
+    median[has] = (low + high) / 2.0
     return median, np.flatnonzero(np.nan_to_num(median, nan=0.0) > max_disagreement_deg)
 
 
