@@ -185,7 +185,8 @@ def optimize_stage(run: Run) -> None:
 
     with iteration_bar(run.options.progress, run.options.optimize.max_iterations, "GRRM") as on_iteration:
         run.rotations, run.reports["optimize"] = optimize_graph(run.graph, run.scene.normalized, run.rotations,
-                                                                run.options.optimize, on_iteration=on_iteration)
+                                                                run.options.optimize, on_iteration=on_iteration,
+                                                                jobs=run.options.jobs)
 
 
 def translate_stage(run: Run) -> None:

@@ -221,7 +221,7 @@ class GRRMOptions:
     function_tolerance: float = 1e-8  #: stop at a relative cost decrease below this (ε of Alg. 4)
     #: stop after an accepted step whose largest rotation update is below this (rad): LM
     #: converges superlinearly here, so what is left is far below real rotation errors
-    step_tolerance: float = 1e-5
+    step_tolerance: float = 1e-4
     initial_damping: float = 1e-4  #: μ relative to diag(JᵀJ)
     max_damping: float = 1e10
     #: robust loss on ‖V_ik‖ (bearing chord units ≈ radians). Redescending: the wrong

@@ -101,6 +101,6 @@ jobs = click.option(
     "--jobs", type=click.IntRange(min=1), default=None,
     callback=lambda ctx, param, value: _usable_cpus() if value is None else value,
     help=f"CPUs to use (default: the usable CPUs, {_usable_cpus()} here): threads for the RANSAC of relative "
-         "poses, forked processes (Linux) for scene identification and TRRM, one per 20000 matches at most (a "
-         "smaller input runs in one process; reports/refine.json records how many ran). The numbers do not "
-         "depend on it.")
+         "poses, forked processes (Linux) for scene identification and TRRM, one per 20000 matches at most, and "
+         "for GRRM (two) and writing sfm_data.json (a smaller input runs in one process; reports/refine.json and "
+         "optimize.json record how many ran). The numbers do not depend on it.")

@@ -18,8 +18,10 @@ numbers beyond the last bits (per-edge results are the same functions of the sam
 from __future__ import annotations
 
 import dataclasses
+import mmap
 import multiprocessing as mp
 import os
+import signal
 import sys
 import threading
 from collections.abc import Callable, Sequence
@@ -160,3 +162,120 @@ def map_edges(fn: Callable, R: np.ndarray, batch, ranges: Sequence[tuple[int, in
     if len(ranges) == 1:
         return fn(R, batch)
     return concat_results(fork_map(lambda r: fn(R[r[0]:r[1]], batch.edge_range(*r)), ranges))
+
+
+def shared_array(shape: tuple[int, ...], dtype=np.float64) -> np.ndarray:
+    """A zeroed array in an anonymous shared mapping: a child forked after it was made writes
+    into the same memory the parent reads (an ordinary array would be copied on write)."""
+    count = int(np.prod(shape))
+    buffer = mmap.mmap(-1, max(count * np.dtype(dtype).itemsize, 1))  # MAP_SHARED | MAP_ANONYMOUS
+    return np.frombuffer(buffer, dtype=dtype, count=count).reshape(shape)
+
+
+def _serve(conn, handler: Callable) -> None:
+    # the parent owns Ctrl-C: it stops this child when it unwinds (ForkedPeer.close)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    while True:
+        try:
+            message = conn.recv()
+        except EOFError:  # the parent is gone
+            return
+        if message is None:
+            return
+        try:
+            reply = ("ok", handler(message))
+        except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it
+            reply = ("error", exc)
+        try:
+            conn.send(reply)
+        except Exception as exc:  # the reply or the exception did not pickle
+            conn.send(("error", RuntimeError(f"worker result could not be sent back: {exc}")))
+
+
+class ForkedPeer:
+    """A forked child that answers requests, ``handler(message) -> reply``, one at a time,
+    while this process does its own share: :meth:`submit`, then the parent's work, then
+    :meth:`collect`. The child sees this process's memory as it was at the fork (closures
+    and large arrays need no pickling), and :func:`shared_array` buffers both ways; only the
+    messages and replies go through the pipe. Use it as a context manager; only where
+    :func:`fork_safe`."""
+
+    #: memory both processes write (made before the fork)
+    shared_array = staticmethod(shared_array)
+
+    def __init__(self, handler: Callable):
+        ctx = mp.get_context("fork")
+        self._conn, child_end = ctx.Pipe(duplex=True)
+        self._process = ctx.Process(target=_serve, args=(child_end, handler), daemon=True)
+        self._process.start()
+        child_end.close()
+
+    def submit(self, message) -> None:
+        self._conn.send(message)
+
+    def collect(self):
+        """The reply to the last :meth:`submit`; the child's exception is raised here."""
+        try:
+            status, value = self._conn.recv()
+        except EOFError:
+            self._process.join()
+            raise RuntimeError(f"worker process died (exit code {self._process.exitcode})") from None
+        if status == "error":
+            raise value
+        return value
+
+    def close(self) -> None:
+        try:
+            self._conn.send(None)
+        except OSError:  # the child is gone already
+            pass
+        self._conn.close()
+        self._process.join(timeout=DELIVERED_EXIT_TIMEOUT_S)
+        if self._process.is_alive():
+            self._process.terminate()
+            self._process.join()
+
+    def __enter__(self) -> ForkedPeer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class ForkedCall:
+    """``fn()`` started in a forked child where forking is safe (:func:`fork_safe`), else
+    called at once in this process; :meth:`result` gives its value (or raises its exception)
+    either way. For work whose effect is a file or a small value, overlapping what this
+    process does next."""
+
+    def __init__(self, fn: Callable, fork: bool = True):
+        self._process = None
+        self._value = None
+        if not (fork and fork_safe()):
+            self._value = fn()
+            return
+        ctx = mp.get_context("fork")
+        self._receive, send = ctx.Pipe(duplex=False)
+        self._process = ctx.Process(target=_child, args=(send, lambda _: fn(), None), daemon=True)
+        self._process.start()
+        send.close()
+
+    def result(self):
+        if self._process is None:
+            return self._value
+        process, self._process = self._process, None
+        try:
+            status, value = self._receive.recv()
+        except EOFError:
+            process.join()
+            raise RuntimeError(f"worker process died (exit code {process.exitcode})") from None
+        finally:
+            self._receive.close()
+            process.join(timeout=DELIVERED_EXIT_TIMEOUT_S)
+            if process.is_alive():
+                process.terminate()
+                process.join()
+        if status == "error":
+            raise value
+        self._value = value
+        return value

@@ -59,9 +59,10 @@ def grrm_inputs(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_
 
 
 def optimize_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_world: np.ndarray,
-                   options=None, on_iteration=None) -> tuple[np.ndarray, dict]:
+                   options=None, on_iteration=None, jobs: int = 1) -> tuple[np.ndarray, dict]:
     """GRRM-refined copy of ``R_cam_from_world`` (sorted-view-id rows); report with costs.
-    ``on_iteration``: called after each GRRM iteration (optimize_global_rotations)."""
+    ``on_iteration``: called after each GRRM iteration; ``jobs``: processes
+    (optimize_global_rotations)."""
     start = time.perf_counter()
     R_out = np.array(R_cam_from_world, dtype=float, copy=True)
     options = options or GRRMOptions()
@@ -72,10 +73,14 @@ def optimize_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_fr
         return R_out, {"skipped": "no REGULAR edge", "time_s": time.perf_counter() - start}
     views, edges, batch = inputs.views, inputs.edges, inputs.batch
     R0 = np.stack([R_out[index[v]] for v in views])
+    from rotonly_cli.runtime.parallel import ForkedPeer, fork_safe, would_fork
+
+    # half of every linearisation in a forked child where that is safe and pays (same numbers)
+    peer_class = ForkedPeer if would_fork(batch.x_i.shape[0], jobs) and fork_safe() else None
     try:
         with np.errstate(all="ignore"):
             result = optimize_global_rotations(R0, inputs.edge_views, batch, inputs.obs_ids, fixed_view=0,
-                                               options=options, on_iteration=on_iteration)
+                                               options=options, on_iteration=on_iteration, peer_class=peer_class)
     except ValueError as exc:
         raise AlgorithmError(f"GRRM failed: {exc}") from exc
     from rotonly_cli.geometry import so3
@@ -88,7 +93,8 @@ def optimize_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_fr
               "iterations": int(result.iterations), "converged": bool(result.converged),
               "rotation_change_deg": {"mean": float(change.mean()), "max": float(change.max())},
               "views_kept_averaged": sorted(registered - set(views)),
-              "history": list(result.history), "time_s": time.perf_counter() - start}
+              "history": list(result.history), "processes": int(result.processes),
+              "time_s": time.perf_counter() - start}
     logger.info("optimize (GRRM): %d views, %d edges, cost %.6g -> %.6g in %d iterations, mean change %.4f deg",
                 len(views), len(edges), result.initial_cost, result.cost, result.iterations, change.mean())
     return R_out, report

@@ -182,3 +182,84 @@ def test_public_api_and_bad_input():
         grrm.optimize_global_rotations(R_gt, prob.edge_views, prob.batch, prob.obs_ids[:-1])
     with pytest.raises(ValueError, match="loss"):
         grrm.GRRMOptions(loss="tukey").validate()
+
+
+def test_linearisation_in_two_processes_equals_one_process_bit_for_bit(monkeypatch):
+    """GRRMSystem.parallel: the forked child evaluates the second part (its edges' rows of the
+    shared table, its blocks' sums); cost, JᵀWJ, JᵀWV and the remainder are the same bits as
+    in one process, also after the batch's weights change (the child gets the new batch)."""
+    from rotonly_cli.runtime import parallel
+
+    if not parallel.fork_safe():
+        pytest.skip("needs fork (Linux, no other thread)")
+    monkeypatch.setattr(grrm.problem, "_CHUNK", 301)  # several blocks per part
+    p, prob, R_gt = _problem(noise=1.0, seed=5, views=8, window=3)
+    R = so3.exp(np.random.default_rng(2).normal(scale=0.003, size=(8, 3))) @ R_gt
+    weights = np.random.default_rng(3).uniform(0.5, 1.0, prob.batch.x_i.shape[0])
+
+    def evaluations(problem):
+        out = []
+        for batch in (prob.batch, prob.batch.with_weights(weights)):
+            problem.batch = batch
+            out.append(problem.linearize(R, "geman_mcclure", 1e-4, True, True, True))
+            out.append(problem.linearize(R, "geman_mcclure", 1e-4, True, False))
+        return out
+
+    one = grrm.GRRMSystem(8, prob.edge_views, prob.batch, prob.obs_ids)
+    assert len(one.edge_parts) == 2 and len(one.block_parts) == 2
+    serial = evaluations(one)
+    two = grrm.GRRMSystem(8, prob.edge_views, prob.batch, prob.obs_ids)
+    with two.parallel(parallel.ForkedPeer):
+        assert two.processes == 2
+        forked = evaluations(two)
+    assert serial[0][3] is not None  # the remainder is compared too
+    for a, b in zip(serial, forked):
+        assert a[0] == b[0]
+        for x, y in zip(a[1:], b[1:]):
+            assert (x is None and y is None) or np.array_equal(x, y)
+    with one.parallel(None):
+        assert one.processes == 1
+
+
+def test_a_helper_process_leaves_grrm_unchanged_bit_for_bit():
+    from rotonly_cli.runtime import parallel
+
+    if not parallel.fork_safe():
+        pytest.skip("needs fork (Linux, no other thread)")
+    p, prob, R_gt = _problem("circular", noise=1.0, seed=9, views=10, window=3)
+    R0 = _l1_irls_start(p, prob)
+    one = grrm.optimize_global_rotations(R0, prob.edge_views, prob.batch, prob.obs_ids)
+    two = grrm.optimize_global_rotations(R0, prob.edge_views, prob.batch, prob.obs_ids,
+                                         peer_class=parallel.ForkedPeer)
+    assert (one.processes, two.processes) == (1, 2)
+    assert np.array_equal(one.R_cam_from_world, two.R_cam_from_world)
+    assert one.cost == two.cost and one.iterations == two.iterations
+
+
+def test_a_failed_exact_step_is_retried_from_the_psd_model_at_the_same_damping(monkeypatch):
+    """When the step of the exact Hessian (JᵀWJ minus the remainder) raises the cost, LM tries
+    the clamped PSD model at the same damping before it damps more. Simulated: every exact
+    step is made to overshoot (x 40)."""
+    from rotonly_cli.geometry.grrm import solve
+
+    solves = []
+    damped = solve._solve_damped
+
+    def overshooting(JtJ, grad, mu, remainder=None):
+        delta = damped(JtJ, grad, mu, remainder)
+        solves.append((mu, remainder is not None))
+        return None if delta is None else (40.0 * delta if remainder is not None else delta)
+
+    monkeypatch.setattr(solve, "_solve_damped", overshooting)
+    p, prob, R_gt = _problem("circular", noise=1.0, seed=9, views=10, window=3)
+    R0 = _l1_irls_start(p, prob)
+    tight = dict(step_tolerance=1e-10, function_tolerance=0.0, max_iterations=100, epipolar_max_iterations=0)
+    options = grrm.GRRMOptions(exact_curvature_below=np.inf, **tight)
+    result = grrm.optimize_global_rotations(R0, prob.edge_views, prob.batch, prob.obs_ids, options=options)
+    exact_then_psd = [k for k in range(len(solves) - 1) if solves[k][1] and not solves[k + 1][1]]
+    assert exact_then_psd  # the exact steps failed and were retried ...
+    assert all(solves[k + 1][0] == solves[k][0] for k in exact_then_psd)  # ... at the same damping
+    monkeypatch.setattr(solve, "_solve_damped", damped)
+    plain = grrm.optimize_global_rotations(R0, prob.edge_views, prob.batch, prob.obs_ids,
+                                           options=grrm.GRRMOptions(robust_hessian=False, **tight))
+    assert np.max(so3.geodesic_angle(result.R_cam_from_world, plain.R_cam_from_world)) < 1e-8

@@ -185,3 +185,68 @@ def test_a_progress_bar_leaves_forking_possible():
 
     assert sum(progress_bar(range(5), disable=False)) == 10
     assert parallel.fork_safe()
+
+
+def test_forked_peer_answers_each_request_while_the_parent_works_and_shares_buffers():
+    shared = parallel.shared_array((4,))
+    local = np.zeros(4)  # an ordinary array is copied on write: the child's writes stay there
+
+    def handler(message):
+        shared[message] = message + 0.5
+        local[message] = 7.0
+        return os.getpid()
+
+    with parallel.ForkedPeer(handler) as peer:
+        peer.submit(1)
+        shared[0] = 9.0  # the parent's own share, meanwhile
+        child = peer.collect()
+        peer.submit(3)
+        assert peer.collect() == child != os.getpid()
+    assert shared.tolist() == [9.0, 1.5, 0.0, 3.5]
+    assert local.tolist() == [0.0] * 4
+
+
+def test_forked_peer_raises_the_child_exception_and_serves_on():
+    def handler(message):
+        if message < 0:
+            raise ValueError(f"negative {message}")
+        return 2 * message
+
+    with parallel.ForkedPeer(handler) as peer:
+        peer.submit(-4)
+        with pytest.raises(ValueError, match="negative -4"):
+            peer.collect()
+        peer.submit(21)
+        assert peer.collect() == 42
+
+
+def test_forked_peer_reports_a_child_that_dies():
+    with parallel.ForkedPeer(lambda message: os._exit(5)) as peer:
+        peer.submit(0)
+        with pytest.raises(RuntimeError, match="exit code 5"):
+            peer.collect()
+
+
+def test_forked_call_returns_from_a_child_and_raises_its_error(tmp_path):
+    path = tmp_path / "written"
+    call = parallel.ForkedCall(lambda: (path.write_text("x"), os.getpid())[1])
+    assert call.result() != os.getpid()
+    assert path.read_text() == "x"
+
+    def fail():
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        parallel.ForkedCall(fail).result()
+
+
+def test_forked_call_runs_in_process_without_fork_or_while_a_thread_runs():
+    assert parallel.ForkedCall(os.getpid, fork=False).result() == os.getpid()
+    release = threading.Event()
+    thread = threading.Thread(target=release.wait)
+    thread.start()
+    try:
+        assert parallel.ForkedCall(os.getpid).result() == os.getpid()
+    finally:
+        release.set()
+        thread.join()

@@ -4,6 +4,8 @@ block without forming J."""
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -15,6 +17,12 @@ from rotonly_cli.geometry.robust import radial_excess, robust_curvature, robust_
 #: per-iteration temporary grows with the problem: arrays above glibc's 32 MB mmap
 #: threshold would be page-faulted afresh on every allocation)
 _CHUNK = 1 << 15
+#: the evaluation is cut into this many parts (edges for the per-match terms, observation
+#: blocks for the sums), each summed on its own and the sums added in order, whether the parts
+#: run one after the other or side by side (:meth:`GRRMSystem.parallel`): the numbers do not
+#: depend on --jobs. Two: the machines this runs on have two cores or more, and a part costs
+#: one extra set of sums
+_PARTS = 2
 #: up to this many views the 3n x 3n normal equations are assembled and solved dense (same
 #: mathematics; at n ~ 10 scipy's sparse assembly and SuperLU cost more than the numbers)
 _DENSE_MAX_VIEWS = 200
@@ -69,6 +77,9 @@ class GRRMSystem:
         self.image_plane = residual_form == "image"
         self.E = batch.num_edges
         self.edge_views = edge_views
+        self._peer = None  # the helper process evaluating the parts after the first (:meth:`parallel`)
+        self.processes = 1  # processes the last :meth:`parallel` ran in
+        self._peer_batch = None  # the batch the peer has
         self.batch = batch
         self.M = batch.x_i.shape[0]
         edge_of_match = np.repeat(np.arange(batch.num_edges), batch.counts)
@@ -105,11 +116,55 @@ class GRRMSystem:
         p_bounds = np.searchsorted(self.pair_a, s_bounds)
         self.blocks = [(int(s_bounds[k]), int(s_bounds[k + 1]), int(g_bounds[k]), int(g_bounds[k + 1]),
                         int(p_bounds[k]), int(p_bounds[k + 1])) for k in range(len(cuts))]
+        # the parts (_PARTS): edge ranges with about equal matches, block ranges with about
+        # equal contributions
+        self.edge_parts = _even_ranges(batch.counts, _PARTS)
+        self.block_parts = _even_ranges(np.diff(s_bounds), _PARTS)
         self._table: np.ndarray | None = None  # (2M, 16) per-contribution terms, reused
         self._B: np.ndarray | None = None  # (9, 2M) Jacobian blocks, reused
 
     def relative(self, R: np.ndarray) -> np.ndarray:
         return R[self.edge_views[:, 1]] @ np.swapaxes(R[self.edge_views[:, 0]], 1, 2)
+
+    @contextmanager
+    def parallel(self, peer_class=None):
+        """Within: the parts after the first are evaluated by a helper process, side by side
+        with this one (the same numbers). ``peer_class``: how to start it (the class of
+        runtime.parallel.ForkedPeer: ``peer_class(handler)`` a context manager with submit /
+        collect, ``peer_class.shared_array(shape)`` memory both processes write); None, or
+        fewer than two parts: one process. The per-match table is then a shared array the
+        helper fills its edges' rows of."""
+        if peer_class is None or self._peer is not None or len(self.edge_parts) < 2:
+            self.processes = 2 if self._peer is not None else 1
+            yield self
+            return
+        self.processes = 2
+        self._table = peer_class.shared_array((2 * self.M, 16))
+        self._peer_batch = self.batch  # the helper starts with it
+        with peer_class(self._serve) as peer:
+            self._peer = peer
+            try:
+                yield self
+            finally:
+                self._peer = None
+
+    def _serve(self, message):
+        """The helper's side of :meth:`parallel`: the table rows of its edges, or the
+        sums of its blocks."""
+        kind, batch, args = message
+        if batch is not None:
+            self.batch = batch
+        if kind == "table":
+            for e0, e1 in self.edge_parts[1:]:
+                self._fill_table(*args, e0, e1)
+            return None
+        return [self._part_sums(*args, part) for part in self.block_parts[1:]]
+
+    def _submit(self, kind: str, *args) -> None:
+        batch = None
+        if self._peer_batch is not self.batch:
+            batch = self._peer_batch = self.batch
+        self._peer.submit((kind, batch, args))
 
     def _match_table(self, R_ij: np.ndarray, with_jacobian: bool) -> np.ndarray:
         """Per-contribution terms in match order, row-major (one 128-byte row per
@@ -117,12 +172,25 @@ class GRRMSystem:
         columns 0-2 the residual (in the camera of the observation), 3 the ω numerator,
         4-6 its derivative, 7-15 the residual's derivative (7 + 3a + c = d res_a / dδ_c),
         w.r.t. the left perturbation of the contribution's edge."""
-        M = self.M
         if self._table is None:
-            self._table = np.empty((2 * M, 16))
+            self._table = np.empty((2 * self.M, 16))
+        parts = self.edge_parts
+        if self._peer is not None:
+            self._submit("table", R_ij, with_jacobian)
+            parts = parts[:1]
+        for e0, e1 in parts:
+            self._fill_table(R_ij, with_jacobian, e0, e1)
+        if self._peer is not None:
+            self._peer.collect()
+        return self._table
+
+    def _fill_table(self, R_ij: np.ndarray, with_jacobian: bool, e_lo: int, e_hi: int) -> None:
+        """The rows of :meth:`_match_table` of the matches of edges [e_lo, e_hi)."""
+        M = self.M
         table = self._table
         width = 16 if with_jacobian else 4
-        for e0, e1, m0, m1, cnt, starts, xi, xj, wk in kernels.edge_chunks(self.batch, kernels.CHUNK_MATCHES):
+        for e0, e1, m0, m1, cnt, starts, xi, xj, wk in kernels.edge_chunks(self.batch, kernels.CHUNK_MATCHES,
+                                                                           e_lo, e_hi):
             terms = self.chunk_terms(R_ij, e0, e1, cnt, starts, xi, xj, with_jacobian, wk)
             Rm = [np.repeat(R_ij[e0:e1].reshape(-1, 9)[:, k], cnt) for k in range(9)]  # Rm[3b + a] = R_ij[b, a]
             r = terms["r"]  # 6 arrays: r_i in camera-j axes, then r_j
@@ -148,7 +216,6 @@ class GRRMSystem:
                 _to_image_plane(side_j, xj, with_jacobian)
             table[m0:m1, :width] = side_i.T
             table[M + m0:M + m1, :width] = side_j.T
-        return table
 
     def chunk_terms(self, R_ij: np.ndarray, e0: int, e1: int, cnt: np.ndarray, starts: np.ndarray, xi, xj,
                     with_jacobian: bool, wk: np.ndarray | None) -> dict:
@@ -156,13 +223,14 @@ class GRRMSystem:
         where each edge's t_ij(R_ij) is made, so a subclass can study other choices."""
         return kernels.trrm_chunk_terms(R_ij[e0:e1], cnt, starts, xi, xj, with_jacobian, wk)
 
-    def _block_terms(self, R: np.ndarray, with_jacobian: bool, B_out: np.ndarray | None = None):
-        """Yields, per block of ``self.blocks``: the block, its observations' residuals V (3, g)
-        and weight sums S (g,), and with the Jacobian its contributions' blocks B (9, s) w.r.t.
-        their edge's δ_e (row a*3+c = dV_a / dδ_c), written into ``B_out[:, s0:s1]`` if given."""
+    def _block_terms(self, with_jacobian: bool, blocks: list, B_out: np.ndarray | None = None):
+        """Yields, per block of ``blocks`` (of ``self.blocks``), from the table of the last
+        :meth:`_match_table`: the block, its observations' residuals V (3, g) and weight sums
+        S (g,), and with the Jacobian its contributions' blocks B (9, s) w.r.t. their edge's
+        δ_e (row a*3+c = dV_a / dδ_c), written into ``B_out[:, s0:s1]`` if given."""
         width = 16 if with_jacobian else 4
-        table = self._match_table(self.relative(R), with_jacobian)
-        for blk in self.blocks:
+        table = self._table
+        for blk in blocks:
             s0, s1, g0, g1, _, _ = blk
             cols = np.ascontiguousarray(table[self.order[s0:s1], :width].T)
             res, b = cols[0:3], cols[3]
@@ -195,7 +263,8 @@ class GRRMSystem:
         if with_jacobian and self._B is None:
             self._B = np.empty((9, 2 * self.M))
         B = self._B if with_jacobian else None
-        for (_, _, g0, g1, _, _), V_blk, S_blk, _ in self._block_terms(R, with_jacobian, B):
+        self._match_table(self.relative(R), with_jacobian)
+        for (_, _, g0, g1, _, _), V_blk, S_blk, _ in self._block_terms(with_jacobian, self.blocks, B):
             S[g0:g1] = S_blk
             V[g0:g1] = V_blk.T
         return V, S, B
@@ -208,12 +277,37 @@ class GRRMSystem:
         buffer), and with ``exact_radial_curvature`` the remainder Σ ρ'(β - 1)₊ q_gᵀq_g
         (q_g = v̂_gᵀ J_g) that the exact Hessian subtracts (else None). Returns (cost, JᵀWJ,
         JᵀWV, remainder); the matrices are dense for up to _DENSE_MAX_VIEWS views."""
+        self._match_table(self.relative(R), with_jacobian)
+        args = (loss, scale, robust_hessian, with_jacobian, exact_radial_curvature)
+        if self._peer is not None:
+            self._submit("sums", *args)
+            parts = [self._part_sums(*args, self.block_parts[0])] + self._peer.collect()
+        else:
+            parts = [self._part_sums(*args, part) for part in self.block_parts]
+        cost, sums, excess_sums, any_excess = parts[0]
+        for cost_p, sums_p, excess_p, any_p in parts[1:]:
+            cost += cost_p
+            if sums is not None:
+                sums = tuple(a + b for a, b in zip(sums, sums_p))
+            if excess_sums is not None:
+                excess_sums = tuple(a + b for a, b in zip(excess_sums, excess_p))
+            any_excess |= any_p
+        if not with_jacobian:
+            return cost, None, None, None
         dense = self.n <= _DENSE_MAX_VIEWS
+        JtJ, grad = self._assemble(R, sums, dense)
+        remainder = self._assemble(R, excess_sums, dense)[0] if any_excess else None
+        return cost, JtJ, grad, remainder
+
+    def _part_sums(self, loss: str, scale: float, robust_hessian: bool, with_jacobian: bool,
+                   exact_radial_curvature: bool, part: tuple[int, int]):
+        """(cost, sums, excess sums, any excess) of :meth:`linearize` over the blocks
+        ``self.blocks[part[0]:part[1]]``, from the table of the last :meth:`_match_table`."""
         sums = self._new_sums() if with_jacobian else None
         excess_sums = self._new_sums() if with_jacobian and robust_hessian and exact_radial_curvature else None
         any_excess = False
         cost = 0.0
-        for blk, V_blk, _, B in self._block_terms(R, with_jacobian):
+        for blk, V_blk, _, B in self._block_terms(with_jacobian, self.blocks[part[0]:part[1]]):
             sq = V_blk[0] * V_blk[0] + V_blk[1] * V_blk[1] + V_blk[2] * V_blk[2]
             rho, drho = robust_rho(sq, loss, scale)
             cost += float(rho.sum())
@@ -229,11 +323,7 @@ class GRRMSystem:
                     if np.any(excess > 0):
                         any_excess = True
                         self._accumulate_rank_one(excess_sums, blk, B, V_blk, drho * excess)
-        if not with_jacobian:
-            return cost, None, None, None
-        JtJ, grad = self._assemble(R, sums, dense)
-        remainder = self._assemble(R, excess_sums, dense)[0] if any_excess else None
-        return cost, JtJ, grad, remainder
+        return cost, sums, excess_sums, any_excess
 
     def _accumulate_rank_one(self, sums, blk, B: np.ndarray, V_blk: np.ndarray, weight: np.ndarray) -> None:
         """Adds one block's Σ_g w_g q_gᵀ q_g, q_g = v̂_gᵀ J_g (v̂ = V_g / ‖V_g‖), to the
@@ -362,6 +452,16 @@ class GRRMSystem:
             self._accumulate(sums, blk, B[:, s0:s1], V[g0:g1].T, row_weight[g0:g1],
                              None if alpha is None else alpha[g0:g1])
         return self._assemble(R, sums, dense=False)
+
+
+def _even_ranges(sizes: np.ndarray, parts: int) -> list[tuple[int, int]]:
+    """Up to ``parts`` consecutive index ranges [a, b) of ``sizes`` with about equal sums
+    (each cut at the index boundary nearest to its share; empty ranges dropped)."""
+    sizes = np.asarray(sizes, dtype=np.int64)
+    before = np.concatenate([[0], np.cumsum(sizes)])
+    cuts = [int(np.argmin(np.abs(before - before[-1] * k / parts))) for k in range(1, parts)]
+    bounds = [0] + cuts + [len(sizes)]
+    return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
 
 
 def _block_products(Ba: np.ndarray, Bb: np.ndarray, index: np.ndarray, length: int,

@@ -62,9 +62,14 @@ def pinv_shifted(P: np.ndarray, lam: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 
-def edge_chunks(batch: pg.EdgeBatch, chunk: int):
+def edge_chunks(batch: pg.EdgeBatch, chunk: int, e_lo: int = 0, e_hi: int | None = None):
+    """Per group of about ``chunk`` matches of edges [e_lo, e_hi) (default: all): edge range,
+    match range, per-edge counts and starts in the group, the coordinates as component
+    arrays and the weights."""
     counts = batch.counts
-    for e0, e1 in edge_groups(counts, chunk):
+    e_hi = len(counts) if e_hi is None else e_hi
+    for g0, g1 in edge_groups(counts[e_lo:e_hi], chunk):
+        e0, e1 = e_lo + g0, e_lo + g1
         m0, m1 = batch.offsets[e0], batch.offsets[e1]
         xi = tuple(np.ascontiguousarray(batch.x_i[m0:m1, k]) for k in range(3))
         xj = tuple(np.ascontiguousarray(batch.x_j[m0:m1, k]) for k in range(3))
