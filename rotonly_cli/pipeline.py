@@ -71,13 +71,18 @@ WORKSPACE_ENTRIES = {"sfm_data.json", "sparse", "view_graph.json", "reports", "r
 
 # ============================================================================ outputs
 
-def write_outputs(out_dir: Path, run: Run) -> SfMScene:
-    """OUT/sfm_data.json (OpenMVG) and OUT/sparse/ (COLMAP binary model)."""
+def write_outputs(out_dir: Path, run: Run, wait: bool = True):
+    """OUT/sfm_data.json (OpenMVG) and OUT/sparse/ (COLMAP binary model); the scene written.
+    ``wait=False``: (scene, handle) where sfm_data.json may still be being written by a forked
+    child (stages/export.write_outputs): ``handle.result()`` before OUT is complete."""
     from rotonly_cli.stages import export
 
     scene = output_scene(run)
-    export.write_outputs(out_dir, scene, run.input_kind)
-    return scene
+    pending = export.write_outputs(out_dir, scene, run.input_kind, run.options.jobs)
+    if wait:
+        pending.result()
+        return scene
+    return scene, pending
 
 
 def write_workspace(out_dir: Path, run: Run, stages_done: list[str]) -> None:
@@ -232,19 +237,6 @@ def run_in_memory(input_path: str | Path | SfMScene, options: RunOptions = RunOp
         return run_stages(input_path, options, stages, kind, label)
 
 
-def colours_start_after(run: Run, stages: tuple[str, ...] | list[str]) -> str | None:
-    """The stage after which the images are decoded for the point colours (on a thread):
-    right after loading, so that decoding overlaps the rotation stages, unless identification
-    and TRRM will fork (``--jobs``, runtime/parallel): a fork waits for no running thread, so
-    then after TRRM. None when the chain ends before triangulation."""
-    if "triangulate" not in stages:
-        return None
-    from rotonly_cli.runtime.parallel import would_fork
-
-    matches = sum(run.graph.edges[k].num_inliers for k in run.graph.active_edges())
-    return "refine" if "refine" in stages and would_fork(matches, run.options.jobs) else "load"
-
-
 def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptions(),
                stages: tuple[str, ...] = STAGES, kind: InputKind | None = None, label: str | None = None,
                scratch: Path | None = None) -> Run:
@@ -260,30 +252,25 @@ def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptio
             else:
                 run = load_stage(input_path, options, scratch)
             monitor.run = run
-        loaded, colours_after = run, colours_start_after(run, stages)
+        loaded = run
+        if "triangulate" in stages:
+            # the images are decoded for the point colours while the rotation stages run (in
+            # a forked child where that is safe: stages/triangulate.start_keypoint_colors)
+            from rotonly_cli.stages.triangulate import start_keypoint_colors
 
-        def start_colours() -> None:
-            """Decode the images for the point colours (on a thread), once per load stage."""
-            if loaded.keypoint_rgb is None:
-                from rotonly_cli.stages.triangulate import start_keypoint_colors
-
-                loaded.keypoint_rgb = start_keypoint_colors(loaded.scene, image_root(loaded))
+            run.keypoint_rgb = start_keypoint_colors(run.scene, image_root(run))
 
         def chain(pass_run: Run, pass_stages: tuple[str, ...] | list[str]) -> Run:
             """Stages on a run of this load stage (a pass of the calibration, or the chain),
-            each under the monitor; the colours start after ``colours_after``."""
+            each under the monitor."""
             monitor.run = pass_run  # the detail lines read this pass's reports
             for stage in pass_stages:
                 if pass_run.keypoint_rgb is None:
                     pass_run.keypoint_rgb = loaded.keypoint_rgb
                 with monitor.stage(stage):
                     STAGE_FUNCTIONS[stage](pass_run)
-                if stage == colours_after:
-                    start_colours()
             return pass_run
 
-        if colours_after == "load":
-            start_colours()
         if "triangulate" in stages:
             run = calibrated_chain(run, chain)
         else:
@@ -321,25 +308,29 @@ def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: fl
     from rotonly_cli.evaluation.run_report import structure_statistics, write_run_report
 
     summary: dict = {"input": run.input_path, "stages": done}
-    scene = statistics = None
-    if done[-1] == "triangulate":
-        started = time.perf_counter()
-        scene = write_outputs(directory, run)
-        statistics = structure_statistics(scene, run.graph.view_ids())
-        run.reports["export"] = {**statistics.report, "time_s": time.perf_counter() - started}
-        summary.update(num_views=len(run.scene.views), num_registered=len(scene.poses),
-                       num_points=0 if scene.structure is None else len(scene.structure.points),
-                       unregistered_views=[v for v in run.graph.view_ids() if v not in scene.poses])
-        if gt is not None:
-            evaluation = evaluate_against(run.options.gt, gt, scene, directory / "eval",
-                                          str(out_dir / "sfm_data.json"))
-            summary["rotation_error_deg"] = evaluation.get("rotation_error_deg")
-        summarize_outcome(run, scene, summary)
-    summary["num_active_edges"] = len(run.graph.active_edges())
-    summary["time_s"] = time.perf_counter() - start
-    run.reports["run"] = summary
-    write_workspace(directory, run, done)
-    write_run_report(directory, run, scene, statistics, done)
+    scene = statistics = pending = None
+    try:
+        if done[-1] == "triangulate":
+            started = time.perf_counter()
+            scene, pending = write_outputs(directory, run, wait=False)
+            statistics = structure_statistics(scene, run.graph.view_ids())
+            run.reports["export"] = {**statistics.report, "time_s": time.perf_counter() - started}
+            summary.update(num_views=len(run.scene.views), num_registered=len(scene.poses),
+                           num_points=0 if scene.structure is None else len(scene.structure.points),
+                           unregistered_views=[v for v in run.graph.view_ids() if v not in scene.poses])
+            if gt is not None:
+                evaluation = evaluate_against(run.options.gt, gt, scene, directory / "eval",
+                                              str(out_dir / "sfm_data.json"))
+                summary["rotation_error_deg"] = evaluation.get("rotation_error_deg")
+            summarize_outcome(run, scene, summary)
+        summary["num_active_edges"] = len(run.graph.active_edges())
+        summary["time_s"] = time.perf_counter() - start
+        run.reports["run"] = summary
+        write_workspace(directory, run, done)
+        write_run_report(directory, run, scene, statistics, done)
+    finally:
+        if pending is not None:
+            pending.result()  # sfm_data.json written (or its error raised) before OUT is complete
     logger.info("done in %.2f s: %s", summary["time_s"],
                 ", ".join(f"{summary[k]} {k.removeprefix('num_').replace('_', ' ')}"
                           for k in ("num_registered", "num_points", "num_active_edges") if k in summary))

@@ -55,17 +55,74 @@ def keypoint_colors(scene: SfMScene, image_root: str | Path, view_ids: list[int]
     """RGB (n, 3) uint8 of every keypoint of each view, from the pixel holding it (COLMAP
     pixel convention: (u, v) lies in pixel floor(u), floor(v)); None where the image (or
     the keypoints) cannot be read."""
-    readable = [view_id for view_id in view_ids if view_id in scene.keypoints]
-    paths = [_image_path(image_root, scene.views[view_id].name) for view_id in readable]
+    readable, paths = _readable_images(scene, image_root, view_ids)
     colors: dict[int, np.ndarray | None] = dict.fromkeys(view_ids)
     for view_id, image in zip(readable, _read_images(paths, threads)):
-        if image is None:
-            continue
-        pixels = np.asarray(scene.keypoints[view_id], dtype=np.float64).reshape(-1, 2)
-        u = np.clip(np.floor(pixels[:, 0]).astype(np.int64), 0, image.shape[1] - 1)
-        v = np.clip(np.floor(pixels[:, 1]).astype(np.int64), 0, image.shape[0] - 1)
-        colors[view_id] = image[v, u, ::-1]  # OpenCV is BGR
+        if image is not None:
+            colors[view_id] = _pixel_colors(image, scene.keypoints[view_id])
     return colors
+
+
+def _readable_images(scene: SfMScene, image_root: str | Path, view_ids: list[int]) -> tuple[list[int], list]:
+    """The views of ``view_ids`` with keypoints, and the image file of each (None: not read)."""
+    readable = [view_id for view_id in view_ids if view_id in scene.keypoints]
+    return readable, [_image_path(image_root, scene.views[view_id].name) for view_id in readable]
+
+
+def _pixel_colors(image: np.ndarray, keypoints) -> np.ndarray:
+    """RGB (n, 3) uint8 of the pixels holding the keypoints (n, 2) of a BGR image."""
+    pixels = np.asarray(keypoints, dtype=np.float64).reshape(-1, 2)
+    u = np.clip(np.floor(pixels[:, 0]).astype(np.int64), 0, image.shape[1] - 1)
+    v = np.clip(np.floor(pixels[:, 1]).astype(np.int64), 0, image.shape[0] - 1)
+    return image[v, u, ::-1]  # OpenCV is BGR
+
+
+class ForkedKeypointColors:
+    """:func:`keypoint_colors` of ``view_ids``, decoded by a forked child into a shared
+    buffer while this process goes on; :meth:`result` waits for it, like a Future's. A child
+    leaves every later fork of this process safe (runtime.parallel.fork_safe), where a decoding
+    thread would keep GRRM and TRRM in one process while it runs. Should the child fail, the
+    images are decoded here."""
+
+    def __init__(self, scene: SfMScene, image_root: str | Path, view_ids: list[int]):
+        import multiprocessing as mp
+
+        from rotonly_cli.runtime.parallel import shared_array
+
+        self._scene, self._image_root, self._view_ids = scene, image_root, view_ids
+        # the files are chosen here, so that their warnings are logged by this process
+        self._readable, paths = _readable_images(scene, image_root, view_ids)
+        sizes = [len(np.asarray(scene.keypoints[v]).reshape(-1, 2)) for v in self._readable]
+        self._offsets = np.concatenate([[0], np.cumsum(sizes, dtype=np.int64)])
+        self._rgb = shared_array((int(self._offsets[-1]), 3), np.uint8)
+        self._decoded = shared_array((len(self._readable),), np.uint8)
+        self._process = mp.get_context("fork").Process(target=self._decode, args=(paths,), daemon=True)
+        self._process.start()
+        self._colors: dict[int, np.ndarray | None] | None = None
+
+    def _decode(self, paths: list) -> None:  # in the child
+        for row, (view_id, image) in enumerate(zip(self._readable, _read_images(paths, 1))):
+            if image is not None:
+                rows = slice(self._offsets[row], self._offsets[row + 1])
+                self._rgb[rows] = _pixel_colors(image, self._scene.keypoints[view_id])
+                self._decoded[row] = 1
+
+    def result(self, timeout: float | None = None) -> dict[int, np.ndarray | None]:
+        if self._colors is None:
+            self._process.join(timeout)
+            if self._process.is_alive():
+                raise TimeoutError("keypoint colours: the decoding process did not finish in time")
+            if self._process.exitcode != 0:
+                logger.warning("triangulate: the image decoding process failed (exit code %s): decoding here",
+                               self._process.exitcode)
+                self._colors = keypoint_colors(self._scene, self._image_root, self._view_ids, 1)
+            else:
+                colors: dict[int, np.ndarray | None] = dict.fromkeys(self._view_ids)
+                for row, view_id in enumerate(self._readable):
+                    if self._decoded[row]:
+                        colors[view_id] = np.array(self._rgb[self._offsets[row]:self._offsets[row + 1]])
+                self._colors = colors
+        return self._colors
 
 
 def point_colors(scene: SfMScene, image_root: str | Path | None, view_ids: list[int], obs_point: np.ndarray,
@@ -111,13 +168,18 @@ def point_colors(scene: SfMScene, image_root: str | Path | None, view_ids: list[
                     "points_coloured": int(seen.sum())}
 
 
-def start_keypoint_colors(scene: SfMScene, image_root: str | Path | None) -> Future | None:
-    """:func:`keypoint_colors` of every view with keypoints, started now on one background
-    thread (None without an image folder). ``rotonly run`` starts it right after loading:
-    the keypoints are known then, and the JPEG decoding (OpenCV releases the GIL) overlaps
-    the rotation stages instead of the triangulation. The colours are the same pixels'."""
+def start_keypoint_colors(scene: SfMScene, image_root: str | Path | None) -> ForkedKeypointColors | Future | None:
+    """:func:`keypoint_colors` of every view with keypoints, started now (None without an image
+    folder): in a forked child where forking is safe (:class:`ForkedKeypointColors`), else on
+    one background thread (OpenCV releases the GIL). ``rotonly run`` starts it right after
+    loading: the keypoints are known then, and the JPEG decoding overlaps the rotation stages
+    instead of the triangulation. The colours are the same pixels'."""
     if image_root is None:
         return None
+    from rotonly_cli.runtime.parallel import fork_safe
+
+    if fork_safe():
+        return ForkedKeypointColors(scene, image_root, sorted(scene.keypoints))
     executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="keypoint-colors")
     future = executor.submit(keypoint_colors, scene, image_root, sorted(scene.keypoints), 1)
     executor.shutdown(wait=False)  # the thread ends with its one task
@@ -148,7 +210,7 @@ def _sigma_by_camera(scene: SfMScene, view_ids: list[int], view_rows: np.ndarray
 def triangulate_graph(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.ndarray, centers: np.ndarray,
                       image_root: str | Path | None = None,
                       options: TriangulationOptions | None = None,
-                      keypoint_rgb: Future | dict[int, np.ndarray | None] | None = None,
+                      keypoint_rgb: ForkedKeypointColors | Future | dict[int, np.ndarray | None] | None = None,
                       track_cache: TrackCache | None = None,
                       outliers: LiGTOptions | None = None) -> tuple[Structure, dict]:
     """Structure (valid points only, observations as (view id, keypoint)) and report.
@@ -192,7 +254,7 @@ def triangulate_graph(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.nd
         valid = result.valid
         kept = tracks.subset(valid)
         points = result.points_in_world[valid]
-        keypoint_rgb = colors_future.result() if isinstance(colors_future, Future) else colors_future
+        keypoint_rgb = colors_future if isinstance(colors_future, dict | None) else colors_future.result()
     colors, color_report = point_colors(scene, image_root, view_ids, kept.track_id, kept.view, kept.feature,
                                         kept.num_tracks, keypoint_rgb)
     view_feature = np.stack([np.asarray(view_ids, dtype=np.int64)[kept.view],

@@ -60,3 +60,50 @@ def test_point_colors_are_mean_rgb_of_observed_pixels(tmp_path):
     again, report = point_colors(scene, tmp_path, view_ids, obs_point, obs_view_row, obs_feature, num_points, partial)
     np.testing.assert_array_equal(again, expected)
     assert report["images_missing"] == ["sub/img8.png"]
+
+
+def _scene_with_images(tmp_path):
+    rng = np.random.default_rng(6)
+    scene = SfMScene()
+    for view_id in (1, 2, 3):
+        scene.views[view_id] = View(view_id, f"v{view_id}.png", 1)
+        scene.keypoints[view_id] = rng.uniform(0, 20, (15 + view_id, 2))
+        if view_id != 2:  # view 2: no image file
+            assert cv2.imwrite(str(tmp_path / f"v{view_id}.png"), rng.integers(0, 256, (20, 20, 3), dtype=np.uint8))
+    return scene
+
+
+def test_forked_keypoint_colors_equal_decoding_here(tmp_path):
+    import os
+
+    from rotonly_cli.runtime.parallel import fork_safe
+    from rotonly_cli.stages.triangulate import ForkedKeypointColors
+
+    if not fork_safe():
+        return
+    scene = _scene_with_images(tmp_path)
+    forked = ForkedKeypointColors(scene, tmp_path, [1, 2, 3])
+    assert forked._process.pid != os.getpid()
+    colors = forked.result(timeout=30)
+    direct = keypoint_colors(scene, tmp_path, [1, 2, 3], threads=1)
+    assert colors[2] is None and direct[2] is None
+    for view_id in (1, 3):
+        np.testing.assert_array_equal(colors[view_id], direct[view_id])
+        assert colors[view_id].shape == (15 + view_id, 3)
+
+
+def test_a_failed_decoding_process_falls_back_to_decoding_here(tmp_path, monkeypatch, caplog):
+    import os
+
+    from rotonly_cli.runtime.parallel import fork_safe
+    from rotonly_cli.stages.triangulate import ForkedKeypointColors
+
+    if not fork_safe():
+        return
+    monkeypatch.setattr(ForkedKeypointColors, "_decode", lambda self, paths: os._exit(3))
+    scene = _scene_with_images(tmp_path)
+    colors = ForkedKeypointColors(scene, tmp_path, [1, 2, 3]).result(timeout=30)
+    assert "exit code 3" in caplog.text
+    direct = keypoint_colors(scene, tmp_path, [1, 2, 3], threads=1)
+    for view_id in (1, 3):
+        np.testing.assert_array_equal(colors[view_id], direct[view_id])
