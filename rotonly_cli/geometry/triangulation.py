@@ -36,7 +36,7 @@ class TriangulationResult:
     points_in_world: np.ndarray  # (N, 3); NaN where the track had < 2 usable rays
     valid: np.ndarray  # (N,) bool: passed depth, reprojection and parallax tests
     mean_reprojection_error: np.ndarray  # (N,) normalized units
-    max_parallax_deg: np.ndarray  # (N,) max angle between two rays of the track
+    max_parallax_deg: np.ndarray  # (N,) max angle between two rays of the track (NaN: not computed)
     in_front: np.ndarray  # (N,) bool: positive depth in every camera
 
 
@@ -105,7 +105,7 @@ def max_ray_angle_deg(world_rays: np.ndarray, offsets: np.ndarray, max_views: in
 
 def triangulate_tracks(R_cam_from_world: np.ndarray, centers: np.ndarray, obs_point: np.ndarray,
                        obs_view: np.ndarray, obs_xy: np.ndarray, num_points: int | None = None,
-                       options: TriangulationOptions | None = None) -> TriangulationResult:
+                       options: TriangulationOptions | None = None, with_parallax: bool = True) -> TriangulationResult:
     """Triangulate every point from its observations, batched.
 
     Args:
@@ -116,6 +116,8 @@ def triangulate_tracks(R_cam_from_world: np.ndarray, centers: np.ndarray, obs_po
         obs_view: (N_obs,) view index per observation.
         obs_xy: (N_obs, 2) normalized image coordinates.
         num_points: number of points (default ``obs_point.max() + 1``).
+        with_parallax: False: no parallax (NaN), for callers that do not test it
+            (``options.min_parallax_deg`` must then be 0).
     """
     options = options or TriangulationOptions()
     options.validate()
@@ -130,17 +132,19 @@ def triangulate_tracks(R_cam_from_world: np.ndarray, centers: np.ndarray, obs_po
         raise InputError("obs_point, obs_view (N_obs,) and obs_xy (N_obs, 2) disagree", field="obs_xy")
     if obs_point.size and np.any(np.diff(obs_point) < 0):
         raise InputError("obs_point must be sorted (observations grouped by point)", field="obs_point")
+    if not with_parallax and options.min_parallax_deg > 0:
+        raise InputError("with_parallax=False needs min_parallax_deg = 0", field="options")
     if num_points is None:
         num_points = int(obs_point.max()) + 1 if obs_point.size else 0
     # a wrecked pose set (a collapsed LiGT solve, a point at infinity) overflows here: those
     # points come out NaN / not solvable and are rejected below, so numpy's warnings would
     # only reach the user's terminal
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        return _triangulate(R, C, obs_point, obs_view, obs_xy, num_points, options)
+        return _triangulate(R, C, obs_point, obs_view, obs_xy, num_points, options, with_parallax)
 
 
 def _triangulate(R: np.ndarray, C: np.ndarray, obs_point: np.ndarray, obs_view: np.ndarray, obs_xy: np.ndarray,
-                 num_points: int, options: TriangulationOptions) -> TriangulationResult:
+                 num_points: int, options: TriangulationOptions, with_parallax: bool = True) -> TriangulationResult:
     """triangulate_tracks on validated arrays."""
     counts = np.bincount(obs_point, minlength=num_points)
     offsets = np.zeros(num_points + 1, dtype=np.int64)
@@ -208,7 +212,8 @@ def _triangulate(R: np.ndarray, C: np.ndarray, obs_point: np.ndarray, obs_view: 
     min_depth = np.full(num_points, np.inf)
     np.minimum.at(min_depth, obs_point, depth)
     in_front = solvable & (min_depth > options.min_depth)
-    parallax = max_ray_angle_deg(rays, offsets, options.max_parallax_views)
+    parallax = max_ray_angle_deg(rays, offsets, options.max_parallax_views) if with_parallax else \
+        np.full(num_points, np.nan)
     valid = (in_front & (mean_error <= options.max_reprojection_error)
              & (parallax >= options.min_parallax_deg))
     points = np.where(solvable[:, None], points, np.nan)

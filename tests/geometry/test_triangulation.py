@@ -119,3 +119,17 @@ def test_closed_form_symmetric_solve_matches_lapack_and_flags_singular_systems()
     error = np.abs(x[:, :-2].T - reference).max(axis=1) / np.abs(reference).max(axis=1)
     assert np.all(error <= 1e-13 * cond)
     assert np.median(error) < 1e-9
+
+
+def test_without_parallax_the_points_are_the_same_and_the_parallax_is_nan():
+    scene = make_street_scene(8, 100, seed=3)
+    noisy = scene.obs_xy + np.random.default_rng(7).normal(scale=1e-3, size=scene.obs_xy.shape)
+    options = TriangulationOptions(min_parallax_deg=0.0)
+    args = (scene.R_cam_from_world, scene.centers, scene.obs_point, scene.obs_view, noisy)
+    full = triangulate_tracks(*args, options=options)
+    bare = triangulate_tracks(*args, options=options, with_parallax=False)
+    assert np.array_equal(full.points_in_world, bare.points_in_world)
+    assert np.array_equal(full.valid, bare.valid)
+    assert np.all(np.isnan(bare.max_parallax_deg)) and np.all(full.max_parallax_deg > 0)
+    with pytest.raises(Exception, match="min_parallax_deg"):
+        triangulate_tracks(*args, options=TriangulationOptions(min_parallax_deg=1.0), with_parallax=False)
