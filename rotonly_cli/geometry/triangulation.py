@@ -215,7 +215,7 @@ def _triangulate(R: np.ndarray, C: np.ndarray, obs_point: np.ndarray, obs_view: 
     parallax = max_ray_angle_deg(rays, offsets, options.max_parallax_views) if with_parallax else \
         np.full(num_points, np.nan)
     valid = (in_front & (mean_error <= options.max_reprojection_error)
-             & (parallax >= options.min_parallax_deg))
+             & ((parallax >= options.min_parallax_deg) if with_parallax else True))
     points = np.where(solvable[:, None], points, np.nan)
     mean_error = np.where(solvable, mean_error, np.nan)
     return TriangulationResult(points, valid, mean_error, parallax, in_front)
