@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 
 from rotonly_cli.scene.types import SfMScene, View
 from rotonly_cli.stages.triangulate import GREY, keypoint_colors, point_colors
@@ -80,7 +81,7 @@ def test_forked_keypoint_colors_equal_decoding_here(tmp_path):
     from rotonly_cli.stages.triangulate import ForkedKeypointColors
 
     if not fork_safe():
-        return
+        pytest.skip("needs fork (Linux, no other thread)")
     scene = _scene_with_images(tmp_path)
     forked = ForkedKeypointColors(scene, tmp_path, [1, 2, 3])
     assert forked._process.pid != os.getpid()
@@ -99,7 +100,7 @@ def test_a_failed_decoding_process_falls_back_to_decoding_here(tmp_path, monkeyp
     from rotonly_cli.stages.triangulate import ForkedKeypointColors
 
     if not fork_safe():
-        return
+        pytest.skip("needs fork (Linux, no other thread)")
     monkeypatch.setattr(ForkedKeypointColors, "_decode", lambda self, paths: os._exit(3))
     scene = _scene_with_images(tmp_path)
     colors = ForkedKeypointColors(scene, tmp_path, [1, 2, 3]).result(timeout=30)
