@@ -83,15 +83,35 @@ def edge_parts(counts: np.ndarray, jobs: int, min_matches: int | None = None) ->
     return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
 
 
-def _child(conn, fn: Callable, item) -> None:
+def _send_outcome(conn, fn: Callable, arg) -> None:
+    """``fn(arg)``'s outcome through ``conn``: ("ok", value) or ("error", exception), for
+    :func:`_receive_outcome` in the parent."""
     try:
-        message = ("ok", fn(item))
+        message = ("ok", fn(arg))
     except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it
         message = ("error", exc)
     try:
         conn.send(message)
     except Exception as exc:  # the result or the exception did not pickle
         conn.send(("error", RuntimeError(f"worker result could not be sent back: {exc}")))
+
+
+def _receive_outcome(conn, process):
+    """The value a child sent by :func:`_send_outcome`; its exception is raised here, and a
+    child that died without sending one raises RuntimeError."""
+    try:
+        status, value = conn.recv()
+    except EOFError:
+        process.join()
+        raise RuntimeError(f"worker process died (exit code {process.exitcode})") from None
+    if status == "error":
+        raise value
+    return value
+
+
+def _child(conn, fn: Callable, item) -> None:
+    try:
+        _send_outcome(conn, fn, item)
     finally:
         conn.close()
 
@@ -114,14 +134,7 @@ def fork_map(fn: Callable, items: Sequence) -> list:
             children.append((process, receive))
         results = [fn(items[0])]
         for process, receive in children:
-            try:
-                status, value = receive.recv()
-            except EOFError:
-                process.join()
-                raise RuntimeError(f"worker process died (exit code {process.exitcode})") from None
-            if status == "error":
-                raise value
-            results.append(value)
+            results.append(_receive_outcome(receive, process))
         delivered = True
         return results
     finally:
@@ -182,14 +195,7 @@ def _serve(conn, handler: Callable) -> None:
             return
         if message is None:
             return
-        try:
-            reply = ("ok", handler(message))
-        except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it
-            reply = ("error", exc)
-        try:
-            conn.send(reply)
-        except Exception as exc:  # the reply or the exception did not pickle
-            conn.send(("error", RuntimeError(f"worker result could not be sent back: {exc}")))
+        _send_outcome(conn, handler, message)
 
 
 class ForkedPeer:
@@ -215,14 +221,7 @@ class ForkedPeer:
 
     def collect(self):
         """The reply to the last :meth:`submit`; the child's exception is raised here."""
-        try:
-            status, value = self._conn.recv()
-        except EOFError:
-            self._process.join()
-            raise RuntimeError(f"worker process died (exit code {self._process.exitcode})") from None
-        if status == "error":
-            raise value
-        return value
+        return _receive_outcome(self._conn, self._process)
 
     def close(self) -> None:
         try:
@@ -265,17 +264,11 @@ class ForkedCall:
             return self._value
         process, self._process = self._process, None
         try:
-            status, value = self._receive.recv()
-        except EOFError:
-            process.join()
-            raise RuntimeError(f"worker process died (exit code {process.exitcode})") from None
+            self._value = _receive_outcome(self._receive, process)
         finally:
             self._receive.close()
             process.join(timeout=DELIVERED_EXIT_TIMEOUT_S)
             if process.is_alive():
                 process.terminate()
                 process.join()
-        if status == "error":
-            raise value
-        self._value = value
-        return value
+        return self._value
