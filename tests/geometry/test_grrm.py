@@ -190,8 +190,6 @@ def test_linearisation_in_two_processes_equals_one_process_bit_for_bit(monkeypat
     in one process, also after the batch's weights change (the child gets the new batch)."""
     from rotonly_cli.runtime import parallel
 
-    if not parallel.fork_safe():
-        pytest.skip("needs fork (Linux, no other thread)")
     monkeypatch.setattr(grrm.problem, "_CHUNK", 301)  # several blocks per part
     p, prob, R_gt = _problem(noise=1.0, seed=5, views=8, window=3)
     R = so3.exp(np.random.default_rng(2).normal(scale=0.003, size=(8, 3))) @ R_gt
@@ -224,8 +222,6 @@ def test_linearisation_in_two_processes_equals_one_process_bit_for_bit(monkeypat
 def test_a_helper_process_leaves_grrm_unchanged_bit_for_bit():
     from rotonly_cli.runtime import parallel
 
-    if not parallel.fork_safe():
-        pytest.skip("needs fork (Linux, no other thread)")
     p, prob, R_gt = _problem("circular", noise=1.0, seed=9, views=10, window=3)
     R0 = _l1_irls_start(p, prob)
     one = grrm.optimize_global_rotations(R0, prob.edge_views, prob.batch, prob.obs_ids)

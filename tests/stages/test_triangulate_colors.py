@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-import pytest
 
 from rotonly_cli.scene.types import SfMScene, View
 from rotonly_cli.stages.triangulate import GREY, keypoint_colors, point_colors
@@ -77,11 +76,8 @@ def _scene_with_images(tmp_path):
 def test_forked_keypoint_colors_equal_decoding_here(tmp_path):
     import os
 
-    from rotonly_cli.runtime.parallel import fork_safe
     from rotonly_cli.stages.triangulate import ForkedKeypointColors
 
-    if not fork_safe():
-        pytest.skip("needs fork (Linux, no other thread)")
     scene = _scene_with_images(tmp_path)
     forked = ForkedKeypointColors(scene, tmp_path, [1, 2, 3])
     assert forked._process.pid != os.getpid()
@@ -96,11 +92,8 @@ def test_forked_keypoint_colors_equal_decoding_here(tmp_path):
 def test_a_failed_decoding_process_falls_back_to_decoding_here(tmp_path, monkeypatch, caplog):
     import os
 
-    from rotonly_cli.runtime.parallel import fork_safe
     from rotonly_cli.stages.triangulate import ForkedKeypointColors
 
-    if not fork_safe():
-        pytest.skip("needs fork (Linux, no other thread)")
     monkeypatch.setattr(ForkedKeypointColors, "_decode", lambda self, paths: os._exit(3))
     scene = _scene_with_images(tmp_path)
     colors = ForkedKeypointColors(scene, tmp_path, [1, 2, 3]).result(timeout=30)
