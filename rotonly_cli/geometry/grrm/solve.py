@@ -141,153 +141,161 @@ def optimize_global_rotations(R_cam_from_world, edge_views, batch: pg.EdgeBatch,
         raise ValueError(f"fixed_view: must be in [0, {n})")
     problem = GRRMSystem(n, edge_views, batch, obs_ids, options.residual)
     with problem.parallel(peer_class):
-        free = np.ones(3 * n, dtype=bool)
-        free[3 * fixed_view:3 * fixed_view + 3] = False
-        R_input = R
-        # costs only (no Jacobian) until the loss scale is settled
-        V, S, _ = problem.evaluate(R, with_jacobian=False)
-        sq = np.einsum("gk,gk->g", V, V)
-        scale = options.loss_scale
-        if scale is None:
-            active = S > 0
-            med = np.median(np.sqrt(sq[active])) if np.any(active) else 0.0
-            scale = max(options.loss_scale_factor * 1.4826 * med, 1e-12)
-        cost = float(robust_rho(sq, options.loss, scale)[0].sum())  # without translation weights
+        return _levenberg_marquardt(problem, R, edge_views, batch, fixed_view, options, on_iteration)
 
-        def linearize(R_at: np.ndarray, with_jacobian: bool, exact: bool = False):
-            # (robust cost, JᵀWJ, JᵀWV, remainder) of all 3n parameters
-            return problem.linearize(R_at, options.loss, scale, options.robust_hessian, with_jacobian, exact)
 
-        def weighted_batch(R_at: np.ndarray) -> pg.EdgeBatch:
-            # each edge's t from Σ w θθᵀ with Huber IRLS weights of its matches (weight 1 within
-            # 3 robust sigmas, so clean data is untouched): wrong matches with large θ would
-            # otherwise tilt t for the whole edge. Weighed at the chosen start, after the λ_min
-            # phase (weights from a start far off would down-weight good matches).
-            if not (options.robust_translation and batch.num_edges):
-                return batch
-            from rotonly_cli.geometry.trrm import TRRMOptions, robust_match_weights
+def _levenberg_marquardt(problem: GRRMSystem, R: np.ndarray, edge_views: np.ndarray, batch: pg.EdgeBatch,
+                         fixed_view: int, options: GRRMOptions,
+                         on_iteration: Callable[[dict], None] | None) -> GRRMResult:
+    """The body of :func:`optimize_global_rotations` on its problem (validated inputs)."""
+    n = R.shape[0]
+    free = np.ones(3 * n, dtype=bool)
+    free[3 * fixed_view:3 * fixed_view + 3] = False
+    R_input = R
+    # costs only (no Jacobian) until the loss scale is settled
+    V, S, _ = problem.evaluate(R, with_jacobian=False)
+    sq = np.einsum("gk,gk->g", V, V)
+    scale = options.loss_scale
+    if scale is None:
+        active = S > 0
+        med = np.median(np.sqrt(sq[active])) if np.any(active) else 0.0
+        scale = max(options.loss_scale_factor * 1.4826 * med, 1e-12)
+    cost = float(robust_rho(sq, options.loss, scale)[0].sum())  # without translation weights
 
-            R_ij = R_at[edge_views[:, 1]] @ np.swapaxes(R_at[edge_views[:, 0]], 1, 2)
-            w = robust_match_weights(R_ij, batch, None, TRRMOptions(), kind="huber")
-            w = robust_match_weights(R_ij, batch, w, TRRMOptions(), kind="huber")
-            return batch.with_weights(w)
+    def linearize(R_at: np.ndarray, with_jacobian: bool, exact: bool = False):
+        # (robust cost, JᵀWJ, JᵀWV, remainder) of all 3n parameters
+        return problem.linearize(R_at, options.loss, scale, options.robust_hessian, with_jacobian, exact)
 
-        def restrict(H):  # the free parameters' rows and columns
-            if H is None:
-                return None
-            return H[np.ix_(free, free)] if isinstance(H, np.ndarray) else H[free][:, free]
+    def weighted_batch(R_at: np.ndarray) -> pg.EdgeBatch:
+        # each edge's t from Σ w θθᵀ with Huber IRLS weights of its matches (weight 1 within
+        # 3 robust sigmas, so clean data is untouched): wrong matches with large θ would
+        # otherwise tilt t for the whole edge. Weighed at the chosen start, after the λ_min
+        # phase (weights from a start far off would down-weight good matches).
+        if not (options.robust_translation and batch.num_edges):
+            return batch
+        from rotonly_cli.geometry.trrm import TRRMOptions, robust_match_weights
 
-        def lm_iteration(R_at: np.ndarray, cost_now: float, JtJ, grad, remainder, mu: float):
-            """Alg. 4's inner loop: solve, evaluate, raise the damping until the cost decreases.
-            Returns (accepted, R, cost, JᵀWJ, JᵀWV, remainder, step, damping) of the candidate."""
-            JtJ, remainder = restrict(JtJ), restrict(remainder)
-            grad = grad[free]
-            retry = False
-            while True:
-                delta_free = _solve_damped(JtJ, grad, mu, remainder)
-                if delta_free is not None:
-                    delta = np.zeros(3 * n)
-                    delta[free] = delta_free
-                    R_cand = so3.exp(delta.reshape(n, 3)) @ R_at
-                    step = float(np.max(np.linalg.norm(delta.reshape(n, 3), axis=1)))
-                    # an iteration's first candidate comes with its normal equations (accepted
-                    # steps, the usual case, reuse them), except after a step below
-                    # step_tolerance, after which LM stops if it is accepted. A retry (without
-                    # the exact term, or at a higher damping) is costed alone first (a quarter of
-                    # a linearisation): near the optimum a rejected candidate would otherwise
-                    # cost a full Jacobian
-                    with_jacobian = step >= options.step_tolerance
-                    exact = step < options.exact_curvature_below
-                    if retry:
-                        cost_c, JtJ_c, grad_c, rem_c = linearize(R_cand, False)
-                        if cost_c <= cost_now and with_jacobian:
-                            cost_c, JtJ_c, grad_c, rem_c = linearize(R_cand, True, exact)
-                    else:
-                        cost_c, JtJ_c, grad_c, rem_c = linearize(R_cand, with_jacobian, exact)
-                    if cost_c <= cost_now:
-                        return True, R_cand, cost_c, JtJ_c, grad_c, rem_c, step, max(mu / 10.0, 1e-15)
-                retry = True
-                if remainder is not None:
-                    # the exact Hessian's model failed: the clamped PSD model at the same
-                    # damping before any more damping (castle-P19: at 1e-7 it is accepted,
-                    # where the exact model failed five times up to 1e-2)
-                    remainder = None
-                    continue
-                mu *= 10.0
-                if mu > options.max_damping:
-                    return False, R_at, cost_now, None, None, None, 0.0, mu
+        R_ij = R_at[edge_views[:, 1]] @ np.swapaxes(R_at[edge_views[:, 0]], 1, 2)
+        w = robust_match_weights(R_ij, batch, None, TRRMOptions(), kind="huber")
+        w = robust_match_weights(R_ij, batch, w, TRRMOptions(), kind="huber")
+        return batch.with_weights(w)
 
-        first = None  # GRRM's first iteration from the input start, when computed before the λ_min phase
-        start = None  # (cost, JᵀWJ, JᵀWV, remainder) at the chosen start, with its translation weights
-        if options.epipolar_max_iterations > 0 and batch.num_edges:
-            if options.epipolar_trigger is not None and options.max_iterations > 0:
-                # GRRM's own first step from the input start decides whether the λ_min phase is
-                # needed: an accepted step (no extra damping) below epipolar_trigger means the
-                # start is already in GRRM's basin, where the λ_min phase cannot help
-                problem.batch = weighted_batch(R_input)
-                start = linearize(R_input, True, options.exact_curvature_below > 0)
-                t0 = time.perf_counter()
-                first = lm_iteration(R_input, *start, options.initial_damping) + (time.perf_counter() - t0,)
-                accepted, step, mu = first[0], first[6], first[7]
-                in_basin = accepted and mu < options.initial_damping and step <= options.epipolar_trigger
-                if in_basin:
-                    log.debug("GRRM λ_min phase: skipped (first GRRM step %.2e rad <= %.2e)", step,
-                             options.epipolar_trigger)
-            if first is None or not in_basin:
-                # the λ_min phase only proposes a start: keep it if GRRM's own cost (without the
-                # translation weights, which depend on the start) agrees it is better (on weak
-                # geometry, e.g. far points, λ_min's optimum can be worse)
-                weighted, problem.batch = problem.batch, batch
-                R1, it1 = epipolar_phase(R, edge_views, batch, free, options.epipolar_max_iterations,
-                                         options.epipolar_step_tolerance)
-                cost1 = problem.linearize(R1, options.loss, scale, False, False)[0]
-                if cost1 < cost:
-                    R, cost, first, start = R1, cost1, None, None
+    def restrict(H):  # the free parameters' rows and columns
+        if H is None:
+            return None
+        return H[np.ix_(free, free)] if isinstance(H, np.ndarray) else H[free][:, free]
+
+    def lm_iteration(R_at: np.ndarray, cost_now: float, JtJ, grad, remainder, mu: float):
+        """Alg. 4's inner loop: solve, evaluate, raise the damping until the cost decreases.
+        Returns (accepted, R, cost, JᵀWJ, JᵀWV, remainder, step, damping) of the candidate."""
+        JtJ, remainder = restrict(JtJ), restrict(remainder)
+        grad = grad[free]
+        retry = False
+        while True:
+            delta_free = _solve_damped(JtJ, grad, mu, remainder)
+            if delta_free is not None:
+                delta = np.zeros(3 * n)
+                delta[free] = delta_free
+                R_cand = so3.exp(delta.reshape(n, 3)) @ R_at
+                step = float(np.max(np.linalg.norm(delta.reshape(n, 3), axis=1)))
+                # an iteration's first candidate comes with its normal equations (accepted
+                # steps, the usual case, reuse them), except after a step below
+                # step_tolerance, after which LM stops if it is accepted. A retry (without
+                # the exact term, or at a higher damping) is costed alone first (a quarter of
+                # a linearisation): near the optimum a rejected candidate would otherwise
+                # cost a full Jacobian
+                with_jacobian = step >= options.step_tolerance
+                exact = step < options.exact_curvature_below
+                if retry:
+                    cost_c, JtJ_c, grad_c, rem_c = linearize(R_cand, False)
+                    if cost_c <= cost_now and with_jacobian:
+                        cost_c, JtJ_c, grad_c, rem_c = linearize(R_cand, True, exact)
                 else:
-                    problem.batch = weighted  # the start is kept: so are its weights and first iteration
-                log.debug("GRRM λ_min phase: %d iterations, start %s", it1, "taken" if R is R1 else "kept")
-        if start is None:
-            problem.batch = weighted_batch(R)
-            start = linearize(R, True, options.exact_curvature_below > 0)
-        cost, JtJ, grad, remainder = start
-        # the initial cost of the problem that is optimised (same weights and scale as the end)
-        initial_cost = cost if R is R_input else linearize(R_input, False)[0]
-        history: list[dict] = []
-        mu = options.initial_damping
-        converged = False
-        iteration = 0
-        log.debug("GRRM start: %d views, %d edges, %d observations, cost %.6e, loss %s (scale %.3e)",
-                 n, batch.num_edges, problem.num_groups, cost, options.loss, scale)
-        for iteration in range(1, options.max_iterations + 1):
+                    cost_c, JtJ_c, grad_c, rem_c = linearize(R_cand, with_jacobian, exact)
+                if cost_c <= cost_now:
+                    return True, R_cand, cost_c, JtJ_c, grad_c, rem_c, step, max(mu / 10.0, 1e-15)
+            retry = True
+            if remainder is not None:
+                # the exact Hessian's model failed: the clamped PSD model at the same
+                # damping before any more damping (castle-P19: at 1e-7 it is accepted,
+                # where the exact model failed five times up to 1e-2)
+                remainder = None
+                continue
+            mu *= 10.0
+            if mu > options.max_damping:
+                return False, R_at, cost_now, None, None, None, 0.0, mu
+
+    first = None  # GRRM's first iteration from the input start, when computed before the λ_min phase
+    start = None  # (cost, JᵀWJ, JᵀWV, remainder) at the chosen start, with its translation weights
+    if options.epipolar_max_iterations > 0 and batch.num_edges:
+        if options.epipolar_trigger is not None and options.max_iterations > 0:
+            # GRRM's own first step from the input start decides whether the λ_min phase is
+            # needed: an accepted step (no extra damping) below epipolar_trigger means the
+            # start is already in GRRM's basin, where the λ_min phase cannot help
+            problem.batch = weighted_batch(R_input)
+            start = linearize(R_input, True, options.exact_curvature_below > 0)
             t0 = time.perf_counter()
-            if iteration == 1 and first is not None:
-                accepted, R_cand, cost_c, JtJ_c, grad_c, rem_c, step, mu, seconds = first
-                t0 -= seconds
+            first = lm_iteration(R_input, *start, options.initial_damping) + (time.perf_counter() - t0,)
+            accepted, step, mu = first[0], first[6], first[7]
+            in_basin = accepted and mu < options.initial_damping and step <= options.epipolar_trigger
+            if in_basin:
+                log.debug("GRRM λ_min phase: skipped (first GRRM step %.2e rad <= %.2e)", step,
+                         options.epipolar_trigger)
+        if first is None or not in_basin:
+            # the λ_min phase only proposes a start: keep it if GRRM's own cost (without the
+            # translation weights, which depend on the start) agrees it is better (on weak
+            # geometry, e.g. far points, λ_min's optimum can be worse)
+            weighted, problem.batch = problem.batch, batch
+            R1, it1 = epipolar_phase(R, edge_views, batch, free, options.epipolar_max_iterations,
+                                     options.epipolar_step_tolerance)
+            cost1 = problem.linearize(R1, options.loss, scale, False, False)[0]
+            if cost1 < cost:
+                R, cost, first, start = R1, cost1, None, None
             else:
-                accepted, R_cand, cost_c, JtJ_c, grad_c, rem_c, step, mu = lm_iteration(R, cost, JtJ, grad, remainder,
-                                                                                        mu)
-            if not accepted:
-                history.append({"iteration": iteration, "cost": cost, "step": 0.0, "damping": mu, "accepted": False,
-                                "seconds": time.perf_counter() - t0})
-                if on_iteration is not None:
-                    on_iteration(history[-1])
-                log.debug("GRRM iteration %d: no decrease possible (damping %.1e); stop", iteration, mu)
-                converged = True
-                break
-            decrease = cost - cost_c
-            R, cost, JtJ, grad, remainder = R_cand, cost_c, JtJ_c, grad_c, rem_c
-            history.append({"iteration": iteration, "cost": cost, "step": step, "damping": mu, "accepted": True,
+                problem.batch = weighted  # the start is kept: so are its weights and first iteration
+            log.debug("GRRM λ_min phase: %d iterations, start %s", it1, "taken" if R is R1 else "kept")
+    if start is None:
+        problem.batch = weighted_batch(R)
+        start = linearize(R, True, options.exact_curvature_below > 0)
+    cost, JtJ, grad, remainder = start
+    # the initial cost of the problem that is optimised (same weights and scale as the end)
+    initial_cost = cost if R is R_input else linearize(R_input, False)[0]
+    history: list[dict] = []
+    mu = options.initial_damping
+    converged = False
+    iteration = 0
+    log.debug("GRRM start: %d views, %d edges, %d observations, cost %.6e, loss %s (scale %.3e)",
+             n, batch.num_edges, problem.num_groups, cost, options.loss, scale)
+    for iteration in range(1, options.max_iterations + 1):
+        t0 = time.perf_counter()
+        if iteration == 1 and first is not None:
+            accepted, R_cand, cost_c, JtJ_c, grad_c, rem_c, step, mu, seconds = first
+            t0 -= seconds
+        else:
+            accepted, R_cand, cost_c, JtJ_c, grad_c, rem_c, step, mu = lm_iteration(R, cost, JtJ, grad, remainder,
+                                                                                    mu)
+        if not accepted:
+            history.append({"iteration": iteration, "cost": cost, "step": 0.0, "damping": mu, "accepted": False,
                             "seconds": time.perf_counter() - t0})
             if on_iteration is not None:
                 on_iteration(history[-1])
-            log.debug("GRRM iteration %d: cost %.6e (-%.2e), max step %.2e rad, %.2f s",
-                     iteration, cost, decrease, step, time.perf_counter() - t0)
-            if decrease <= options.function_tolerance * max(cost, 1e-300) or step < options.step_tolerance:
-                converged = True
-                break
-        return GRRMResult(R_cam_from_world=R, initial_cost=initial_cost, cost=cost, iterations=iteration,
-                          converged=converged, history=history, num_observations=problem.num_groups, loss_scale=scale,
-                          processes=problem.processes)
+            log.debug("GRRM iteration %d: no decrease possible (damping %.1e); stop", iteration, mu)
+            converged = True
+            break
+        decrease = cost - cost_c
+        R, cost, JtJ, grad, remainder = R_cand, cost_c, JtJ_c, grad_c, rem_c
+        history.append({"iteration": iteration, "cost": cost, "step": step, "damping": mu, "accepted": True,
+                        "seconds": time.perf_counter() - t0})
+        if on_iteration is not None:
+            on_iteration(history[-1])
+        log.debug("GRRM iteration %d: cost %.6e (-%.2e), max step %.2e rad, %.2f s",
+                 iteration, cost, decrease, step, time.perf_counter() - t0)
+        if decrease <= options.function_tolerance * max(cost, 1e-300) or step < options.step_tolerance:
+            converged = True
+            break
+    return GRRMResult(R_cam_from_world=R, initial_cost=initial_cost, cost=cost, iterations=iteration,
+                      converged=converged, history=history, num_observations=problem.num_groups, loss_scale=scale,
+                      processes=problem.processes)
 
 
 def grrm_residuals(R_cam_from_world, edge_views, batch: pg.EdgeBatch, obs_ids, with_jacobian: bool = False,
