@@ -71,18 +71,14 @@ WORKSPACE_ENTRIES = {"sfm_data.json", "sparse", "view_graph.json", "reports", "r
 
 # ============================================================================ outputs
 
-def write_outputs(out_dir: Path, run: Run, wait: bool = True):
-    """OUT/sfm_data.json (OpenMVG) and OUT/sparse/ (COLMAP binary model); the scene written.
-    ``wait=False``: (scene, handle) where sfm_data.json may still be being written by a forked
-    child (stages/export.write_outputs): ``handle.result()`` before OUT is complete."""
+def write_outputs(out_dir: Path, run: Run):
+    """OUT/sfm_data.json (OpenMVG) and OUT/sparse/ (COLMAP binary model): (the scene written,
+    a handle whose ``result()`` returns once sfm_data.json is written, which a forked child may
+    still be doing: stages/export.write_outputs)."""
     from rotonly_cli.stages import export
 
     scene = output_scene(run)
-    pending = export.write_outputs(out_dir, scene, run.input_kind, run.options.jobs)
-    if wait:
-        pending.result()
-        return scene
-    return scene, pending
+    return scene, export.write_outputs(out_dir, scene, run.input_kind, run.options.jobs)
 
 
 def write_workspace(out_dir: Path, run: Run, stages_done: list[str]) -> None:
@@ -312,7 +308,7 @@ def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: fl
     try:
         if done[-1] == "triangulate":
             started = time.perf_counter()
-            scene, pending = write_outputs(directory, run, wait=False)
+            scene, pending = write_outputs(directory, run)
             statistics = structure_statistics(scene, run.graph.view_ids())
             run.reports["export"] = {**statistics.report, "time_s": time.perf_counter() - started}
             summary.update(num_views=len(run.scene.views), num_registered=len(scene.poses),

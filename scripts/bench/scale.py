@@ -155,7 +155,7 @@ def measure(scene_dir: Path, out_json: Path, jobs: int = 1) -> None:
             if stage == "load":
                 run = load_stage(scene_dir / "database.db", RunOptions(jobs=jobs))
             elif stage == "export":
-                write_outputs(Path(export_dir), run)
+                write_outputs(Path(export_dir), run)[1].result()
             else:
                 STAGE_FUNCTIONS[stage](run)
             elapsed = time.perf_counter() - start
