@@ -194,7 +194,7 @@ def translate_stage(run: Run) -> None:
 
     run.centers, run.reports["translate"] = translate_graph(
         run.graph, run.scene.normalized, run.rotations, run.options.translate, track_cache=run.tracks,
-        focal_px=run.scene.focal_px(run.graph.view_ids()))
+        focal_px=run.scene.focal_px(run.graph.view_ids()), jobs=run.options.jobs)
 
 
 def image_root(run: Run) -> Path | None:

@@ -480,5 +480,6 @@ class RunOptions:
     triangulate: TriangulationOptions = TriangulationOptions()
     grrm: bool = True  #: False: keep the averaged rotations (ablation)
     progress: bool = False
-    #: processes for identification + TRRM (runtime/parallel); the numbers do not depend on it
+    #: processes for identification, TRRM, GRRM and the robust LiGT (runtime/parallel); the
+    #: numbers do not depend on it
     jobs: int = 1

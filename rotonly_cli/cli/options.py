@@ -102,5 +102,5 @@ jobs = click.option(
     callback=lambda ctx, param, value: _usable_cpus() if value is None else value,
     help=f"CPUs to use (default: the usable CPUs, {_usable_cpus()} here): threads for the RANSAC of relative "
          "poses, forked processes (Linux) for scene identification and TRRM, one per 20000 matches at most, and "
-         "for GRRM (two) and writing sfm_data.json (a smaller input runs in one process; reports/refine.json and "
-         "optimize.json record how many ran). The numbers do not depend on it.")
+         "for GRRM and LiGT's robust rounds (two each) and writing sfm_data.json (a smaller input runs in one "
+         "process; reports/refine.json, optimize.json and translate.json record how many ran). The numbers do not depend on it.")

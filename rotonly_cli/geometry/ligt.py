@@ -34,7 +34,7 @@ from scipy.sparse.linalg import eigsh
 
 from rotonly_cli.errors import AlgorithmError, InputError
 from rotonly_cli.geometry.so3 import hat
-from rotonly_cli.geometry.tracks import pairs_within_tracks, segment_sums
+from rotonly_cli.geometry.tracks import even_ranges, pairs_within_tracks, segment_sums
 from rotonly_cli.options import LiGTOptions
 
 __all__ = ["LiGTOptions", "LiGTResult", "RobustLiGTResult", "ligt_translations", "ligt_normal_matrix",
@@ -218,25 +218,8 @@ def _smallest_eigenvector(matrix: sp.csr_matrix, options: LiGTOptions) -> tuple[
     return vectors[:, order[0]], values[order]
 
 
-def ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_view: np.ndarray,
-                      obs_xy: np.ndarray, view_mask: np.ndarray | None = None,
-                      fixed_view: int | None = None, options: LiGTOptions | None = None) -> LiGTResult:
-    """Camera centres from global rotations and tracks (LiGT, algorithms.md §1).
-
-    Args:
-        R_cam_from_world: (n, 3, 3) world -> camera rotations.
-        obs_track: (N_obs,) track id per observation, non-decreasing (``Tracks.track_id``).
-        obs_view: (N_obs,) view per observation (``Tracks.view``).
-        obs_xy: (N_obs, 2) normalized coordinates.
-        view_mask: (n,) bool; False views are ignored (their observations dropped).
-        fixed_view: gauge view; default the first view with constraints.
-
-    Views without any constraint (e.g. only pure-rotation tracks, or masked out) are
-    reported via ``has_translation = False`` with NaN centres.
-    """
-    options = options or LiGTOptions()
+def _validated(R_cam_from_world, obs_track, obs_view, obs_xy):
     R = np.asarray(R_cam_from_world, dtype=float)
-    num_views = R.shape[0]
     obs_track = np.asarray(obs_track, dtype=np.int64)
     obs_view = np.asarray(obs_view, dtype=np.int64)
     obs_xy = np.asarray(obs_xy, dtype=float)
@@ -246,11 +229,33 @@ def ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_v
         raise InputError("obs_track, obs_view (N_obs,) and obs_xy (N_obs, 2) disagree", field="obs_xy")
     if obs_track.size and np.any(np.diff(obs_track) < 0):
         raise InputError("obs_track must be sorted (observations grouped by track)", field="obs_track")
+    return R, obs_track, obs_view, obs_xy
+
+
+def _view_masked_normal_matrix(R: np.ndarray, obs_track: np.ndarray, obs_view: np.ndarray, obs_xy: np.ndarray,
+                               view_mask: np.ndarray | None, options: LiGTOptions):
+    """:func:`ligt_normal_matrix` of the observations in the views of ``view_mask``."""
     if view_mask is not None:
         keep = np.asarray(view_mask, dtype=bool)[obs_view]
         obs_track, obs_view, obs_xy = obs_track[keep], obs_view[keep], obs_xy[keep]
         _, obs_track = np.unique(obs_track, return_inverse=True)
-    LTL, extras = ligt_normal_matrix(R, obs_track, obs_view, obs_xy, num_views, options)
+    return ligt_normal_matrix(R, obs_track, obs_view, obs_xy, R.shape[0], options)
+
+
+def _merged_normal_matrix(parts: list[tuple[sp.csr_matrix, dict]]) -> tuple[sp.csr_matrix, dict]:
+    """LᵀL and the sign rows of disjoint sets of tracks, merged in the order given."""
+    LTL = parts[0][0]
+    for matrix, _ in parts[1:]:
+        LTL = LTL + matrix
+    extras = {key: np.concatenate([part[1][key] for part in parts]) for key in ("sign_l", "sign_r", "sign_row")}
+    extras["constraints_per_view"] = np.sum([part[1]["constraints_per_view"] for part in parts], axis=0)
+    return LTL, extras
+
+
+def _solve_normal_matrix(LTL: sp.csr_matrix, extras: dict, view_mask: np.ndarray | None, fixed_view: int | None,
+                         options: LiGTOptions) -> LiGTResult:
+    """The centres from LᵀL: gauge, smallest eigenvector, chirality vote, normalisation."""
+    num_views = LTL.shape[0] // 3
     constraints_per_view = extras["constraints_per_view"]
     solved = constraints_per_view >= max(options.min_constraints_per_view, 1)
     if view_mask is not None:
@@ -284,6 +289,28 @@ def ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_v
     centers[solved] = solved_centers / mean_distance
     return LiGTResult(centers, solved, fixed_view, np.asarray(eigenvalues), constraints_per_view,
                       int(extras["sign_row"].shape[0]), (positive, negative))
+
+
+def ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_view: np.ndarray,
+                      obs_xy: np.ndarray, view_mask: np.ndarray | None = None,
+                      fixed_view: int | None = None, options: LiGTOptions | None = None) -> LiGTResult:
+    """Camera centres from global rotations and tracks (LiGT, algorithms.md §1).
+
+    Args:
+        R_cam_from_world: (n, 3, 3) world -> camera rotations.
+        obs_track: (N_obs,) track id per observation, non-decreasing (``Tracks.track_id``).
+        obs_view: (N_obs,) view per observation (``Tracks.view``).
+        obs_xy: (N_obs, 2) normalized coordinates.
+        view_mask: (n,) bool; False views are ignored (their observations dropped).
+        fixed_view: gauge view; default the first view with constraints.
+
+    Views without any constraint (e.g. only pure-rotation tracks, or masked out) are
+    reported via ``has_translation = False`` with NaN centres.
+    """
+    options = options or LiGTOptions()
+    R, obs_track, obs_view, obs_xy = _validated(R_cam_from_world, obs_track, obs_view, obs_xy)
+    LTL, extras = _view_masked_normal_matrix(R, obs_track, obs_view, obs_xy, view_mask, options)
+    return _solve_normal_matrix(LTL, extras, view_mask, fixed_view, options)
 
 
 @dataclass
@@ -390,9 +417,57 @@ def views_off_their_baselines(angles_deg: np.ndarray, edge_views: np.ndarray, nu
     return median, np.flatnonzero(np.nan_to_num(median, nan=0.0) > max_disagreement_deg)
 
 
+#: the robust rounds assemble LᵀL and triangulate in this many parts of the tracks, each
+#: evaluated alone and merged in order, whether one process runs them or two side by side
+#: (``peer_class`` of :func:`robust_ligt_translations`): the numbers do not depend on it
+_PARTS = 2
+
+
+class _TrackParts:
+    """The robust rounds' work on contiguous parts of the tracks (observation ranges cut at
+    track boundaries, about equal in observations): LᵀL of a part's used observations and the
+    reprojection errors of its tracks. Part ``p`` of a round is :meth:`__call__` on
+    ``(kind, p, args)``, here or in a helper process forked with this object."""
+
+    def __init__(self, R: np.ndarray, obs_track: np.ndarray, obs_view: np.ndarray, obs_xy: np.ndarray,
+                 view_mask: np.ndarray | None, options: LiGTOptions):
+        self.R, self.obs_track, self.obs_view, self.obs_xy = R, obs_track, obs_view, obs_xy
+        self.view_mask, self.options = view_mask, options
+        starts = np.flatnonzero(np.r_[True, obs_track[1:] != obs_track[:-1]]) if obs_track.size else np.zeros(0, int)
+        bounds = np.append(starts, obs_track.size)
+        self.ranges = [(int(bounds[a]), int(bounds[b])) for a, b in even_ranges(np.diff(bounds), _PARTS)]
+
+    def __call__(self, message):
+        kind, part, args = message
+        a, b = self.ranges[part]
+        if kind == "normal":
+            (used,) = args  # the part's slice
+            if not used.any():
+                return None
+            return _view_masked_normal_matrix(self.R, _renumber(self.obs_track[a:b][used]), self.obs_view[a:b][used],
+                                              self.obs_xy[a:b][used], self.view_mask, self.options)
+        centers, used = args
+        return observation_errors(self.R, centers, self.obs_track[a:b], self.obs_view[a:b], self.obs_xy[a:b], used)
+
+    def evaluate(self, used: np.ndarray, centers: np.ndarray | None = None, peer=None) -> list:
+        """Every part's result, in order, with the ``used`` observations (all of them): LᵀL,
+        or with ``centers`` the errors. The parts after the first are evaluated by ``peer``
+        (submitted first, so both run side by side) when there is one."""
+        messages = [("normal", part, (used[a:b],)) if centers is None else ("errors", part, (centers, used[a:b]))
+                    for part, (a, b) in enumerate(self.ranges)]
+        if peer is not None and len(messages) > 1:
+            peer.submit(messages[1:])
+            return [self(messages[0])] + peer.collect()
+        return [self(message) for message in messages]
+
+    def serve(self, messages):
+        """The helper's side of :meth:`evaluate`."""
+        return [self(message) for message in messages]
+
+
 def robust_ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_view: np.ndarray,
                              obs_xy: np.ndarray, obs_focal_px: np.ndarray, view_mask: np.ndarray | None = None,
-                             options: LiGTOptions | None = None) -> RobustLiGTResult:
+                             options: LiGTOptions | None = None, peer_class=None) -> RobustLiGTResult:
     """LiGT with outlier rejection by reprojection: solve, triangulate every track with the
     centres, and solve again without the observations whose error exceeds
     max(``outlier_sigmas`` x sigma, ``min_outlier_threshold_px``) (sigma = 1.4826 x the median
@@ -402,13 +477,25 @@ def robust_ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray
 
     A wrong match along the epipolar line (repeated structure) is consistent in its own pair
     but not with the rest of its track, so it shows as a reprojection error once the centres
-    are right; the linear solve itself weighs it like any other (docs/tuning.md)."""
+    are right; the linear solve itself weighs it like any other (docs/tuning.md).
+
+    ``peer_class``: a helper process for the second half of the tracks (e.g.
+    runtime.parallel.ForkedPeer: ``peer_class(handler)`` a context manager with submit /
+    collect); None: one process. The numbers do not depend on it (``_PARTS``)."""
     options = options or LiGTOptions()
-    obs_track = np.asarray(obs_track, dtype=np.int64)
-    obs_view = np.asarray(obs_view, dtype=np.int64)
-    obs_xy = np.asarray(obs_xy, dtype=float)
+    R, obs_track, obs_view, obs_xy = _validated(R_cam_from_world, obs_track, obs_view, obs_xy)
     obs_focal_px = np.broadcast_to(np.asarray(obs_focal_px, dtype=float), obs_track.shape)
-    R = np.asarray(R_cam_from_world, dtype=float)
+    parts = _TrackParts(R, obs_track, obs_view, obs_xy, view_mask, options)
+    if peer_class is None or len(parts.ranges) < 2:
+        return _robust_rounds(parts, obs_focal_px, view_mask, options, None)
+    with peer_class(parts.serve) as peer:
+        return _robust_rounds(parts, obs_focal_px, view_mask, options, peer)
+
+
+def _robust_rounds(parts: _TrackParts, obs_focal_px: np.ndarray, view_mask: np.ndarray | None,
+                   options: LiGTOptions, peer) -> RobustLiGTResult:
+    """The rounds of :func:`robust_ligt_translations` on its validated inputs."""
+    obs_track = parts.obs_track
     keep = np.ones(obs_track.size, dtype=bool)
     rounds: list[dict] = []
     threshold = np.inf
@@ -417,16 +504,18 @@ def robust_ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray
     while True:
         counts = np.bincount(obs_track[keep], minlength=int(obs_track.max()) + 1 if obs_track.size else 0)
         used = keep & (counts[obs_track] >= 2)
+        normal = [part for part in parts.evaluate(used, peer=peer) if part is not None]
         try:
-            result = ligt_translations(R, _renumber(obs_track[used]), obs_view[used], obs_xy[used], view_mask,
-                                       options=options)
+            if not normal:
+                raise AlgorithmError("LiGT needs at least 2 constrained views, got 0")
+            result = _solve_normal_matrix(*_merged_normal_matrix(normal), view_mask, None, options)
         except AlgorithmError:
             if last is None:
                 raise
             rounds[-1]["failed"] = "the solve without the dropped observations failed; the previous one is kept"
             result, used, error = last
             break
-        error = observation_errors(R, result.centers, obs_track, obs_view, obs_xy, used) * obs_focal_px
+        error = np.concatenate(parts.evaluate(used, result.centers, peer)) * obs_focal_px
         last = (result, used, error)
         finite = used & np.isfinite(error)
         if not finite.any():

@@ -163,3 +163,14 @@ def segment_sums(components: np.ndarray, segment: np.ndarray, num_segments: int)
     """Per-segment sums of component-major values, (k, N) -> (k, num_segments): one
     ``bincount`` per component (k is small), none over the N observations or matches."""
     return np.stack([np.bincount(segment, weights=c, minlength=num_segments) for c in components])
+
+
+def even_ranges(sizes: np.ndarray, parts: int) -> list[tuple[int, int]]:
+    """Up to ``parts`` consecutive index ranges [a, b) of ``sizes`` with about equal sums
+    (each cut at the index boundary nearest to its share; empty ranges dropped): how GRRM
+    and the robust LiGT cut their work into parts that one or two processes evaluate."""
+    sizes = np.asarray(sizes, dtype=np.int64)
+    before = np.concatenate([[0], np.cumsum(sizes)])
+    cuts = [int(np.argmin(np.abs(before - before[-1] * k / parts))) for k in range(1, parts)]
+    bounds = [0] + cuts + [len(sizes)]
+    return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]

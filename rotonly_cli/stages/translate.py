@@ -24,10 +24,11 @@ logger = logging.getLogger(__name__)
 
 def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_world: np.ndarray,
                     options: LiGTOptions | None = None, track_cache: TrackCache | None = None,
-                    focal_px: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+                    focal_px: np.ndarray | None = None, jobs: int = 1) -> tuple[np.ndarray, dict]:
     """(centres (n, 3), NaN where unknown; report). ``track_cache``: the run's, shared
     with triangulate (scene/tracks). ``focal_px`` (n,): each view's focal length, the unit of
-    the outlier threshold of the robust rounds (default 1000 px)."""
+    the outlier threshold of the robust rounds (default 1000 px). ``jobs``: processes of the
+    robust rounds (robust_ligt_translations; the numbers do not depend on it)."""
     start = time.perf_counter()
     index = view_index(graph)
     registered = np.all(np.isfinite(R_cam_from_world.reshape(len(index), -1)), axis=1)
@@ -38,8 +39,13 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
     R = np.where(registered[:, None, None], R_cam_from_world, np.eye(3))
     tracks, obs_xy = graph_tracks(graph, normalized, edges, R, cache=track_cache)
     focal = np.full(len(index), 1000.0) if focal_px is None else np.where(np.isfinite(focal_px), focal_px, 1000.0)
+    from rotonly_cli.runtime.parallel import ForkedPeer, fork_safe, would_fork
+
+    # half of every round's LᵀL and triangulation in a forked child where that is safe and pays
+    forked = would_fork(tracks.num_observations, jobs) and fork_safe()
     robust = robust_ligt_translations(R, tracks.track_id, tracks.view, obs_xy, focal[tracks.view],
-                                      view_mask=registered, options=options)
+                                      view_mask=registered, options=options,
+                                      peer_class=ForkedPeer if forked else None)
     result = robust.result
     centers = np.where(result.has_translation[:, None], result.centers, np.nan)
     ids = graph.view_ids()
@@ -53,6 +59,7 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
               "num_observations_used": int(robust.keep.sum()),
               "num_observations_dropped": int(tracks.num_observations - robust.keep.sum()),
               "outlier_threshold_px": robust.threshold_px, "baselines": baselines,
+              "processes": 2 if forked else 1,
               "time_s": time.perf_counter() - start}
     for number, round_ in enumerate(robust.rounds, 1):
         logger.debug("translate round %d: %d observations, sigma %.3f px, threshold %.2f px, %d dropped, "

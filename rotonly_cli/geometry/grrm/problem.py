@@ -12,6 +12,7 @@ import scipy.sparse as sp
 from rotonly_cli.geometry import kernels
 from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry.robust import radial_excess, robust_curvature, robust_rho
+from rotonly_cli.geometry.tracks import even_ranges
 
 #: contributions per block in GRRMSystem (blocks of ~1 MB arrays stay in cache, and no
 #: per-iteration temporary grows with the problem: arrays above glibc's 32 MB mmap
@@ -118,8 +119,8 @@ class GRRMSystem:
                         int(p_bounds[k]), int(p_bounds[k + 1])) for k in range(len(cuts))]
         # the parts (_PARTS): edge ranges with about equal matches, block ranges with about
         # equal contributions
-        self.edge_parts = _even_ranges(batch.counts, _PARTS)
-        self.block_parts = _even_ranges(np.diff(s_bounds), _PARTS)
+        self.edge_parts = even_ranges(batch.counts, _PARTS)
+        self.block_parts = even_ranges(np.diff(s_bounds), _PARTS)
         self._table: np.ndarray | None = None  # (2M, 16) per-contribution terms, reused
         self._B: np.ndarray | None = None  # (9, 2M) Jacobian blocks, reused
 
@@ -452,16 +453,6 @@ class GRRMSystem:
             self._accumulate(sums, blk, B[:, s0:s1], V[g0:g1].T, row_weight[g0:g1],
                              None if alpha is None else alpha[g0:g1])
         return self._assemble(R, sums, dense=False)
-
-
-def _even_ranges(sizes: np.ndarray, parts: int) -> list[tuple[int, int]]:
-    """Up to ``parts`` consecutive index ranges [a, b) of ``sizes`` with about equal sums
-    (each cut at the index boundary nearest to its share; empty ranges dropped)."""
-    sizes = np.asarray(sizes, dtype=np.int64)
-    before = np.concatenate([[0], np.cumsum(sizes)])
-    cuts = [int(np.argmin(np.abs(before - before[-1] * k / parts))) for k in range(1, parts)]
-    bounds = [0] + cuts + [len(sizes)]
-    return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
 
 
 def _block_products(Ba: np.ndarray, Bb: np.ndarray, index: np.ndarray, length: int,
