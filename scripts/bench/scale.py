@@ -231,7 +231,7 @@ def tables(results: list[dict]) -> str:
     note = ("Peak memory: VmHWM reset before each stage (/proc/self/clear_refs); it includes what the process "
             "already holds." if all(r.get("measure", {}).get("peak_rss_resettable", True) for r in results)
             else "Peak memory: running maximum ru_maxrss (VmHWM could not be reset here).")
-    note += (" Forked children (TRRM's parts, GRRM's helper, the sfm_data.json writer) are not in it: they "
+    note += (" Forked children (TRRM's parts, GRRM's and LiGT's helpers, the sfm_data.json writer) are not in it: they "
              "share the process's pages until they write them (the largest child's peak RSS, shared pages "
              "counted, is children_peak_rss_mb in results.json); the CPU times include them.")
     return "\n".join(time_lines + [""] + memory_lines + ["", note, ""] + accuracy_lines)
