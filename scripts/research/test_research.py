@@ -315,3 +315,19 @@ def test_probe_weak_pairs_on_fixture(capsys):
     pairs, matches, near_global, near_both, used = map(int, row[0].strip("| ").split(" | "))
     assert pairs > 0 and used > matches
     assert near_global >= 0.8 * matches and near_both >= 0.95 * near_global
+
+
+# ============================================================================ probe_grrm_simulation
+
+probe_simulation = _load_script("probe_grrm_simulation")
+
+
+def test_probe_grrm_simulation_on_a_small_scene(capsys):
+    """Every row on a 12-view linear scene; GRRM's end does not depend on its start there (from
+    the averaged and from the GT rotations), and holding t_ij at the GT directions helps."""
+    assert probe_simulation.main(["--views", "12", "--points-per-view", "60", "--window", "3"]) == 0
+    rows = {cells[0]: float(cells[1]) for cells in
+            (line.strip("| \n").split(" | ") for line in capsys.readouterr().out.splitlines()[2:])}
+    assert len(rows) == 9 and all(0.0 < value < 0.2 for value in rows.values())
+    assert abs(rows["GRRM from the GT rotations"] - rows["GRRM"]) < 0.002
+    assert rows["GRRM, t_ij held at the GT directions"] < rows["GRRM"]
