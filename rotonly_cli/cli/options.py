@@ -103,4 +103,5 @@ jobs = click.option(
     help=f"CPUs to use (default: the usable CPUs, {_usable_cpus()} here): threads for the RANSAC of relative "
          "poses, forked processes (Linux) for scene identification and TRRM, one per 20000 matches at most, and "
          "for GRRM and LiGT's robust rounds (two each) and writing sfm_data.json (a smaller input runs in one "
-         "process; reports/refine.json, optimize.json and translate.json record how many ran). The numbers do not depend on it.")
+         "process; reports/refine.json, optimize.json and translate.json record how many ran). The numbers do "
+         "not depend on it.")
