@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
 
+from rotonly_cli.runtime.parallel import ForkedPeer
 from rotonly_cli.simulation.street import StreetScene, make_street_scene, similarity_align_error  # noqa: F401
 
 REPOSITORY = Path(__file__).resolve().parents[1]
@@ -46,3 +48,17 @@ def l1_irls_start(p, prob) -> np.ndarray:
     weights = np.array([len(sc.pairs[k].matches) for k in prob.pair_keys], dtype=float)
     res = averaging.average_rotations(len(prob.view_ids), prob.edge_views[:, 0], prob.edge_views[:, 1], R_rel, weights)
     return res.R_cam_from_world
+
+
+class DyingPeer(ForkedPeer):
+    """A ForkedPeer whose child dies at its first request (a helper killed mid-run)."""
+
+    def __init__(self, handler):
+        parent = os.getpid()
+
+        def dying(message):
+            if os.getpid() != parent:
+                os._exit(9)
+            return handler(message)
+
+        super().__init__(dying)

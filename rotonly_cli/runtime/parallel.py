@@ -18,6 +18,7 @@ numbers beyond the last bits (per-edge results are the same functions of the sam
 from __future__ import annotations
 
 import dataclasses
+import logging
 import mmap
 import multiprocessing as mp
 import os
@@ -37,6 +38,12 @@ MIN_MATCHES_PER_JOB = 20_000
 
 #: seconds a child that sent its result may take to exit before it is terminated
 DELIVERED_EXIT_TIMEOUT_S = 10.0
+
+logger = logging.getLogger(__name__)
+
+
+class WorkerDied(RuntimeError):
+    """A forked child ended without sending its result (killed, out of memory, os._exit)."""
 
 
 def usable_cpus() -> int:
@@ -103,7 +110,7 @@ def _receive_outcome(conn, process):
         status, value = conn.recv()
     except EOFError:
         process.join()
-        raise RuntimeError(f"worker process died (exit code {process.exitcode})") from None
+        raise WorkerDied(f"worker process died (exit code {process.exitcode})") from None
     if status == "error":
         raise value
     return value
@@ -119,7 +126,7 @@ def _child(conn, fn: Callable, item) -> None:
 def fork_map(fn: Callable, items: Sequence) -> list:
     """``[fn(x) for x in items]``: items[1:] in forked children, items[0] in this process.
     ``fn`` may be a closure (nothing is pickled but the results). A child's exception is
-    raised here; a child that dies without a result raises RuntimeError."""
+    raised here; a child that dies without a result raises WorkerDied (a RuntimeError)."""
     if len(items) <= 1 or not fork_safe():
         return [fn(x) for x in items]
     ctx = mp.get_context("fork")
@@ -204,35 +211,64 @@ class ForkedPeer:
     :meth:`collect`. The child sees this process's memory as it was at the fork (closures
     and large arrays need no pickling), and :func:`shared_array` buffers both ways; only the
     messages and replies go through the pipe. Use it as a context manager; only where
-    :func:`fork_safe`."""
+    :func:`fork_safe`.
+
+    Should the child die (killed, out of memory), this process answers the pending request
+    and every later one itself with the same ``handler``, after a warning: the work costs
+    the time of one process, not the run (the handler's results must not depend on the
+    process that computes them, as the callers' parts do not). An exception the handler
+    raises in the child is raised by :meth:`collect`, as before."""
 
     #: memory both processes write (made before the fork)
     shared_array = staticmethod(shared_array)
 
     def __init__(self, handler: Callable):
         ctx = mp.get_context("fork")
+        self._handler = handler
+        self._pending = None
         self._conn, child_end = ctx.Pipe(duplex=True)
         self._process = ctx.Process(target=_serve, args=(child_end, handler), daemon=True)
         self._process.start()
         child_end.close()
 
+    @property
+    def alive(self) -> bool:
+        """False once the child died and this process answers the requests."""
+        return self._process is not None
+
     def submit(self, message) -> None:
-        self._conn.send(message)
+        self._pending = message
+        if self._process is not None:
+            try:
+                self._conn.send(message)
+            except OSError:  # the child is gone: collect() finds out and answers here
+                pass
 
     def collect(self):
         """The reply to the last :meth:`submit`; the child's exception is raised here."""
-        return _receive_outcome(self._conn, self._process)
+        message, self._pending = self._pending, None
+        if self._process is not None:
+            try:
+                return _receive_outcome(self._conn, self._process)
+            except WorkerDied as exc:
+                logger.warning("a helper process died (%s): its share is computed in this process from now on",
+                               str(exc).removeprefix("worker process died ").strip("()"))
+                self.close()
+        return self._handler(message)
 
     def close(self) -> None:
+        if self._process is None:
+            return
+        process, self._process = self._process, None
         try:
             self._conn.send(None)
         except OSError:  # the child is gone already
             pass
         self._conn.close()
-        self._process.join(timeout=DELIVERED_EXIT_TIMEOUT_S)
-        if self._process.is_alive():
-            self._process.terminate()
-            self._process.join()
+        process.join(timeout=DELIVERED_EXIT_TIMEOUT_S)
+        if process.is_alive():
+            process.terminate()
+            process.join()
 
     def __enter__(self) -> ForkedPeer:
         return self

@@ -10,6 +10,7 @@ import scipy.sparse as sp
 from rotonly_cli import multiview
 from rotonly_cli.geometry import alignment, grrm, so3
 
+from helpers import DyingPeer
 from helpers import grrm_problem as _problem
 from helpers import l1_irls_start as _l1_irls_start
 
@@ -230,6 +231,9 @@ def test_a_helper_process_leaves_grrm_unchanged_bit_for_bit():
     assert (one.processes, two.processes) == (1, 2)
     assert np.array_equal(one.R_cam_from_world, two.R_cam_from_world)
     assert one.cost == two.cost and one.iterations == two.iterations
+    # a helper that dies at its first request: this process takes its part over, same bits
+    dead = grrm.optimize_global_rotations(R0, prob.edge_views, prob.batch, prob.obs_ids, peer_class=DyingPeer)
+    assert np.array_equal(one.R_cam_from_world, dead.R_cam_from_world) and one.cost == dead.cost
 
 
 def test_a_failed_exact_step_is_retried_from_the_psd_model_at_the_same_damping(monkeypatch):

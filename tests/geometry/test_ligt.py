@@ -16,7 +16,7 @@ from rotonly_cli.geometry.ligt import (
     views_off_their_baselines,
 )
 
-from helpers import make_street_scene, similarity_align_error
+from helpers import DyingPeer, make_street_scene, similarity_align_error
 
 
 def test_noise_free_exact_up_to_similarity():
@@ -239,9 +239,12 @@ def test_a_helper_process_leaves_the_robust_rounds_unchanged_bit_for_bit():
         one = robust_ligt_translations(R, tracks, views, corrupted, 1000.0, view_mask=view_mask)
         two = robust_ligt_translations(R, tracks, views, corrupted, 1000.0, view_mask=view_mask,
                                        peer_class=parallel.ForkedPeer)
-        assert len(one.rounds) >= 2 and one.rounds == two.rounds
-        assert np.array_equal(one.result.centers, two.result.centers, equal_nan=True)
-        assert np.array_equal(one.keep, two.keep) and np.array_equal(one.error_px, two.error_px)
+        dead = robust_ligt_translations(R, tracks, views, corrupted, 1000.0, view_mask=view_mask,
+                                        peer_class=DyingPeer)  # its child dies: this process takes over
+        assert len(one.rounds) >= 2 and one.rounds == two.rounds == dead.rounds
+        for other in (two, dead):
+            assert np.array_equal(one.result.centers, other.result.centers, equal_nan=True)
+            assert np.array_equal(one.keep, other.keep) and np.array_equal(one.error_px, other.error_px)
         assert one.result.has_translation.sum() == (11 if view_mask is not None else 12)
 
 

@@ -220,11 +220,25 @@ def test_forked_peer_raises_the_child_exception_and_serves_on():
         assert peer.collect() == 42
 
 
-def test_forked_peer_reports_a_child_that_dies():
-    with parallel.ForkedPeer(lambda message: os._exit(5)) as peer:
-        peer.submit(0)
-        with pytest.raises(RuntimeError, match="exit code 5"):
-            peer.collect()
+def test_forked_peer_answers_in_this_process_once_the_child_died(caplog):
+    """A child that dies (here: at its first request) costs time, not the answers: the
+    pending request and every later one are answered by this process, after a warning."""
+    parent = os.getpid()
+
+    def handler(message):
+        if os.getpid() != parent:
+            os._exit(5)
+        return message, os.getpid()
+
+    with parallel.ForkedPeer(handler) as peer:
+        assert peer.alive
+        peer.submit(1)
+        assert peer.collect() == (1, parent)
+        assert not peer.alive
+        peer.submit(2)
+        assert peer.collect() == (2, parent)
+    assert "a helper process died (exit code 5)" in caplog.text
+
 
 
 def test_forked_call_returns_from_a_child_and_raises_its_error(tmp_path):
