@@ -13,6 +13,8 @@ Python thread (``rotonly run`` decodes images for point colours on a background 
 while TRRM runs: it then refines in-process), and with at least ``MIN_MATCHES_PER_JOB``
 matches per part. Otherwise the same code runs serially, so ``jobs`` never changes the
 numbers beyond the last bits (per-edge results are the same functions of the same data).
+A child that dies without its result (killed, out of memory) costs time, not the run: this
+process computes its part, after a warning.
 """
 
 from __future__ import annotations
@@ -44,6 +46,11 @@ logger = logging.getLogger(__name__)
 
 class WorkerDied(RuntimeError):
     """A forked child ended without sending its result (killed, out of memory, os._exit)."""
+
+
+def _warn_taken_over(exc: WorkerDied, what: str) -> None:
+    logger.warning("a %s died (%s): its work is done in this process", what,
+                   str(exc).removeprefix("worker process died ").strip("()"))
 
 
 def usable_cpus() -> int:
@@ -126,7 +133,8 @@ def _child(conn, fn: Callable, item) -> None:
 def fork_map(fn: Callable, items: Sequence) -> list:
     """``[fn(x) for x in items]``: items[1:] in forked children, items[0] in this process.
     ``fn`` may be a closure (nothing is pickled but the results). A child's exception is
-    raised here; a child that dies without a result raises WorkerDied (a RuntimeError)."""
+    raised here; the item of a child that dies without a result (killed, out of memory) is
+    computed here, after a warning."""
     if len(items) <= 1 or not fork_safe():
         return [fn(x) for x in items]
     ctx = mp.get_context("fork")
@@ -140,8 +148,12 @@ def fork_map(fn: Callable, items: Sequence) -> list:
             send.close()  # the child holds the write end; EOF here when it dies
             children.append((process, receive))
         results = [fn(items[0])]
-        for process, receive in children:
-            results.append(_receive_outcome(receive, process))
+        for (process, receive), item in zip(children, items[1:]):
+            try:
+                results.append(_receive_outcome(receive, process))
+            except WorkerDied as exc:
+                _warn_taken_over(exc, "worker process")
+                results.append(fn(item))
         delivered = True
         return results
     finally:
@@ -251,8 +263,7 @@ class ForkedPeer:
             try:
                 return _receive_outcome(self._conn, self._process)
             except WorkerDied as exc:
-                logger.warning("a helper process died (%s): its share is computed in this process from now on",
-                               str(exc).removeprefix("worker process died ").strip("()"))
+                _warn_taken_over(exc, "helper process")  # and every later request's
                 self.close()
         return self._handler(message)
 
@@ -280,10 +291,11 @@ class ForkedPeer:
 class ForkedCall:
     """``fn()`` started in a forked child where forking is safe (:func:`fork_safe`), else
     called at once in this process; :meth:`result` gives its value (or raises its exception)
-    either way. For work whose effect is a file or a small value, overlapping what this
-    process does next."""
+    either way, and calls ``fn`` here should the child die without one. For work whose effect
+    is a file (written atomically) or a small value, overlapping what this process does next."""
 
     def __init__(self, fn: Callable, fork: bool = True):
+        self._fn = fn
         self._process = None
         self._value = None
         if not (fork and fork_safe()):
@@ -301,6 +313,9 @@ class ForkedCall:
         process, self._process = self._process, None
         try:
             self._value = _receive_outcome(self._receive, process)
+        except WorkerDied as exc:
+            _warn_taken_over(exc, "forked process")
+            self._value = self._fn()
         finally:
             self._receive.close()
             process.join(timeout=DELIVERED_EXIT_TIMEOUT_S)

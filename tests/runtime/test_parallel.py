@@ -86,14 +86,16 @@ def test_fork_map_raises_a_worker_exception_in_the_caller():
         parallel.fork_map(work, [0, 1])
 
 
-def test_fork_map_reports_a_worker_that_dies():
-    def work(k):
-        if k == 1:
-            os._exit(3)
-        return k
+def test_fork_map_computes_here_the_item_of_a_worker_that_dies(caplog):
+    parent = os.getpid()
 
-    with pytest.raises(RuntimeError, match="exit code 3"):
-        parallel.fork_map(work, [0, 1])
+    def work(k):
+        if k == 1 and os.getpid() != parent:
+            os._exit(3)
+        return k, os.getpid()
+
+    assert parallel.fork_map(work, [0, 1, 2])[:2] == [(0, parent), (1, parent)]
+    assert "a worker process died (exit code 3)" in caplog.text
 
 
 def _slow_exit_writes(path):
@@ -252,6 +254,20 @@ def test_forked_call_returns_from_a_child_and_raises_its_error(tmp_path):
 
     with pytest.raises(OSError, match="disk full"):
         parallel.ForkedCall(fail).result()
+
+
+def test_forked_call_runs_here_when_its_child_dies(tmp_path, caplog):
+    parent = os.getpid()
+    path = tmp_path / "written"
+
+    def write():
+        if os.getpid() != parent:
+            os._exit(4)
+        path.write_text("here")
+        return os.getpid()
+
+    assert parallel.ForkedCall(write).result() == parent
+    assert path.read_text() == "here" and "a forked process died (exit code 4)" in caplog.text
 
 
 def test_forked_call_runs_in_process_without_fork_or_while_a_thread_runs():
