@@ -1,4 +1,5 @@
-"""Edge-parallel TRRM and scene identification over forked processes.
+"""Edge-parallel TRRM and scene identification over forked processes, and the forked helpers
+of GRRM, LiGT's robust rounds and the export (:class:`ForkedPeer`, :class:`ForkedCall`).
 
 Every per-edge quantity of the two-view core (geometry/trrm.py, geometry/identification.py) depends
 on that edge's matches only, so the edges can be cut into contiguous parts that are refined
@@ -9,12 +10,12 @@ children (they inherit the match arrays; only the small per-edge results come ba
 a pipe) and the first part runs in this process.
 
 Forking is only used where it is safe and pays: on Linux, when this process runs no other
-Python thread (``rotonly run`` decodes images for point colours on a background thread
-while TRRM runs: it then refines in-process), and with at least ``MIN_MATCHES_PER_JOB``
-matches per part. Otherwise the same code runs serially, so ``jobs`` never changes the
-numbers beyond the last bits (per-edge results are the same functions of the same data).
-A child that dies without its result (killed, out of memory) costs time, not the run: this
-process computes its part, after a warning.
+Python thread (a fork copies only the calling thread; the point colours are decoded by a
+forked child for that reason), and with at least ``MIN_MATCHES_PER_JOB`` matches per part.
+Otherwise the same code runs serially, so ``jobs`` never changes the numbers beyond the last
+bits (per-edge results are the same functions of the same data). A child that dies without
+its result (killed, out of memory) costs time, not the run: this process computes its part,
+after a warning.
 """
 
 from __future__ import annotations
