@@ -21,6 +21,7 @@ after a warning.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import mmap
 import multiprocessing as mp
@@ -49,9 +50,40 @@ class WorkerDied(RuntimeError):
     """A forked child ended without sending its result (killed, out of memory, os._exit)."""
 
 
-def _warn_taken_over(exc: WorkerDied, what: str) -> None:
-    logger.warning("a %s died (%s): its work is done in this process", what,
-                   str(exc).removeprefix("worker process died ").strip("()"))
+_DIED = object()  # ForkedPeer's marker of a helper that died
+
+
+def _receive_or_take_over(conn, process, what: str, take_over: Callable[[], object]):
+    """The value a child sent (:func:`_receive_outcome`); should the child have died without
+    one, ``take_over()`` computed here, after a warning naming the ``what`` that died."""
+    try:
+        return _receive_outcome(conn, process)
+    except WorkerDied as exc:
+        logger.warning("a %s died (%s): its work is done in this process", what,
+                       str(exc).removeprefix("worker process died ").strip("()"))
+        return take_over()
+
+
+def _start_child(ctx, fn: Callable, item):
+    """A forked child sending ``fn(item)``'s outcome (:func:`_send_outcome`): (process, the
+    read end of its pipe, which reaches EOF when the child dies)."""
+    receive, send = ctx.Pipe(duplex=False)
+    process = ctx.Process(target=_child, args=(send, fn, item), daemon=True)
+    process.start()
+    send.close()  # the child holds the write end
+    return process, receive
+
+
+def _reap(process, conn, delivered: bool = True) -> None:
+    """Close this end of the child's pipe and end the child: one that delivered its result
+    exits by itself (SIGTERM would race its exit; pycolmap's failure handler then prints a
+    stack trace), the others are stopped."""
+    conn.close()
+    if delivered:
+        process.join(timeout=DELIVERED_EXIT_TIMEOUT_S)
+    if process.is_alive():
+        process.terminate()
+    process.join()
 
 
 def usable_cpus() -> int:
@@ -76,6 +108,13 @@ def would_fork(num_matches: int, jobs: int) -> bool:
     ``MIN_MATCHES_PER_JOB`` matches."""
     return (jobs > 1 and sys.platform.startswith("linux") and "fork" in mp.get_all_start_methods()
             and num_matches // MIN_MATCHES_PER_JOB >= 2)
+
+
+def helper_class(num_matches: int, jobs: int):
+    """:class:`ForkedPeer` where a helper process for half of each evaluation pays and is
+    safe (:func:`would_fork`, :func:`fork_safe`), else None: the ``peer_class`` GRRM and the
+    robust LiGT take (their numbers do not depend on it)."""
+    return ForkedPeer if would_fork(num_matches, jobs) and fork_safe() else None
 
 
 def edge_parts(counts: np.ndarray, jobs: int, min_matches: int | None = None) -> list[tuple[int, int]]:
@@ -143,30 +182,15 @@ def fork_map(fn: Callable, items: Sequence) -> list:
     delivered = False
     try:
         for item in items[1:]:
-            receive, send = ctx.Pipe(duplex=False)
-            process = ctx.Process(target=_child, args=(send, fn, item), daemon=True)
-            process.start()
-            send.close()  # the child holds the write end; EOF here when it dies
-            children.append((process, receive))
+            children.append(_start_child(ctx, fn, item))
         results = [fn(items[0])]
         for (process, receive), item in zip(children, items[1:]):
-            try:
-                results.append(_receive_outcome(receive, process))
-            except WorkerDied as exc:
-                _warn_taken_over(exc, "worker process")
-                results.append(fn(item))
+            results.append(_receive_or_take_over(receive, process, "worker process", functools.partial(fn, item)))
         delivered = True
         return results
     finally:
         for process, receive in children:
-            receive.close()
-            # a child that delivered its result exits by itself: SIGTERM would race its exit
-            # (pycolmap's failure handler then prints a stack trace); the others are stopped
-            if delivered:
-                process.join(timeout=DELIVERED_EXIT_TIMEOUT_S)
-            if process.is_alive():
-                process.terminate()
-            process.join()
+            _reap(process, receive, delivered)
 
 
 def concat_results(parts: Sequence):
@@ -261,11 +285,10 @@ class ForkedPeer:
         """The reply to the last :meth:`submit`; the child's exception is raised here."""
         message, self._pending = self._pending, None
         if self._process is not None:
-            try:
-                return _receive_outcome(self._conn, self._process)
-            except WorkerDied as exc:
-                _warn_taken_over(exc, "helper process")  # and every later request's
-                self.close()
+            reply = _receive_or_take_over(self._conn, self._process, "helper process", lambda: _DIED)
+            if reply is not _DIED:
+                return reply
+            self.close()  # this process answers every later request too
         return self._handler(message)
 
     def close(self) -> None:
@@ -276,11 +299,7 @@ class ForkedPeer:
             self._conn.send(None)
         except OSError:  # the child is gone already
             pass
-        self._conn.close()
-        process.join(timeout=DELIVERED_EXIT_TIMEOUT_S)
-        if process.is_alive():
-            process.terminate()
-            process.join()
+        _reap(process, self._conn)
 
     def __enter__(self) -> ForkedPeer:
         return self
@@ -302,25 +321,17 @@ class ForkedCall:
         if not (fork and fork_safe()):
             self._value = fn()
             return
-        ctx = mp.get_context("fork")
-        self._receive, send = ctx.Pipe(duplex=False)
-        self._process = ctx.Process(target=_child, args=(send, lambda _: fn(), None), daemon=True)
-        self._process.start()
-        send.close()
+        self._process, self._receive = _start_child(mp.get_context("fork"), lambda _: fn(), None)
 
-    def result(self):
+    def result(self, timeout: float | None = None):
+        """``fn()``'s value; TimeoutError if the child has not sent it within ``timeout`` s."""
         if self._process is None:
             return self._value
+        if timeout is not None and not self._receive.poll(timeout):
+            raise TimeoutError(f"the forked process did not finish within {timeout} s")
         process, self._process = self._process, None
         try:
-            self._value = _receive_outcome(self._receive, process)
-        except WorkerDied as exc:
-            _warn_taken_over(exc, "forked process")
-            self._value = self._fn()
+            self._value = _receive_or_take_over(self._receive, process, "forked process", self._fn)
         finally:
-            self._receive.close()
-            process.join(timeout=DELIVERED_EXIT_TIMEOUT_S)
-            if process.is_alive():
-                process.terminate()
-                process.join()
+            _reap(process, self._receive)
         return self._value

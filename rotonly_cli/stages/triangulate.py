@@ -78,29 +78,27 @@ def _pixel_colors(image: np.ndarray, keypoints) -> np.ndarray:
 
 
 class ForkedKeypointColors:
-    """:func:`keypoint_colors` of ``view_ids``, decoded by a forked child into a shared
-    buffer while this process goes on; :meth:`result` waits for it, like a Future's. A child
-    leaves every later fork of this process safe (runtime.parallel.fork_safe), where a decoding
-    thread would keep GRRM and TRRM in one process while it runs. Should the child fail, the
-    images are decoded here."""
+    """:func:`keypoint_colors` of ``view_ids``, decoded by a forked child
+    (runtime.parallel.ForkedCall) into a shared buffer while this process goes on;
+    :meth:`result` waits for it, like a Future's. A child leaves every later fork of this
+    process safe (runtime.parallel.fork_safe), where a decoding thread would keep GRRM and
+    TRRM in one process while it runs. Should the child die, the images are decoded here
+    (ForkedCall), into the same buffer."""
 
     def __init__(self, scene: SfMScene, image_root: str | Path, view_ids: list[int]):
-        import multiprocessing as mp
+        from rotonly_cli.runtime.parallel import ForkedCall, shared_array
 
-        from rotonly_cli.runtime.parallel import shared_array
-
-        self._scene, self._image_root, self._view_ids = scene, image_root, view_ids
+        self._scene, self._view_ids = scene, view_ids
         # the files are chosen here, so that their warnings are logged by this process
         self._readable, paths = _readable_images(scene, image_root, view_ids)
         sizes = [len(np.asarray(scene.keypoints[v]).reshape(-1, 2)) for v in self._readable]
         self._offsets = np.concatenate([[0], np.cumsum(sizes, dtype=np.int64)])
         self._rgb = shared_array((int(self._offsets[-1]), 3), np.uint8)
         self._decoded = shared_array((len(self._readable),), np.uint8)
-        self._process = mp.get_context("fork").Process(target=self._decode, args=(paths,), daemon=True)
-        self._process.start()
+        self._call = ForkedCall(lambda: self._decode(paths))
         self._colors: dict[int, np.ndarray | None] | None = None
 
-    def _decode(self, paths: list) -> None:  # in the child
+    def _decode(self, paths: list) -> None:
         for row, (view_id, image) in enumerate(zip(self._readable, _read_images(paths, 1))):
             if image is not None:
                 rows = slice(self._offsets[row], self._offsets[row + 1])
@@ -109,19 +107,12 @@ class ForkedKeypointColors:
 
     def result(self, timeout: float | None = None) -> dict[int, np.ndarray | None]:
         if self._colors is None:
-            self._process.join(timeout)
-            if self._process.is_alive():
-                raise TimeoutError("keypoint colours: the decoding process did not finish in time")
-            if self._process.exitcode != 0:
-                logger.warning("triangulate: the image decoding process failed (exit code %s): decoding here",
-                               self._process.exitcode)
-                self._colors = keypoint_colors(self._scene, self._image_root, self._view_ids, 1)
-            else:
-                colors: dict[int, np.ndarray | None] = dict.fromkeys(self._view_ids)
-                for row, view_id in enumerate(self._readable):
-                    if self._decoded[row]:
-                        colors[view_id] = np.array(self._rgb[self._offsets[row]:self._offsets[row + 1]])
-                self._colors = colors
+            self._call.result(timeout)
+            colors: dict[int, np.ndarray | None] = dict.fromkeys(self._view_ids)
+            for row, view_id in enumerate(self._readable):
+                if self._decoded[row]:
+                    colors[view_id] = np.array(self._rgb[self._offsets[row]:self._offsets[row + 1]])
+            self._colors = colors
         return self._colors
 
 

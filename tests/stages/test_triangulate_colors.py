@@ -80,7 +80,7 @@ def test_forked_keypoint_colors_equal_decoding_here(tmp_path):
 
     scene = _scene_with_images(tmp_path)
     forked = ForkedKeypointColors(scene, tmp_path, [1, 2, 3])
-    assert forked._process.pid != os.getpid()
+    assert forked._call._process.pid != os.getpid()
     colors = forked.result(timeout=30)
     direct = keypoint_colors(scene, tmp_path, [1, 2, 3], threads=1)
     assert colors[2] is None and direct[2] is None
@@ -94,7 +94,9 @@ def test_a_failed_decoding_process_falls_back_to_decoding_here(tmp_path, monkeyp
 
     from rotonly_cli.stages.triangulate import ForkedKeypointColors
 
-    monkeypatch.setattr(ForkedKeypointColors, "_decode", lambda self, paths: os._exit(3))
+    decode, parent = ForkedKeypointColors._decode, os.getpid()  # the child dies, this process decodes
+    monkeypatch.setattr(ForkedKeypointColors, "_decode",
+                        lambda self, paths: decode(self, paths) if os.getpid() == parent else os._exit(3))
     scene = _scene_with_images(tmp_path)
     colors = ForkedKeypointColors(scene, tmp_path, [1, 2, 3]).result(timeout=30)
     assert "exit code 3" in caplog.text
