@@ -34,7 +34,7 @@ from scipy.sparse.linalg import eigsh
 
 from rotonly_cli.errors import AlgorithmError, InputError
 from rotonly_cli.geometry.so3 import hat
-from rotonly_cli.geometry.tracks import even_ranges, pairs_within_tracks, segment_sums
+from rotonly_cli.geometry.tracks import EVALUATION_PARTS, even_ranges, pairs_within_tracks, segment_sums
 from rotonly_cli.options import LiGTOptions
 
 __all__ = ["LiGTOptions", "LiGTResult", "RobustLiGTResult", "ligt_translations", "ligt_normal_matrix",
@@ -417,12 +417,6 @@ def views_off_their_baselines(angles_deg: np.ndarray, edge_views: np.ndarray, nu
     return median, np.flatnonzero(np.nan_to_num(median, nan=0.0) > max_disagreement_deg)
 
 
-#: the robust rounds assemble LᵀL and triangulate in this many parts of the tracks, each
-#: evaluated alone and merged in order, whether one process runs them or two side by side
-#: (``peer_class`` of :func:`robust_ligt_translations`): the numbers do not depend on it
-_PARTS = 2
-
-
 class _TrackParts:
     """The robust rounds' work on contiguous parts of the tracks (observation ranges cut at
     track boundaries, about equal in observations): LᵀL of a part's used observations and the
@@ -435,7 +429,7 @@ class _TrackParts:
         self.view_mask, self.options = view_mask, options
         starts = np.flatnonzero(np.r_[True, obs_track[1:] != obs_track[:-1]]) if obs_track.size else np.zeros(0, int)
         bounds = np.append(starts, obs_track.size)
-        self.ranges = [(int(bounds[a]), int(bounds[b])) for a, b in even_ranges(np.diff(bounds), _PARTS)]
+        self.ranges = [(int(bounds[a]), int(bounds[b])) for a, b in even_ranges(np.diff(bounds), EVALUATION_PARTS)]
 
     def __call__(self, message):
         kind, part, args = message
@@ -481,7 +475,7 @@ def robust_ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray
 
     ``peer_class``: a helper process for the second half of the tracks (e.g.
     runtime.parallel.ForkedPeer: ``peer_class(handler)`` a context manager with submit /
-    collect); None: one process. The numbers do not depend on it (``_PARTS``)."""
+    collect); None: one process. The numbers do not depend on it (``tracks.EVALUATION_PARTS``)."""
     options = options or LiGTOptions()
     R, obs_track, obs_view, obs_xy = _validated(R_cam_from_world, obs_track, obs_view, obs_xy)
     obs_focal_px = np.broadcast_to(np.asarray(obs_focal_px, dtype=float), obs_track.shape)

@@ -165,6 +165,13 @@ def segment_sums(components: np.ndarray, segment: np.ndarray, num_segments: int)
     return np.stack([np.bincount(segment, weights=c, minlength=num_segments) for c in components])
 
 
+#: GRRM's evaluation and the robust LiGT's rounds are cut into this many parts, each summed
+#: on its own and the sums added in order, whether the parts run one after the other or side
+#: by side (a forked helper, runtime.parallel.ForkedPeer): the numbers do not depend on --jobs.
+#: Two: the machines this runs on have two cores or more, and a part costs one extra set of sums
+EVALUATION_PARTS = 2
+
+
 def even_ranges(sizes: np.ndarray, parts: int) -> list[tuple[int, int]]:
     """Up to ``parts`` consecutive index ranges [a, b) of ``sizes`` with about equal sums
     (each cut at the index boundary nearest to its share; empty ranges dropped): how GRRM

@@ -73,10 +73,10 @@ def optimize_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_fr
         return R_out, {"skipped": "no REGULAR edge", "time_s": time.perf_counter() - start}
     views, edges, batch = inputs.views, inputs.edges, inputs.batch
     R0 = np.stack([R_out[index[v]] for v in views])
-    from rotonly_cli.runtime.parallel import ForkedPeer, fork_safe, would_fork
+    from rotonly_cli.runtime.parallel import helper_class
 
     # half of every linearisation in a forked child where that is safe and pays (same numbers)
-    peer_class = ForkedPeer if would_fork(batch.x_i.shape[0], jobs) and fork_safe() else None
+    peer_class = helper_class(batch.x_i.shape[0], jobs)
     try:
         with np.errstate(all="ignore"):
             result = optimize_global_rotations(R0, inputs.edge_views, batch, inputs.obs_ids, fixed_view=0,

@@ -39,13 +39,12 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
     R = np.where(registered[:, None, None], R_cam_from_world, np.eye(3))
     tracks, obs_xy = graph_tracks(graph, normalized, edges, R, cache=track_cache)
     focal = np.full(len(index), 1000.0) if focal_px is None else np.where(np.isfinite(focal_px), focal_px, 1000.0)
-    from rotonly_cli.runtime.parallel import ForkedPeer, fork_safe, would_fork
+    from rotonly_cli.runtime.parallel import helper_class
 
     # half of every round's LᵀL and triangulation in a forked child where that is safe and pays
-    forked = would_fork(tracks.num_observations, jobs) and fork_safe()
+    peer_class = helper_class(tracks.num_observations, jobs)
     robust = robust_ligt_translations(R, tracks.track_id, tracks.view, obs_xy, focal[tracks.view],
-                                      view_mask=registered, options=options,
-                                      peer_class=ForkedPeer if forked else None)
+                                      view_mask=registered, options=options, peer_class=peer_class)
     result = robust.result
     centers = np.where(result.has_translation[:, None], result.centers, np.nan)
     ids = graph.view_ids()
@@ -59,7 +58,7 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
               "num_observations_used": int(robust.keep.sum()),
               "num_observations_dropped": int(tracks.num_observations - robust.keep.sum()),
               "outlier_threshold_px": robust.threshold_px, "baselines": baselines,
-              "processes": 2 if forked else 1,
+              "processes": 1 if peer_class is None else 2,
               "time_s": time.perf_counter() - start}
     for number, round_ in enumerate(robust.rounds, 1):
         logger.debug("translate round %d: %d observations, sigma %.3f px, threshold %.2f px, %d dropped, "

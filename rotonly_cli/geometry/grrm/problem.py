@@ -12,18 +12,12 @@ import scipy.sparse as sp
 from rotonly_cli.geometry import kernels
 from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry.robust import radial_excess, robust_curvature, robust_rho
-from rotonly_cli.geometry.tracks import even_ranges
+from rotonly_cli.geometry.tracks import EVALUATION_PARTS, even_ranges
 
 #: contributions per block in GRRMSystem (blocks of ~1 MB arrays stay in cache, and no
 #: per-iteration temporary grows with the problem: arrays above glibc's 32 MB mmap
 #: threshold would be page-faulted afresh on every allocation)
 _CHUNK = 1 << 15
-#: the evaluation is cut into this many parts (edges for the per-match terms, observation
-#: blocks for the sums), each summed on its own and the sums added in order, whether the parts
-#: run one after the other or side by side (:meth:`GRRMSystem.parallel`): the numbers do not
-#: depend on --jobs. Two: the machines this runs on have two cores or more, and a part costs
-#: one extra set of sums
-_PARTS = 2
 #: up to this many views the 3n x 3n normal equations are assembled and solved dense (same
 #: mathematics; at n ~ 10 scipy's sparse assembly and SuperLU cost more than the numbers)
 _DENSE_MAX_VIEWS = 200
@@ -117,10 +111,10 @@ class GRRMSystem:
         p_bounds = np.searchsorted(self.pair_a, s_bounds)
         self.blocks = [(int(s_bounds[k]), int(s_bounds[k + 1]), int(g_bounds[k]), int(g_bounds[k + 1]),
                         int(p_bounds[k]), int(p_bounds[k + 1])) for k in range(len(cuts))]
-        # the parts (_PARTS): edge ranges with about equal matches, block ranges with about
+        # the parts (EVALUATION_PARTS; :meth:`parallel`): edge ranges with about equal matches, block ranges with about
         # equal contributions
-        self.edge_parts = even_ranges(batch.counts, _PARTS)
-        self.block_parts = even_ranges(np.diff(s_bounds), _PARTS)
+        self.edge_parts = even_ranges(batch.counts, EVALUATION_PARTS)
+        self.block_parts = even_ranges(np.diff(s_bounds), EVALUATION_PARTS)
         self._table: np.ndarray | None = None  # (2M, 16) per-contribution terms, reused
         self._B: np.ndarray | None = None  # (9, 2M) Jacobian blocks, reused
 
