@@ -219,8 +219,9 @@ class GRRMOptions:
 
     max_iterations: int = 30  #: k_max of Alg. 4
     function_tolerance: float = 1e-8  #: stop at a relative cost decrease below this (ε of Alg. 4)
-    #: stop after an accepted step whose largest rotation update is below this (rad): LM
-    #: converges superlinearly here, so what is left is far below real rotation errors
+    #: stop after an accepted step whose largest rotation update is below this (rad): what is
+    #: left is far below real rotation errors, even where LM converges only linearly (castle-P19:
+    #: ratio ~0.5; docs/tuning.md)
     step_tolerance: float = 1e-4
     initial_damping: float = 1e-4  #: μ relative to diag(JᵀJ)
     max_damping: float = 1e10
