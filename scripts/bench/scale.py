@@ -131,7 +131,7 @@ def rotation_errors(names: list[str], R_est: np.ndarray, gt: dict) -> dict:
 
 
 def _children_cpu_s() -> float:
-    """User + system CPU of this process's finished children (forked TRRM parts, GRRM's helper,
+    """User + system CPU of this process's finished children (forked TRRM parts, GRRM's and LiGT's helpers,
     the sfm_data.json writer), so that a stage's CPU includes the work it forked out."""
     usage = resource.getrusage(resource.RUSAGE_CHILDREN)
     return usage.ru_utime + usage.ru_stime
@@ -139,7 +139,7 @@ def _children_cpu_s() -> float:
 
 def measure(scene_dir: Path, out_json: Path, jobs: int = 1) -> None:
     """Run the stages on scene_dir/database.db in this process; per-stage time and peak RSS.
-    ``jobs``: TRRM processes (RunOptions.jobs, `rotonly run --jobs`)."""
+    ``jobs``: processes (RunOptions.jobs, `rotonly run --jobs`)."""
     from rotonly_cli.pipeline import STAGE_FUNCTIONS, RunOptions, load_stage, write_outputs
 
     resettable = reset_peak_rss()
@@ -251,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("-o", "--output", type=Path, default=Path("bench_results/scale"))
     parser.add_argument("--timeout", type=float, default=3600.0, help="per child process (s)")
     parser.add_argument("--jobs", type=int, default=None,
-                        help="TRRM processes, as `rotonly run --jobs` (default: the usable CPUs, as rotonly run)")
+                        help="processes, as `rotonly run --jobs` (default: the usable CPUs, as rotonly run)")
     parser.add_argument("--results-md", type=Path, default=None,
                         help="also write the tables into this file's `scale` section (docs/results.md)")
     parser.add_argument("--_simulate", nargs=2, metavar=("VIEWS", "DIR"), help=argparse.SUPPRESS)
