@@ -74,12 +74,6 @@ def _start_child(ctx, fn: Callable, item):
     return process, receive
 
 
-def _at_lowest_priority(fn: Callable):
-    """``fn()`` in a forked child, after lowering the child's CPU priority to the least."""
-    os.nice(19)
-    return fn()
-
-
 def _reap(process, conn, delivered: bool = True) -> None:
     """Close this end of the child's pipe and end the child: one that delivered its result
     exits by itself (SIGTERM would race its exit; pycolmap's failure handler then prints a
@@ -318,22 +312,16 @@ class ForkedCall:
     """``fn()`` started in a forked child where forking is safe (:func:`fork_safe`), else
     called at once in this process; :meth:`result` gives its value (or raises its exception)
     either way, and calls ``fn`` here should the child die without one. For work whose effect
-    is a file (written atomically) or a small value, overlapping what this process does next.
+    is a file (written atomically) or a small value, overlapping what this process does next."""
 
-    ``background``: the child runs at the lowest CPU priority (nice 19), for work needed only
-    later: it then takes the CPU time this process and its other children leave idle, instead
-    of a third of both cores beside them (should this process wait for it, nothing else is
-    runnable and it gets a whole core). The child's niceness is its own."""
-
-    def __init__(self, fn: Callable, fork: bool = True, background: bool = False):
+    def __init__(self, fn: Callable, fork: bool = True):
         self._fn = fn
         self._process = None
         self._value = None
         if not (fork and fork_safe()):
             self._value = fn()
             return
-        self._process, self._receive = _start_child(mp.get_context("fork"),
-                                                    _at_lowest_priority if background else lambda _: fn(), fn)
+        self._process, self._receive = _start_child(mp.get_context("fork"), lambda _: fn(), None)
 
     def result(self, timeout: float | None = None):
         """``fn()``'s value; TimeoutError if the child has not sent it within ``timeout`` s."""

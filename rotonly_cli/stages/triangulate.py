@@ -95,9 +95,7 @@ class ForkedKeypointColors:
         self._offsets = np.concatenate([[0], np.cumsum(sizes, dtype=np.int64)])
         self._rgb = shared_array((int(self._offsets[-1]), 3), np.uint8)
         self._decoded = shared_array((len(self._readable),), np.uint8)
-        # needed only by the triangulate stage: the decoding waits for idle CPU time (the
-        # RANSAC threads and the forked stages keep both cores busy until then)
-        self._call = ForkedCall(lambda: self._decode(paths), background=True)
+        self._call = ForkedCall(lambda: self._decode(paths))
         self._colors: dict[int, np.ndarray | None] | None = None
 
     def _decode(self, paths: list) -> None:

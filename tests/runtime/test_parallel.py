@@ -271,24 +271,6 @@ def test_forked_call_runs_here_when_its_child_dies(tmp_path, caplog):
     assert path.read_text() == "here" and "a forked process died (exit code 4)" in caplog.text
 
 
-def test_a_background_forked_call_runs_at_the_lowest_priority_and_this_process_at_its_own(caplog):
-    own = os.getpriority(os.PRIO_PROCESS, 0)
-    child, niceness = parallel.ForkedCall(lambda: (os.getpid(), os.getpriority(os.PRIO_PROCESS, 0)),
-                                          background=True).result()
-    assert child != os.getpid() and niceness == 19
-    assert parallel.ForkedCall(lambda: os.getpriority(os.PRIO_PROCESS, 0)).result() == own
-    parent = os.getpid()
-
-    def dies_in_the_child():
-        if os.getpid() != parent:
-            os._exit(6)
-        return os.getpriority(os.PRIO_PROCESS, 0)
-
-    # the work taken over here, after the child died, runs at this process's priority
-    assert parallel.ForkedCall(dies_in_the_child, background=True).result() == own
-    assert os.getpriority(os.PRIO_PROCESS, 0) == own and "exit code 6" in caplog.text
-
-
 def test_forked_call_runs_in_process_without_fork_or_while_a_thread_runs():
     assert parallel.ForkedCall(os.getpid, fork=False).result() == os.getpid()
     release = threading.Event()
