@@ -110,11 +110,12 @@ def would_fork(num_matches: int, jobs: int) -> bool:
             and num_matches // MIN_MATCHES_PER_JOB >= 2)
 
 
-def helper_class(num_matches: int, jobs: int):
+def helper_class(num_matches: int, jobs: int, min_total: int = 0):
     """:class:`ForkedPeer` where a helper process for half of each evaluation pays and is
-    safe (:func:`would_fork`, :func:`fork_safe`), else None: the ``peer_class`` GRRM and the
-    robust LiGT take (their numbers do not depend on it)."""
-    return ForkedPeer if would_fork(num_matches, jobs) and fork_safe() else None
+    safe (:func:`would_fork`, :func:`fork_safe`, and at least ``min_total`` matches or
+    observations: where the caller measured it to pay), else None: the ``peer_class`` GRRM and
+    the robust LiGT take (their numbers do not depend on it)."""
+    return ForkedPeer if num_matches >= min_total and would_fork(num_matches, jobs) and fork_safe() else None
 
 
 def edge_parts(counts: np.ndarray, jobs: int, min_matches: int | None = None) -> list[tuple[int, int]]:

@@ -21,6 +21,13 @@ from rotonly_cli.scene.view_graph import ViewGraph, regular_edges, view_index
 
 logger = logging.getLogger(__name__)
 
+#: the robust rounds take a helper process (runtime.parallel.helper_class) from this many
+#: observations on. Measured in isolation (translate stage, medians of 10): on castle-P19's
+#: database (61 000) 0.343 s in one process against 0.366 s with the helper, fountain-P11's
+#: (80 000) 0.331 s both; on simulated scenes 0.483 → 0.453 s at 218 000 and 1.94 → 1.33 s
+#: at 735 000 (docs/tuning.md)
+LIGT_HELPER_MIN_OBSERVATIONS = 200_000
+
 
 def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_world: np.ndarray,
                     options: LiGTOptions | None = None, track_cache: TrackCache | None = None,
@@ -42,7 +49,7 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
     from rotonly_cli.runtime.parallel import helper_class
 
     # half of every round's LᵀL and triangulation in a forked child where that is safe and pays
-    peer_class = helper_class(tracks.num_observations, jobs)
+    peer_class = helper_class(tracks.num_observations, jobs, LIGT_HELPER_MIN_OBSERVATIONS)
     robust = robust_ligt_translations(R, tracks.track_id, tracks.view, obs_xy, focal[tracks.view],
                                       view_mask=registered, options=options, peer_class=peer_class)
     result = robust.result

@@ -45,3 +45,37 @@ def test_a_collapsed_solve_is_reported_and_warned(monkeypatch, tmp_path):
     assert "positions" in (tmp_path / "out" / "run.log").read_text()
     report = (tmp_path / "out" / "report.html").read_text()
     assert 'id="warnings"' in report and "positions may have collapsed" in report
+
+
+def test_the_robust_rounds_take_a_helper_process_only_from_the_measured_size_on(monkeypatch):
+    """LiGT's helper process slowed the Strecha-sized translate stages (docs/tuning.md): with
+    --jobs 2 and parts of 1000 matches (GRRM's helper runs) the fixture's observations stay in
+    one process; with the threshold at their number the helper runs, and the centres are the
+    same bits."""
+    from rotonly_cli.runtime import parallel
+
+    def translate_report():
+        result = rotonly_cli.run(DATABASE, progress=False, jobs=2)
+        return result.reports, np.stack([result.centers[v] for v in sorted(result.centers)])
+
+    monkeypatch.setattr(parallel, "MIN_MATCHES_PER_JOB", 1000)
+    reports, centers_one = translate_report()
+    one = reports["translate"]
+    assert reports["optimize"]["processes"] == 2 and one["processes"] == 1
+    assert one["num_observations"] < translate.LIGT_HELPER_MIN_OBSERVATIONS
+    monkeypatch.setattr(translate, "LIGT_HELPER_MIN_OBSERVATIONS", one["num_observations"])
+    reports, centers_two = translate_report()
+    two = reports["translate"]
+    assert two["processes"] == 2
+    np.testing.assert_array_equal(centers_two, centers_one)
+
+
+def test_helper_class_wants_the_callers_minimum():
+    from rotonly_cli.runtime import parallel
+
+    if not parallel.fork_safe():  # another thread runs here: no helper at any size
+        assert parallel.helper_class(10**6, 2, 1000) is None
+        return
+    assert parallel.helper_class(10**6, 2, 10**6) is parallel.ForkedPeer
+    assert parallel.helper_class(10**6 - 1, 2, 10**6) is None
+    assert parallel.helper_class(10**6, 1, 10**6) is None
