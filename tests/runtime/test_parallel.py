@@ -244,6 +244,16 @@ def test_forked_peer_answers_in_this_process_once_the_child_died(caplog):
 
 
 
+def test_helper_class_wants_the_callers_minimum():
+    if not parallel.fork_safe():  # another thread runs here: no helper at any size
+        assert parallel.helper_class(10**6, 2, 1000) is None
+        return
+    assert parallel.helper_class(10**6, 2, 10**6) is parallel.ForkedPeer
+    assert parallel.helper_class(10**6 - 1, 2, 10**6) is None
+    assert parallel.helper_class(10**6, 1, 10**6) is None
+    assert parallel.helper_class(10**6, 2) is parallel.ForkedPeer  # no minimum but would_fork's
+
+
 def test_forked_call_returns_from_a_child_and_raises_its_error(tmp_path):
     path = tmp_path / "written"
     call = parallel.ForkedCall(lambda: (path.write_text("x"), os.getpid())[1])

@@ -68,14 +68,3 @@ def test_the_robust_rounds_take_a_helper_process_only_from_the_measured_size_on(
     two = reports["translate"]
     assert two["processes"] == 2
     np.testing.assert_array_equal(centers_two, centers_one)
-
-
-def test_helper_class_wants_the_callers_minimum():
-    from rotonly_cli.runtime import parallel
-
-    if not parallel.fork_safe():  # another thread runs here: no helper at any size
-        assert parallel.helper_class(10**6, 2, 1000) is None
-        return
-    assert parallel.helper_class(10**6, 2, 10**6) is parallel.ForkedPeer
-    assert parallel.helper_class(10**6 - 1, 2, 10**6) is None
-    assert parallel.helper_class(10**6, 1, 10**6) is None
