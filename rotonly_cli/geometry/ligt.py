@@ -237,8 +237,7 @@ def _view_masked_normal_matrix(R: np.ndarray, obs_track: np.ndarray, obs_view: n
     """:func:`ligt_normal_matrix` of the observations in the views of ``view_mask``."""
     if view_mask is not None:
         keep = np.asarray(view_mask, dtype=bool)[obs_view]
-        obs_track, obs_view, obs_xy = obs_track[keep], obs_view[keep], obs_xy[keep]
-        _, obs_track = np.unique(obs_track, return_inverse=True)
+        obs_track, obs_view, obs_xy = _renumber(obs_track[keep]), obs_view[keep], obs_xy[keep]
     return ligt_normal_matrix(R, obs_track, obs_view, obs_xy, R.shape[0], options)
 
 

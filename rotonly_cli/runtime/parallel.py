@@ -49,8 +49,9 @@ logger = logging.getLogger(__name__)
 class WorkerDied(RuntimeError):
     """A forked child ended without sending its result (killed, out of memory, os._exit)."""
 
-
-_DIED = object()  # ForkedPeer's marker of a helper that died
+    def __init__(self, exitcode: int | None):
+        super().__init__(f"worker process died (exit code {exitcode})")
+        self.exitcode = exitcode
 
 
 def _receive_or_take_over(conn, process, what: str, take_over: Callable[[], object]):
@@ -59,8 +60,7 @@ def _receive_or_take_over(conn, process, what: str, take_over: Callable[[], obje
     try:
         return _receive_outcome(conn, process)
     except WorkerDied as exc:
-        logger.warning("a %s died (%s): its work is done in this process", what,
-                       str(exc).removeprefix("worker process died ").strip("()"))
+        logger.warning("a %s died (exit code %s): its work is done in this process", what, exc.exitcode)
         return take_over()
 
 
@@ -153,12 +153,12 @@ def _send_outcome(conn, fn: Callable, arg) -> None:
 
 def _receive_outcome(conn, process):
     """The value a child sent by :func:`_send_outcome`; its exception is raised here, and a
-    child that died without sending one raises RuntimeError."""
+    child that died without sending one raises :class:`WorkerDied`."""
     try:
         status, value = conn.recv()
     except EOFError:
         process.join()
-        raise WorkerDied(f"worker process died (exit code {process.exitcode})") from None
+        raise WorkerDied(process.exitcode) from None
     if status == "error":
         raise value
     return value
@@ -285,12 +285,14 @@ class ForkedPeer:
     def collect(self):
         """The reply to the last :meth:`submit`; the child's exception is raised here."""
         message, self._pending = self._pending, None
-        if self._process is not None:
-            reply = _receive_or_take_over(self._conn, self._process, "helper process", lambda: _DIED)
-            if reply is not _DIED:
-                return reply
+        if self._process is None:
+            return self._handler(message)
+
+        def take_over():
             self.close()  # this process answers every later request too
-        return self._handler(message)
+            return self._handler(message)
+
+        return _receive_or_take_over(self._conn, self._process, "helper process", take_over)
 
     def close(self) -> None:
         if self._process is None:
