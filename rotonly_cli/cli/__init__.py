@@ -221,13 +221,16 @@ def console_main() -> None:
     outputs are closed by then (atomic writes). In-process callers (the tests) use
     :func:`main`, which freezes nothing.
 
-    Before ``main``, numpy submodules that no command needs at start-up are registered as
-    lazily loaded (:mod:`rotonly_cli.runtime.startup`). Ctrl-C during that start-up is
+    Before ``main``, BLAS is held to one thread per process, freed heap memory is kept for
+    reuse, and numpy submodules that no command needs at start-up are registered as lazily
+    loaded (:mod:`rotonly_cli.runtime.startup`). Ctrl-C during that start-up is
     answered like one during the command (one line, exit 130)."""
     try:
-        from rotonly_cli.runtime.startup import defer_unused_numpy_submodules
+        from rotonly_cli.runtime import startup
 
-        defer_unused_numpy_submodules()
+        startup.one_blas_thread_per_process()  # before numpy is imported
+        startup.keep_freed_heap()
+        startup.defer_unused_numpy_submodules()
     except KeyboardInterrupt:
         click.echo("error: interrupted", err=True)
         sys.exit(EXIT_INTERRUPTED)
