@@ -144,7 +144,8 @@ def ligt_normal_matrix(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_
 
     Observations must be grouped by track (``obs_track`` non-decreasing). Returns the
     matrix and a dict with ``sign_l, sign_r`` (view of each used track's base pair),
-    ``sign_row`` (T_used, 3) = ``a_lrᵀ R_r`` and ``constraints_per_view`` (n,).
+    ``sign_row`` (T_used, 3) = ``a_lrᵀ R_r``, ``sign_track`` (T_used,) the track of each
+    sign row and ``constraints_per_view`` (n,).
     """
     options = options or LiGTOptions()
     R = np.asarray(R_cam_from_world, dtype=float)
@@ -200,7 +201,7 @@ def ligt_normal_matrix(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_
     indptr = np.zeros(num_views + 1, dtype=np.int64)
     np.cumsum(np.bincount(keys // num_views, minlength=num_views), out=indptr[1:])
     LTL = sp.bsr_matrix((sums, keys % num_views, indptr), shape=(num_cols, num_cols)).tocsr()
-    extras = {"sign_l": view_l, "sign_r": view_r, "sign_row": sign_row,
+    extras = {"sign_l": view_l, "sign_r": view_r, "sign_row": sign_row, "sign_track": np.flatnonzero(track_used),
               "constraints_per_view": constraints_per_view}
     return LTL, extras
 
@@ -232,13 +233,24 @@ def _validated(R_cam_from_world, obs_track, obs_view, obs_xy):
     return R, obs_track, obs_view, obs_xy
 
 
+#: the per-track arrays of ligt_normal_matrix's extras (one entry per used track)
+SIGN_KEYS = ("sign_l", "sign_r", "sign_row", "sign_track")
+
+
 def _view_masked_normal_matrix(R: np.ndarray, obs_track: np.ndarray, obs_view: np.ndarray, obs_xy: np.ndarray,
                                view_mask: np.ndarray | None, options: LiGTOptions):
-    """:func:`ligt_normal_matrix` of the observations in the views of ``view_mask``."""
+    """:func:`ligt_normal_matrix` of the observations in the views of ``view_mask``;
+    ``obs_track`` any non-decreasing track ids (``sign_track`` is in those ids). None
+    without observations."""
     if view_mask is not None:
         keep = np.asarray(view_mask, dtype=bool)[obs_view]
-        obs_track, obs_view, obs_xy = _renumber(obs_track[keep]), obs_view[keep], obs_xy[keep]
-    return ligt_normal_matrix(R, obs_track, obs_view, obs_xy, R.shape[0], options)
+        obs_track, obs_view, obs_xy = obs_track[keep], obs_view[keep], obs_xy[keep]
+    if not obs_track.size:
+        return None
+    tracks, compact = np.unique(obs_track, return_inverse=True)
+    LTL, extras = ligt_normal_matrix(R, compact.astype(np.int64), obs_view, obs_xy, R.shape[0], options)
+    extras["sign_track"] = tracks[extras["sign_track"]]
+    return LTL, extras
 
 
 def _merged_normal_matrix(parts: list[tuple[sp.csr_matrix, dict]]) -> tuple[sp.csr_matrix, dict]:
@@ -246,7 +258,7 @@ def _merged_normal_matrix(parts: list[tuple[sp.csr_matrix, dict]]) -> tuple[sp.c
     LTL = parts[0][0]
     for matrix, _ in parts[1:]:
         LTL = LTL + matrix
-    extras = {key: np.concatenate([part[1][key] for part in parts]) for key in ("sign_l", "sign_r", "sign_row")}
+    extras = {key: np.concatenate([part[1][key] for part in parts]) for key in SIGN_KEYS}
     extras["constraints_per_view"] = np.sum([part[1]["constraints_per_view"] for part in parts], axis=0)
     return LTL, extras
 
@@ -308,8 +320,10 @@ def ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_v
     """
     options = options or LiGTOptions()
     R, obs_track, obs_view, obs_xy = _validated(R_cam_from_world, obs_track, obs_view, obs_xy)
-    LTL, extras = _view_masked_normal_matrix(R, obs_track, obs_view, obs_xy, view_mask, options)
-    return _solve_normal_matrix(LTL, extras, view_mask, fixed_view, options)
+    normal = _view_masked_normal_matrix(R, obs_track, obs_view, obs_xy, view_mask, options)
+    if normal is None:
+        raise AlgorithmError("LiGT needs at least 2 constrained views, got 0")
+    return _solve_normal_matrix(*normal, view_mask, fixed_view, options)
 
 
 @dataclass
@@ -435,12 +449,16 @@ class _TrackParts:
         a, b = self.ranges[part]
         if kind == "normal":
             (used,) = args  # the part's slice
-            if not used.any():
-                return None
-            return _view_masked_normal_matrix(self.R, _renumber(self.obs_track[a:b][used]), self.obs_view[a:b][used],
-                                              self.obs_xy[a:b][used], self.view_mask, self.options)
+            return self.normal_matrix(used, a, b)
         centers, used = args
         return observation_errors(self.R, centers, self.obs_track[a:b], self.obs_view[a:b], self.obs_xy[a:b], used)
+
+    def normal_matrix(self, used: np.ndarray, a: int = 0, b: int | None = None):
+        """LᵀL and sign rows of the ``used`` observations of [a, b) (``used`` that slice), in
+        the tracks' own ids; None without any."""
+        b = self.obs_track.size if b is None else b
+        return _view_masked_normal_matrix(self.R, self.obs_track[a:b][used], self.obs_view[a:b][used],
+                                          self.obs_xy[a:b][used], self.view_mask, self.options)
 
     def evaluate(self, used: np.ndarray, centers: np.ndarray | None = None, peer=None) -> list:
         """Every part's result, in order, with the ``used`` observations (all of them): LᵀL,
@@ -485,6 +503,40 @@ def robust_ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray
         return _robust_rounds(parts, obs_focal_px, view_mask, options, peer)
 
 
+#: a round's LᵀL is updated from the last one's when the tracks whose observations changed hold
+#: at most this fraction of the used observations, else assembled afresh
+MAX_UPDATED_FRACTION = 0.25
+
+
+def _updated_normal_matrix(parts: _TrackParts, assembled, used: np.ndarray, peer):
+    """LᵀL and sign rows of the ``used`` observations: assembled by the parts, or, when the
+    last round's ``assembled = (used, normal)`` differs in a few tracks only, that one with
+    those tracks' old terms taken out and their new ones added (LᵀL is a sum over tracks, each
+    with base views chosen from its own observations). A robust round changes a few per cent
+    of the tracks, so this costs a fraction of an assembly; the sums differ from a fresh one
+    by rounding only. None without observations."""
+    if assembled is not None and assembled[1] is not None:
+        before, (LTL, extras) = assembled
+        changed = np.zeros(int(parts.obs_track[-1]) + 1, dtype=bool)
+        changed[parts.obs_track[before != used]] = True
+        in_changed = changed[parts.obs_track]
+        if np.count_nonzero(in_changed & (before | used)) <= MAX_UPDATED_FRACTION * np.count_nonzero(used):
+            old, new = parts.normal_matrix(in_changed & before), parts.normal_matrix(in_changed & used)
+            kept = ~changed[extras["sign_track"]]
+            extras = {key: value[kept] for key, value in extras.items() if key in SIGN_KEYS} | {
+                "constraints_per_view": extras["constraints_per_view"].copy()}
+            for sign, term in ((-1, old), (1, new)):
+                if term is not None:
+                    LTL = LTL + sign * term[0]
+                    extras["constraints_per_view"] += sign * term[1]["constraints_per_view"]
+            if new is not None:
+                extras = {key: np.concatenate([extras[key], new[1][key]]) for key in SIGN_KEYS} | {
+                    "constraints_per_view": extras["constraints_per_view"]}
+            return LTL, extras
+    normal = [part for part in parts.evaluate(used, peer=peer) if part is not None]
+    return _merged_normal_matrix(normal) if normal else None
+
+
 def _robust_rounds(parts: _TrackParts, obs_focal_px: np.ndarray, view_mask: np.ndarray | None,
                    options: LiGTOptions, peer) -> RobustLiGTResult:
     """The rounds of :func:`robust_ligt_translations` on its validated inputs."""
@@ -494,14 +546,16 @@ def _robust_rounds(parts: _TrackParts, obs_focal_px: np.ndarray, view_mask: np.n
     threshold = np.inf
     best = None  # (sigma, result, used, error, threshold) of the best solve so far
     last = None
+    assembled = None  # (used, LᵀL and sign rows) of the last solve
     while True:
         counts = np.bincount(obs_track[keep], minlength=int(obs_track.max()) + 1 if obs_track.size else 0)
         used = keep & (counts[obs_track] >= 2)
-        normal = [part for part in parts.evaluate(used, peer=peer) if part is not None]
+        normal = _updated_normal_matrix(parts, assembled, used, peer)
+        assembled = (used, normal)
         try:
-            if not normal:
+            if normal is None:
                 raise AlgorithmError("LiGT needs at least 2 constrained views, got 0")
-            result = _solve_normal_matrix(*_merged_normal_matrix(normal), view_mask, None, options)
+            result = _solve_normal_matrix(*normal, view_mask, None, options)
         except AlgorithmError:
             if last is None:
                 raise

@@ -297,3 +297,45 @@ def test_baseline_check_skips_unknown_directions_and_missing_centres():
     assert np.isnan(angles[0]) and np.isnan(angles[1])
     medians, off = views_off_their_baselines(angles, ends, 6, 10.0)
     assert off.size == 0
+
+
+def test_updated_normal_matrix_is_the_fresh_assembly_up_to_rounding(monkeypatch):
+    """Each robust round after the first may update LᵀL with the tracks whose observations
+    changed (old terms out, new in): forced to (MAX_UPDATED_FRACTION 1), the centres, drops and
+    sign votes are those of assembling every round afresh (0), with a view masked out too."""
+    from rotonly_cli.geometry import ligt
+
+    rng = np.random.default_rng(11)
+    scene = make_street_scene(12, 600, seed=7)
+    noisy = scene.obs_xy + rng.normal(scale=3e-4, size=scene.obs_xy.shape)
+    corrupted, _ = _with_wrong_observations(type("S", (), {"obs_xy": noisy, "obs_point": scene.obs_point})(),
+                                            0.03, rng)
+    R, tracks, views = scene.R_cam_from_world, scene.obs_point, scene.obs_view
+    mask = np.ones(len(R), dtype=bool)
+    mask[5] = False
+    assemblies = []
+    evaluate = ligt._TrackParts.evaluate
+    monkeypatch.setattr(ligt._TrackParts, "evaluate", lambda self, used, centers=None, peer=None: (
+        assemblies.append(centers is None) or evaluate(self, used, centers, peer)))
+    for view_mask in (None, mask):
+        runs = {}
+        for fraction in (1.0, 0.0):
+            monkeypatch.setattr(ligt, "MAX_UPDATED_FRACTION", fraction)
+            assemblies.clear()
+            runs[fraction] = robust_ligt_translations(R, tracks, views, corrupted, 1000.0, view_mask=view_mask)
+            assert sum(assemblies) == (1 if fraction else len(runs[fraction].rounds))  # a solve per round
+        updated, fresh = runs[1.0], runs[0.0]
+        assert len(updated.rounds) >= 2
+        # the same decisions; the errors of ill-conditioned tracks (two Gauss-Newton steps from
+        # the linear start) carry the rounding further than the centres' 1e-14
+        assert len(updated.rounds) == len(fresh.rounds) and np.array_equal(updated.keep, fresh.keep)
+        for ours, theirs in zip(updated.rounds, fresh.rounds):
+            assert {k: ours[k] for k in ("observations", "dropped", "readmitted")} == {
+                k: theirs[k] for k in ("observations", "dropped", "readmitted")}
+            assert ours["sigma_px"] == pytest.approx(theirs["sigma_px"], rel=1e-6)
+            assert ours["threshold_px"] == pytest.approx(theirs["threshold_px"], rel=1e-6)
+        assert updated.result.sign_votes == fresh.result.sign_votes
+        assert updated.result.num_tracks_used == fresh.result.num_tracks_used
+        assert np.array_equal(updated.result.num_constraints_per_view, fresh.result.num_constraints_per_view)
+        assert np.nanmax(np.abs(updated.result.centers - fresh.result.centers)) < 1e-12
+        assert np.array_equal(np.isnan(updated.result.centers), np.isnan(fresh.result.centers))
