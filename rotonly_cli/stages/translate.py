@@ -22,11 +22,11 @@ from rotonly_cli.scene.view_graph import ViewGraph, regular_edges, view_index
 logger = logging.getLogger(__name__)
 
 #: the robust rounds take a helper process (runtime.parallel.helper_class) from this many
-#: observations on. Measured in isolation (translate stage, medians of 10): on castle-P19's
-#: database (61 000) 0.343 s in one process against 0.366 s with the helper, fountain-P11's
-#: (80 000) 0.331 s both; on simulated scenes 0.483 → 0.453 s at 218 000 and 1.94 → 1.33 s
-#: at 735 000 (docs/tuning.md)
-LIGT_HELPER_MIN_OBSERVATIONS = 200_000
+#: observations on. Measured in isolation (translate stage, one process / helper, medians of
+#: 10, one BLAS thread): entry-P10's database (55 000) 0.177 / 0.157 s, castle-P19's (61 000)
+#: 0.259 / 0.204 s; below, Herz-Jesus-P8's (39 000) 0.127 / 0.122 s and castle-P19's OpenMVG
+#: matches (24 000) 0.151 / 0.147 s gain nothing worth a fork (docs/tuning.md)
+LIGT_HELPER_MIN_OBSERVATIONS = 50_000
 
 
 def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_world: np.ndarray,
