@@ -523,16 +523,14 @@ def _updated_normal_matrix(parts: _TrackParts, assembled, used: np.ndarray, peer
         if np.count_nonzero(in_changed & (before | used)) <= MAX_UPDATED_FRACTION * np.count_nonzero(used):
             old, new = parts.normal_matrix(in_changed & before), parts.normal_matrix(in_changed & used)
             kept = ~changed[extras["sign_track"]]
-            extras = {key: value[kept] for key, value in extras.items() if key in SIGN_KEYS} | {
-                "constraints_per_view": extras["constraints_per_view"].copy()}
+            signs = [{key: extras[key][kept] for key in SIGN_KEYS}] + ([new[1]] if new is not None else [])
+            updated = {key: np.concatenate([part[key] for part in signs]) for key in SIGN_KEYS}
+            updated["constraints_per_view"] = extras["constraints_per_view"].copy()
             for sign, term in ((-1, old), (1, new)):
                 if term is not None:
                     LTL = LTL + sign * term[0]
-                    extras["constraints_per_view"] += sign * term[1]["constraints_per_view"]
-            if new is not None:
-                extras = {key: np.concatenate([extras[key], new[1][key]]) for key in SIGN_KEYS} | {
-                    "constraints_per_view": extras["constraints_per_view"]}
-            return LTL, extras
+                    updated["constraints_per_view"] += sign * term[1]["constraints_per_view"]
+            return LTL, updated
     normal = [part for part in parts.evaluate(used, peer=peer) if part is not None]
     return _merged_normal_matrix(normal) if normal else None
 

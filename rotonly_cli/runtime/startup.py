@@ -23,8 +23,8 @@ Two process-wide settings are made by the console script too, before numpy is im
   0.2 % of real BLAS work, taken from the core the other rotonly process needs.
 * :func:`keep_freed_heap`: numpy's arrays of 0.1–30 MB are allocated and freed thousands of
   times per run. glibc's defaults hand that memory back to the kernel (munmap, heap trimming)
-  and every reuse faults it in again, zero-filled: 400 000 page faults and 1.5 s of system
-  time on castle-P19's database. Kept in the heap: 170 000 and 0.8 s.
+  and every reuse faults it in again, zero-filled: 440 000 page faults and 1.7–2.1 s of system
+  time on castle-P19's database. Kept in the heap: 200 000 and 1.1 s.
 """
 
 from __future__ import annotations
