@@ -9,7 +9,8 @@ on the simulation and the load stage keeps the stored CALIBRATED poses), written
 database (+ ``gt.npz``) in a subprocess; the files are cached under ``--cache``. Then a
 fresh subprocess per size runs the pipeline stages in-process on that database, as
 ``rotonly run`` does (load / identify / refine / average / optimize = GRRM / translate /
-triangulate / export), and measures per stage:
+triangulate / export; in the console script's process settings, runtime/startup.py), and
+measures per stage:
 
 * wall time (``time.perf_counter``);
 * the process's peak resident memory during the stage: the kernel's high-water mark
@@ -35,11 +36,18 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
+from rotonly_cli.runtime import startup
 
-from rotonly_cli.bench import results_md
-from rotonly_cli.bench.common import code_version
-from rotonly_cli.io.atomic import staging_dir
+# the process `rotonly run` runs in (cli.console_main): one BLAS thread, freed heap kept;
+# before numpy is imported
+startup.one_blas_thread_per_process()
+startup.keep_freed_heap()
+
+import numpy as np  # noqa: E402
+
+from rotonly_cli.bench import results_md  # noqa: E402
+from rotonly_cli.bench.common import code_version  # noqa: E402
+from rotonly_cli.io.atomic import staging_dir  # noqa: E402
 
 STAGES = ("load", "identify", "refine", "average", "optimize", "translate", "reject", "triangulate", "export")
 STAGE_TITLES = {"optimize": "GRRM"}
