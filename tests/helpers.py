@@ -50,15 +50,21 @@ def l1_irls_start(p, prob) -> np.ndarray:
     return res.R_cam_from_world
 
 
+def dies_in_a_child(fn, exitcode: int):
+    """``fn`` as called in this process; in a forked child ``os._exit(exitcode)`` instead (a
+    worker killed mid-run)."""
+    parent = os.getpid()
+
+    def in_parent_only(*args):
+        if os.getpid() != parent:
+            os._exit(exitcode)
+        return fn(*args)
+
+    return in_parent_only
+
+
 class DyingPeer(ForkedPeer):
     """A ForkedPeer whose child dies at its first request (a helper killed mid-run)."""
 
     def __init__(self, handler):
-        parent = os.getpid()
-
-        def dying(message):
-            if os.getpid() != parent:
-                os._exit(9)
-            return handler(message)
-
-        super().__init__(dying)
+        super().__init__(dies_in_a_child(handler, 9))

@@ -216,6 +216,19 @@ def test_robust_rounds_keep_clean_data_whole():
     assert np.abs(robust.result.centers - plain.centers).max() < 1e-12
 
 
+def _noisy_street_with_wrong_observations():
+    """(R, tracks, views, observations, view mask without view 5): a 12-view street, 0.3 px
+    noise, 3 % of the tracks with one wrong observation (:func:`_with_wrong_observations`)."""
+    rng = np.random.default_rng(11)
+    scene = make_street_scene(12, 600, seed=7)
+    noisy = scene.obs_xy + rng.normal(scale=3e-4, size=scene.obs_xy.shape)
+    corrupted, _ = _with_wrong_observations(type("S", (), {"obs_xy": noisy, "obs_point": scene.obs_point})(),
+                                            0.03, rng)
+    mask = np.ones(len(scene.R_cam_from_world), dtype=bool)
+    mask[5] = False
+    return scene.R_cam_from_world, scene.obs_point, scene.obs_view, corrupted, mask
+
+
 def test_a_helper_process_leaves_the_robust_rounds_unchanged_bit_for_bit():
     """The robust rounds work on two parts of the tracks, cut at a track boundary, whether this
     process evaluates both or a forked helper the second: centres, kept observations, errors
@@ -223,14 +236,7 @@ def test_a_helper_process_leaves_the_robust_rounds_unchanged_bit_for_bit():
     from rotonly_cli.geometry.ligt import _TrackParts
     from rotonly_cli.runtime import parallel
 
-    rng = np.random.default_rng(11)
-    scene = make_street_scene(12, 600, seed=7)
-    noisy = scene.obs_xy + rng.normal(scale=3e-4, size=scene.obs_xy.shape)
-    corrupted, _ = _with_wrong_observations(type("S", (), {"obs_xy": noisy, "obs_point": scene.obs_point})(),
-                                            0.03, rng)
-    R, tracks, views = scene.R_cam_from_world, scene.obs_point, scene.obs_view
-    mask = np.ones(len(R), dtype=bool)
-    mask[5] = False
+    R, tracks, views, corrupted, mask = _noisy_street_with_wrong_observations()
     for view_mask in (None, mask):
         parts = _TrackParts(R, tracks, views, corrupted, view_mask, LiGTOptions())
         (a0, b0), (a1, b1) = parts.ranges
@@ -305,14 +311,7 @@ def test_updated_normal_matrix_is_the_fresh_assembly_up_to_rounding(monkeypatch)
     sign votes are those of assembling every round afresh (0), with a view masked out too."""
     from rotonly_cli.geometry import ligt
 
-    rng = np.random.default_rng(11)
-    scene = make_street_scene(12, 600, seed=7)
-    noisy = scene.obs_xy + rng.normal(scale=3e-4, size=scene.obs_xy.shape)
-    corrupted, _ = _with_wrong_observations(type("S", (), {"obs_xy": noisy, "obs_point": scene.obs_point})(),
-                                            0.03, rng)
-    R, tracks, views = scene.R_cam_from_world, scene.obs_point, scene.obs_view
-    mask = np.ones(len(R), dtype=bool)
-    mask[5] = False
+    R, tracks, views, corrupted, mask = _noisy_street_with_wrong_observations()
     assemblies = []
     evaluate = ligt._TrackParts.evaluate
     monkeypatch.setattr(ligt._TrackParts, "evaluate", lambda self, used, centers=None, peer=None: (

@@ -18,6 +18,8 @@ from rotonly_cli.runtime import parallel
 from rotonly_cli.simulation.fivepoint import perturbed_rotation
 from rotonly_cli.simulation.pair_scenes import simulate_twoview
 
+from helpers import dies_in_a_child
+
 pytestmark = pytest.mark.skipif(not parallel.fork_safe(), reason="needs fork (Linux, no other thread)")
 
 
@@ -227,12 +229,7 @@ def test_forked_peer_answers_in_this_process_once_the_child_died(caplog):
     """A child that dies (here: at its first request) costs time, not the answers: the
     pending request and every later one are answered by this process, after a warning."""
     parent = os.getpid()
-
-    def handler(message):
-        if os.getpid() != parent:
-            os._exit(5)
-        return message, os.getpid()
-
+    handler = dies_in_a_child(lambda message: (message, os.getpid()), 5)
     with parallel.ForkedPeer(handler) as peer:
         assert peer.alive
         peer.submit(1)
@@ -241,7 +238,6 @@ def test_forked_peer_answers_in_this_process_once_the_child_died(caplog):
         peer.submit(2)
         assert peer.collect() == (2, parent)
     assert "a helper process died (exit code 5)" in caplog.text
-
 
 
 def test_helper_class_wants_the_callers_minimum():
@@ -272,12 +268,10 @@ def test_forked_call_runs_here_when_its_child_dies(tmp_path, caplog):
     path = tmp_path / "written"
 
     def write():
-        if os.getpid() != parent:
-            os._exit(4)
         path.write_text("here")
         return os.getpid()
 
-    assert parallel.ForkedCall(write).result() == parent
+    assert parallel.ForkedCall(dies_in_a_child(write, 4)).result() == parent
     assert path.read_text() == "here" and "a forked process died (exit code 4)" in caplog.text
 
 

@@ -8,6 +8,8 @@ import numpy as np
 from rotonly_cli.scene.types import SfMScene, View
 from rotonly_cli.stages.triangulate import GREY, keypoint_colors, point_colors
 
+from helpers import dies_in_a_child
+
 
 def test_point_colors_are_mean_rgb_of_observed_pixels(tmp_path):
     rng = np.random.default_rng(4)
@@ -90,13 +92,11 @@ def test_forked_keypoint_colors_equal_decoding_here(tmp_path):
 
 
 def test_a_failed_decoding_process_falls_back_to_decoding_here(tmp_path, monkeypatch, caplog):
-    import os
 
     from rotonly_cli.stages.triangulate import ForkedKeypointColors
 
-    decode, parent = ForkedKeypointColors._decode, os.getpid()  # the child dies, this process decodes
-    monkeypatch.setattr(ForkedKeypointColors, "_decode",
-                        lambda self, paths: decode(self, paths) if os.getpid() == parent else os._exit(3))
+    # the child dies, this process decodes
+    monkeypatch.setattr(ForkedKeypointColors, "_decode", dies_in_a_child(ForkedKeypointColors._decode, 3))
     scene = _scene_with_images(tmp_path)
     colors = ForkedKeypointColors(scene, tmp_path, [1, 2, 3]).result(timeout=30)
     assert "exit code 3" in caplog.text
