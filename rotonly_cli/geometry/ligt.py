@@ -15,9 +15,15 @@ Per track k with views V_k:
 
 ``LᵀL`` (3n × 3n) is accumulated chunk by chunk from the constraints' 3 × 9 blocks
 ``M = [B | C | D]``: each ``MᵀM`` is a few outer products of 3-vectors, summed per view triple
-(r, i, l) and then per 3 × 3 block of LᵀL (L itself is never formed). Gauge: the fixed view's
-centre is 0 (its columns are dropped). Solution: eigenvector of the smallest eigenvalue (dense ``eigh`` for small
-problems, shift-invert ``eigsh`` otherwise). Sign: chirality vote ``a_lrᵀ R_r (t_l − t_r) > 0``
+(r, i, l) and then per 3 × 3 block of LᵀL (L itself is never formed). Gauge: the centroid of the
+solved centres is 0 and their norm 1, i.e. the eigenvector of the smallest eigenvalue of LᵀL
+orthogonal to the three common translations (its null space; dense ``eigh`` for small
+problems, shift-invert ``eigsh`` with those translations projected out otherwise). OpenMVG and
+pyTheia fix one view's centre at 0 instead; under a unit norm that favours configurations far
+from that view, and a weakly linked gauge view then keeps its distance while every other centre
+shrinks around one point (algorithms.md §1.2). Only the largest **rigid** set of views is
+solved (:func:`rigid_views`): views whose distance to the others no track of three or more
+views fixes get no centre. Sign: chirality vote ``a_lrᵀ R_r (t_l − t_r) > 0``
 per track (TPAMI "Step 5", OpenMVG ``IdentifySign``).
 
 **Output scale**: centres are returned translated so the centroid of the solved centres is
@@ -45,7 +51,6 @@ __all__ = ["LiGTOptions", "LiGTResult", "RobustLiGTResult", "ligt_translations",
 class LiGTResult:
     centers: np.ndarray  # (n, 3) camera centres; NaN for views without constraints
     has_translation: np.ndarray  # (n,) bool: view was solved
-    fixed_view: int  # gauge view (centre 0 before the final centring)
     smallest_eigenvalues: np.ndarray  # smallest (and second, if computed) eigenvalues of LᵀL
     num_constraints_per_view: np.ndarray  # (n,) constraint blocks touching the view
     num_tracks_used: int
@@ -207,16 +212,34 @@ def ligt_normal_matrix(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_
 
 
 def _smallest_eigenvector(matrix: sp.csr_matrix, options: LiGTOptions) -> tuple[np.ndarray, np.ndarray]:
+    """The unit eigenvector of the smallest eigenvalue of ``matrix`` (the solved views' LᵀL,
+    3m × 3m) orthogonal to the common translations, and the two smallest such eigenvalues.
+    LᵀL is a sum over differences of centres, so those translations are its exact null space."""
     size = matrix.shape[0]
-    if size <= options.max_dense_unknowns:
-        values, vectors = np.linalg.eigh(matrix.toarray())
-        return vectors[:, 0], values[: min(2, size)]
-    # shift slightly below 0 so (LᵀL − σI) stays positive definite even when noise-free
-    scale = matrix.diagonal().mean()
-    sigma = -1e-8 * scale
-    values, vectors = eigsh(matrix, k=2, sigma=sigma, which="LM", v0=np.ones(size), tol=1e-12)
+    gauge = np.kron(np.ones((size // 3, 1)), np.eye(3)) / np.sqrt(size // 3)  # orthonormal (3m, 3)
+    if size <= options.max_dense_unknowns + 3:
+        dense = matrix.toarray()
+        # lift the null space above every other eigenvalue (the largest row sum bounds them)
+        lift = 2.0 * float(np.abs(dense).sum(axis=1).max()) + 1.0
+        values, vectors = np.linalg.eigh(dense + lift * (gauge @ gauge.T))
+        return vectors[:, 0], values[: min(2, size - 3)]
+    from scipy.sparse.linalg import LinearOperator, splu
+
+    # shift slightly below 0 so (LᵀL − σI) is positive definite: the null space makes LᵀL singular
+    sigma = -1e-8 * matrix.diagonal().mean()
+    factor = splu((matrix - sigma * sp.identity(size, format="csr")).tocsc())
+
+    def project(x: np.ndarray) -> np.ndarray:
+        return x - gauge @ (gauge.T @ x)
+
+    # (LᵀL − σI)⁻¹ with the translations projected out on both sides: they map to 0 and never
+    # come out as the largest magnitudes of the shift-inverted problem
+    inverse = LinearOperator((size, size), matvec=lambda x: project(factor.solve(project(np.ravel(x)))),
+                             dtype=float)
+    start = project(np.cos(np.arange(size, dtype=float)))
+    values, vectors = eigsh(matrix, k=2, sigma=sigma, which="LM", OPinv=inverse, v0=start, tol=1e-12)
     order = np.argsort(values)
-    return vectors[:, order[0]], values[order]
+    return project(vectors[:, order[0]]), values[order]
 
 
 def _validated(R_cam_from_world, obs_track, obs_view, obs_xy):
@@ -263,9 +286,10 @@ def _merged_normal_matrix(parts: list[tuple[sp.csr_matrix, dict]]) -> tuple[sp.c
     return LTL, extras
 
 
-def _solve_normal_matrix(LTL: sp.csr_matrix, extras: dict, view_mask: np.ndarray | None, fixed_view: int | None,
+def _solve_normal_matrix(LTL: sp.csr_matrix, extras: dict, view_mask: np.ndarray | None,
                          options: LiGTOptions) -> LiGTResult:
-    """The centres from LᵀL: gauge, smallest eigenvector, chirality vote, normalisation."""
+    """The centres from LᵀL: the solved views' block, centroid gauge, smallest eigenvector,
+    chirality vote, normalisation."""
     num_views = LTL.shape[0] // 3
     constraints_per_view = extras["constraints_per_view"]
     solved = constraints_per_view >= max(options.min_constraints_per_view, 1)
@@ -273,17 +297,12 @@ def _solve_normal_matrix(LTL: sp.csr_matrix, extras: dict, view_mask: np.ndarray
         solved &= np.asarray(view_mask, dtype=bool)
     if solved.sum() < 2:
         raise AlgorithmError(f"LiGT needs at least 2 constrained views, got {int(solved.sum())}")
-    if fixed_view is None:
-        fixed_view = int(np.flatnonzero(solved)[0])
-    elif not solved[fixed_view]:
-        raise AlgorithmError(f"LiGT gauge view {fixed_view} has no translation constraint")
-    free_views = np.flatnonzero(solved & (np.arange(num_views) != fixed_view))
-    free_cols = (3 * free_views[:, None] + np.arange(3)).ravel()
-    reduced = LTL[free_cols][:, free_cols]
-    vector, eigenvalues = _smallest_eigenvector(reduced, options)
+    solved_views = np.flatnonzero(solved)
+    cols = (3 * solved_views[:, None] + np.arange(3)).ravel()
+    vector, eigenvalues = _smallest_eigenvector(LTL[cols][:, cols], options)
 
     translations = np.zeros((num_views, 3))
-    translations[free_views] = vector.reshape(-1, 3)
+    translations[solved_views] = vector.reshape(-1, 3)
     # chirality vote: a_lrᵀ R_r (t_l − t_r) > 0 for every used track (algorithms.md §1.2)
     votes = np.einsum("ni,ni->n", extras["sign_row"],
                       translations[extras["sign_l"]] - translations[extras["sign_r"]])
@@ -298,13 +317,96 @@ def _solve_normal_matrix(LTL: sp.csr_matrix, extras: dict, view_mask: np.ndarray
     if not np.isfinite(mean_distance) or mean_distance <= 0:
         raise AlgorithmError("LiGT solution collapsed to a single point")
     centers[solved] = solved_centers / mean_distance
-    return LiGTResult(centers, solved, fixed_view, np.asarray(eigenvalues), constraints_per_view,
+    return LiGTResult(centers, solved, np.asarray(eigenvalues), constraints_per_view,
                       int(extras["sign_row"].shape[0]), (positive, negative))
+
+
+#: below this many possible keys :func:`_dense_ids` numbers them with a lookup table, above
+#: with a sort
+MAX_DENSE_KEYS = 4_000_000
+
+
+def _dense_ids(keys: np.ndarray, num_keys: int) -> tuple[np.ndarray, np.ndarray]:
+    """(the distinct ``keys`` ascending, each key's index among them): ``np.unique`` with
+    ``return_inverse``, by a table over ``[0, num_keys)`` when that is small (no sort)."""
+    if num_keys > MAX_DENSE_KEYS:
+        distinct, index = np.unique(keys, return_inverse=True)
+        return distinct, index.ravel()
+    present = np.zeros(num_keys, dtype=bool)
+    present[keys] = True
+    distinct = np.flatnonzero(present)
+    table = np.zeros(num_keys, dtype=np.int64)
+    table[distinct] = np.arange(distinct.size)
+    return distinct, table[keys]
+
+
+def rigid_views(obs_track: np.ndarray, obs_view: np.ndarray, num_views: int,
+                view_mask: np.ndarray | None = None, max_track_views: int = 64) -> np.ndarray:
+    """(n,) bool: the largest set of views whose centres tracks fix up to one common scale.
+
+    A track fixes the distances among its own views up to one scale: its base pair's baseline
+    sets the depth of the point, which places every other view of the track (algorithms.md
+    §1.1). Two such bodies share a scale when they share a baseline, i.e. two views; sharing
+    one view leaves each free to scale about it. So the rigid sets are the connected components
+    of the view pairs co-observed in a track, two pairs joined when a track holds both, and a
+    view reached by two-view tracks only (a leaf of the view graph) or hinged on a single
+    view keeps a distance no constraint decides: LiGT's least-squares solution is free to put
+    it anywhere, and to shrink the rest. Views of ``view_mask`` only; a track's first
+    ``max_track_views`` views stand for it. The largest set counts views, then pairs."""
+    from scipy.sparse.csgraph import connected_components
+
+    from rotonly_cli.geometry.tracks import pairs_within_tracks
+
+    obs_track = np.asarray(obs_track, dtype=np.int64)
+    obs_view = np.asarray(obs_view, dtype=np.int64)
+    if view_mask is not None:
+        keep = np.asarray(view_mask, dtype=bool)[obs_view]
+        obs_track, obs_view = obs_track[keep], obs_view[keep]
+    rigid = np.zeros(num_views, dtype=bool)
+    if not obs_track.size:
+        return rigid
+    starts = np.flatnonzero(np.r_[True, obs_track[1:] != obs_track[:-1]])
+    length = np.diff(np.append(starts, obs_track.size))
+    # a two-view body {a, b} joins only bodies that hold both a and b already: it adds no view
+    # and links no two bodies that do not share a and b themselves. So the tracks of three or
+    # more views decide, and without any the rigid set is the pair with the most tracks
+    if not (length >= 3).any():
+        two = starts[length == 2]
+        pair = np.sort(np.stack([obs_view[two], obs_view[two + 1]], axis=1), axis=1)
+        if pair.size:
+            keys, counts = np.unique(pair[:, 0] * num_views + pair[:, 1], return_counts=True)
+            best_pair = keys[np.argmax(counts)]
+            rigid[[best_pair // num_views, best_pair % num_views]] = True
+        return rigid
+    starts, length = starts[length >= 3], length[length >= 3]
+    capped = np.minimum(length, max_track_views)
+    first = np.repeat(starts, capped) + (np.arange(capped.sum()) - np.repeat(np.cumsum(capped) - capped, capped))
+    offsets = np.zeros(capped.size + 1, dtype=np.int64)
+    np.cumsum(capped, out=offsets[1:])
+    a, b = pairs_within_tracks(offsets)
+    view_a, view_b = obs_view[first[a]], obs_view[first[b]]
+    if not view_a.size:
+        return rigid
+    keys, node = _dense_ids(np.minimum(view_a, view_b) * num_views + np.maximum(view_a, view_b),
+                            num_views * num_views)
+    # the pairs of one track are consecutive: chain each to the next of the same track
+    track_of_pair = np.repeat(np.arange(capped.size), capped * (capped - 1) // 2)
+    same = track_of_pair[1:] == track_of_pair[:-1]
+    links = sp.coo_matrix((np.ones(int(same.sum())), (node[:-1][same], node[1:][same])),
+                          shape=(keys.size, keys.size))
+    num_components, component = connected_components(links, directed=False)
+    pair_views = np.stack([keys // num_views, keys % num_views], axis=1)
+    views_of = np.zeros((num_components, num_views), dtype=bool)
+    views_of[np.repeat(component, 2), pair_views.ravel()] = True
+    size = views_of.sum(axis=1)
+    pairs = np.bincount(component, minlength=num_components)
+    best = int(np.lexsort((-pairs, -size))[0])
+    return views_of[best]
 
 
 def ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_view: np.ndarray,
                       obs_xy: np.ndarray, view_mask: np.ndarray | None = None,
-                      fixed_view: int | None = None, options: LiGTOptions | None = None) -> LiGTResult:
+                      options: LiGTOptions | None = None) -> LiGTResult:
     """Camera centres from global rotations and tracks (LiGT, algorithms.md §1).
 
     Args:
@@ -313,17 +415,18 @@ def ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_v
         obs_view: (N_obs,) view per observation (``Tracks.view``).
         obs_xy: (N_obs, 2) normalized coordinates.
         view_mask: (n,) bool; False views are ignored (their observations dropped).
-        fixed_view: gauge view; default the first view with constraints.
 
-    Views without any constraint (e.g. only pure-rotation tracks, or masked out) are
-    reported via ``has_translation = False`` with NaN centres.
+    Views without any constraint (e.g. only pure-rotation tracks, or masked out) and views
+    outside the largest rigid set (:func:`rigid_views`) are reported via
+    ``has_translation = False`` with NaN centres.
     """
     options = options or LiGTOptions()
     R, obs_track, obs_view, obs_xy = _validated(R_cam_from_world, obs_track, obs_view, obs_xy)
+    view_mask = rigid_views(obs_track, obs_view, R.shape[0], view_mask, options.max_base_search_views)
     normal = _view_masked_normal_matrix(R, obs_track, obs_view, obs_xy, view_mask, options)
     if normal is None:
         raise AlgorithmError("LiGT needs at least 2 constrained views, got 0")
-    return _solve_normal_matrix(*normal, view_mask, fixed_view, options)
+    return _solve_normal_matrix(*normal, view_mask, options)
 
 
 @dataclass
@@ -535,6 +638,22 @@ def _updated_normal_matrix(parts: _TrackParts, assembled, used: np.ndarray, peer
     return _merged_normal_matrix(normal) if normal else None
 
 
+def _tracks_of_two(obs_track: np.ndarray, selected: np.ndarray) -> np.ndarray:
+    """``selected`` without the observations left alone in their track."""
+    counts = np.bincount(obs_track[selected], minlength=int(obs_track.max()) + 1 if obs_track.size else 0)
+    return selected & (counts[obs_track] >= 2)
+
+
+def _rigid_observations(parts: _TrackParts, keep: np.ndarray, view_mask: np.ndarray | None,
+                        options: LiGTOptions) -> tuple[np.ndarray, np.ndarray]:
+    """(the ``keep`` observations a solve uses: those of the largest rigid set of views
+    (:func:`rigid_views`) in tracks of two or more; that set (n,) bool)."""
+    used = _tracks_of_two(parts.obs_track, keep)
+    rigid = rigid_views(parts.obs_track[used], parts.obs_view[used], parts.R.shape[0], view_mask,
+                        options.max_base_search_views)
+    return _tracks_of_two(parts.obs_track, used & rigid[parts.obs_view]), rigid
+
+
 def _robust_rounds(parts: _TrackParts, obs_focal_px: np.ndarray, view_mask: np.ndarray | None,
                    options: LiGTOptions, peer) -> RobustLiGTResult:
     """The rounds of :func:`robust_ligt_translations` on its validated inputs."""
@@ -546,14 +665,15 @@ def _robust_rounds(parts: _TrackParts, obs_focal_px: np.ndarray, view_mask: np.n
     last = None
     assembled = None  # (used, LᵀL and sign rows) of the last solve
     while True:
-        counts = np.bincount(obs_track[keep], minlength=int(obs_track.max()) + 1 if obs_track.size else 0)
-        used = keep & (counts[obs_track] >= 2)
+        # every round on the largest rigid set of what it keeps: dropping a weakly linked view's
+        # few multi-view tracks would leave its distance free, and the solve would collapse
+        used, rigid = _rigid_observations(parts, keep, view_mask, options)
         normal = _updated_normal_matrix(parts, assembled, used, peer)
         assembled = (used, normal)
         try:
             if normal is None:
                 raise AlgorithmError("LiGT needs at least 2 constrained views, got 0")
-            result = _solve_normal_matrix(*normal, view_mask, None, options)
+            result = _solve_normal_matrix(*normal, rigid, options)
         except AlgorithmError:
             if last is None:
                 raise

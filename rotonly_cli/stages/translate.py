@@ -1,6 +1,8 @@
 """Stage `translate`: camera centres by LiGT from the global rotations and the tracks of the
 active REGULAR edges (PURE_ROTATION edges carry no translation information, paper
-§"Scene Identification"). Views LiGT cannot constrain get NaN centres (not registered)."""
+§"Scene Identification"). Views LiGT cannot constrain get NaN centres (not registered): views
+without a constraint, and views outside the largest rigid set (geometry.ligt.rigid_views), whose
+distance to the others no track through three or more views ties down."""
 
 from __future__ import annotations
 
@@ -71,9 +73,11 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
         logger.debug("translate round %d: %d observations, sigma %.3f px, threshold %.2f px, %d dropped, "
                      "%d re-admitted", number, round_["observations"], round_["sigma_px"], round_["threshold_px"],
                      round_["dropped"], round_["readmitted"])
+    shown = ", ".join(map(str, without[:8])) + (" ..." if len(without) > 8 else "")
     logger.info("translate (LiGT): %d tracks, %d REGULAR edges, %d views with a centre%s; %d of %d "
-                "observations kept", tracks.num_tracks, len(edges),
-                report["num_views_with_centre"], f", {len(without)} without" if without else "",
+                "observations kept", tracks.num_tracks, len(edges), report["num_views_with_centre"],
+                f", {len(without)} without (views {shown}: outside the largest set of views whose distances "
+                f"tracks of three or more views tie together; not registered)" if without else "",
                 report["num_observations_used"], tracks.num_observations)
     return centers, report
 

@@ -12,6 +12,7 @@ from rotonly_cli.geometry.ligt import (
     baseline_disagreement_deg,
     ligt_normal_matrix,
     ligt_translations,
+    rigid_views,
     robust_ligt_translations,
     views_off_their_baselines,
 )
@@ -133,6 +134,81 @@ def add_pure_rotation_view(scene, rng):
             np.r_[scene.obs_xy, xy])
 
 
+def add_leaf_view(scene, rng, num_points: int = 60, shared_tracks: int = 0):
+    """A new view 1.5 units beside view 3, sharing ``num_points`` new points with view 3 only
+    (two-view tracks: they fix the direction of its baseline, not its length) and, with
+    ``shared_tracks``, also seeing that many of the scene's own points. The new view is
+    view 0 (the scene's views move up by one): the first view, which LiGT's references fix."""
+    n = scene.R_cam_from_world.shape[0]
+    R_new = so3.exp(np.array([0.0, np.radians(10.0), 0.0])) @ scene.R_cam_from_world[3]
+    c_new = scene.centers[3] + np.array([0.0, 1.5, 0.0])
+    rays = np.c_[rng.uniform(-0.3, 0.3, size=(num_points, 2)), np.ones(num_points)]
+    points = scene.centers[3] + (rays * rng.uniform(8, 12, size=(num_points, 1))) @ scene.R_cam_from_world[3]
+    p_new = (points - c_new) @ R_new.T
+    track = np.r_[scene.obs_point, np.repeat(scene.obs_point.max() + 1 + np.arange(num_points), 2)]
+    view = np.r_[scene.obs_view, np.tile([3, n], num_points)]
+    xy = np.r_[scene.obs_xy, np.stack([rays[:, :2], p_new[:, :2] / p_new[:, 2:]], axis=1).reshape(-1, 2)]
+    if shared_tracks:
+        seen_by_3 = np.unique(scene.obs_point[scene.obs_view == 3])[:shared_tracks]
+        p_shared = (scene.points[seen_by_3] - c_new) @ R_new.T
+        track, view = np.r_[track, seen_by_3], np.r_[view, np.full(shared_tracks, n)]
+        xy = np.r_[xy, p_shared[:, :2] / p_shared[:, 2:]]
+    order = np.argsort(track, kind="stable")
+    return (np.concatenate([R_new[None], scene.R_cam_from_world]), np.concatenate([c_new[None], scene.centers]),
+            track[order], (view[order] + 1) % (n + 1), xy[order])
+
+
+@pytest.mark.parametrize("max_dense_keys", [4_000_000, 0])  # pair ids by lookup table / by sort
+def test_rigid_views_follow_shared_baselines(monkeypatch, max_dense_keys):
+    monkeypatch.setattr("rotonly_cli.geometry.ligt.MAX_DENSE_KEYS", max_dense_keys)
+
+    def rigid(tracks, num_views):
+        track = np.repeat(np.arange(len(tracks)), [len(t) for t in tracks])
+        return rigid_views(track, np.concatenate(tracks), num_views).tolist()
+
+    # (0,1,2) and (1,2,3) share the baseline 1-2; view 4 is reached by a two-view track only
+    assert rigid([[0, 1, 2], [1, 2, 3], [3, 4]], 5) == [True, True, True, True, False]
+    # two bodies hinged on view 3 alone scale freely about it: the larger one is kept
+    assert rigid([[0, 1, 2], [1, 2, 3], [3, 4, 5], [4, 5, 6], [5, 6, 7]], 8) == [False] * 3 + [True] * 5
+    # two-view tracks only: their one baseline is the scale of everything; of several pairs,
+    # the one with the most tracks (a lone observation counts for nothing)
+    assert rigid([[0, 1], [0, 1]], 2) == [True, True]
+    assert rigid([[0, 1], [1, 2], [1, 2], [3]], 4) == [False, True, True, False]
+    # a masked view takes its pairs with it: without view 2 nothing ties 3 to 0-1
+    track = np.repeat(np.arange(3), 3)
+    assert rigid_views(track, np.array([0, 1, 2, 1, 2, 3, 0, 1, 3]), 4,
+                       view_mask=np.array([True, True, False, True])).tolist() == [True, True, False, True]
+
+
+@pytest.mark.parametrize("robust", [False, True])
+def test_leaf_view_without_multiview_tracks_gets_no_centre(robust):
+    # the leaf's distance from view 3 is free (an exact null vector besides the gauge): before
+    # rigid_views LiGT put it anywhere and shrank the others (castle-P19 subsets, algorithms.md §1.2)
+    scene = make_street_scene(8, 300, seed=12)
+    R, _, track, view, xy = add_leaf_view(scene, np.random.default_rng(13))
+    if robust:
+        result = robust_ligt_translations(R, track, view, xy, 1000.0).result
+    else:
+        result = ligt_translations(R, track, view, xy)
+    assert result.has_translation.tolist() == [False] + [True] * 8
+    error, _ = similarity_align_error(result.centers[1:], scene.centers)
+    assert error < 1e-8
+
+
+def test_centroid_gauge_keeps_a_weakly_linked_view_in_place():
+    # the leaf sees 3 of the scene's points besides its 60 two-view ones: rigid, but its
+    # distance rests on 3 tracks. With view 0's centre fixed at 0 and a unit norm, the smallest
+    # eigenvector of such a system can pull the others together away from a weak gauge view;
+    # the centroid gauge has no preferred view. Noise 1 px (f = 1000).
+    scene = make_street_scene(8, 300, seed=14)
+    R, centers, track, view, xy = add_leaf_view(scene, np.random.default_rng(15), shared_tracks=3)
+    noisy = xy + np.random.default_rng(16).normal(scale=1e-3, size=xy.shape)
+    result = ligt_translations(R, track, view, noisy)
+    assert result.has_translation.all()
+    error, scale = similarity_align_error(result.centers, centers)
+    assert error < 0.05 and scale > 0
+
+
 def test_view_without_translation_constraint_reported():
     scene = make_street_scene(10, 250, seed=5)
     R, obs_track, obs_view, obs_xy = add_pure_rotation_view(scene, np.random.default_rng(6))
@@ -149,9 +225,8 @@ def test_view_mask_excludes_view():
     mask = np.ones(10, dtype=bool)
     mask[4] = False
     result = ligt_translations(scene.R_cam_from_world, scene.obs_point, scene.obs_view, scene.obs_xy,
-                               view_mask=mask, fixed_view=2)
+                               view_mask=mask)
     assert result.has_translation.tolist() == mask.tolist()
-    assert result.fixed_view == 2
     error, _ = similarity_align_error(result.centers[mask], scene.centers[mask])
     assert error < 1e-8
 
