@@ -36,6 +36,7 @@ def _load_script(name: str):
 
 probe = _load_script("probe_grrm_residuals")
 probe_structure = _load_script("probe_grrm_structure")
+probe_subsets = _load_script("probe_view_subsets")
 
 
 def _digest(path: Path) -> str:
@@ -331,3 +332,34 @@ def test_probe_grrm_simulation_on_a_small_scene(capsys):
     assert len(rows) == 9 and all(0.0 < value < 0.2 for value in rows.values())
     assert abs(rows["GRRM from the GT rotations"] - rows["GRRM"]) < 0.002
     assert rows["GRRM, t_ij held at the GT directions"] < rows["GRRM"]
+
+
+# ============================================================================ probe_view_subsets
+
+def test_probe_view_subsets_on_fixture(tmp_path, capsys):
+    """Subsets of 5 of the Herz-Jesu fixture's 8 views: one row each, every view registered
+    with a centre (a clean scene: each subset is a rigid, well-connected graph), errors in
+    the fixture's range, none collapsed; the input is untouched."""
+    (tmp_path / "root").mkdir()
+    (tmp_path / "root" / "Herz-Jesus-P8").symlink_to(FIXTURES / "herzjesu_p8")
+    before = _digest(FIXTURES / "herzjesu_p8" / "database.db")
+    assert probe_subsets.main(["--root", str(tmp_path / "root"), "--scene", "Herz-Jesus-P8", "--input", "database",
+                               "--views", "5", "--trials", "2"]) == 0
+    assert _digest(FIXTURES / "herzjesu_p8" / "database.db") == before
+    out = capsys.readouterr().out
+    rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| ") and line[2].isdigit()]
+    assert len(rows) == 2
+    for cells in rows:
+        assert len(cells[0].lstrip("| ").split()) == 5
+        assert cells[1] == cells[2] == "5"
+        assert 0.001 < float(cells[3]) < 0.1 and float(cells[4].rstrip(" |")) < 0.05
+    assert "collapsed (> 0.5) 0;" in out
+
+
+def test_probe_view_subsets_refuses_a_subset_larger_than_the_scene(tmp_path):
+    (tmp_path / "root").mkdir()
+    (tmp_path / "root" / "Herz-Jesus-P8").symlink_to(FIXTURES / "herzjesu_p8")
+    with pytest.raises(SystemExit) as exc:
+        probe_subsets.main(["--root", str(tmp_path / "root"), "--scene", "Herz-Jesus-P8", "--input", "database",
+                            "--views", "9"])
+    assert exc.value.code == 2
