@@ -285,14 +285,17 @@ def _written(out_dir: Path, write, *args, field: str | None = "-o"):
 def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
     """Into ``summary`` (and run.reports): the intrinsics each camera started from and ended
     with (reports/intrinsics.json), and the run's warnings (the calibration's, the baseline
-    check of the centres), each also logged."""
+    check of the centres, the edges on no cycle), each also logged."""
+    from rotonly_cli.stages.average import unchecked_edges, unchecked_edges_warning
     from rotonly_cli.stages.translate import baseline_warning
 
     if run.calibration is not None:
         run.reports["intrinsics"] = run.calibration.finish(scene)
         summary.update(run.calibration.summary())
-    positions = baseline_warning(run.reports.get("translate"))
-    summary["warnings"] = summary.get("warnings", []) + ([positions] if positions else [])
+    bridges = unchecked_edges(run.graph, set(scene.poses))
+    summary["edges_on_no_cycle"] = [list(pair) for pair in bridges]
+    found = [baseline_warning(run.reports.get("translate")), unchecked_edges_warning(bridges)]
+    summary["warnings"] = summary.get("warnings", []) + [warning for warning in found if warning]
     for warning in summary["warnings"]:
         logger.warning("%s", warning)
 

@@ -169,6 +169,45 @@ def largest_component(graph: ViewGraph, reason: str = "outside largest component
     return keep
 
 
+def bridge_edges(edges: list[tuple[int, int]]) -> list[bool]:
+    """Per edge (view id pairs), whether it is a bridge: no cycle of ``edges`` runs through it,
+    so nothing but its own two-view estimate says where its far side is (cycle consistency
+    and the averaging's residuals cannot check it). Iterative DFS with low-links (Tarjan),
+    O(views + edges); a repeated pair is a cycle of two."""
+    neighbours: dict[int, list[tuple[int, int]]] = {}
+    for k, (i, j) in enumerate(edges):
+        neighbours.setdefault(i, []).append((j, k))
+        neighbours.setdefault(j, []).append((i, k))
+    order: dict[int, int] = {}
+    low: dict[int, int] = {}
+    bridge = [False] * len(edges)
+    for root in neighbours:
+        if root in order:
+            continue
+        order[root] = low[root] = len(order)
+        stack = [(root, -1, iter(neighbours[root]))]  # (view, edge it was reached by, its neighbours)
+        while stack:
+            view, via, rest = stack[-1]
+            step = next(rest, None)
+            if step is None:
+                stack.pop()
+                if stack:
+                    parent = stack[-1][0]
+                    low[parent] = min(low[parent], low[view])
+                    if low[view] > order[parent]:
+                        bridge[via] = True
+                continue
+            other, k = step
+            if k == via:
+                continue
+            if other in order:
+                low[view] = min(low[view], order[other])
+            else:
+                order[other] = low[other] = len(order)
+                stack.append((other, k, iter(neighbours[other])))
+    return bridge
+
+
 def regular_edges(graph: ViewGraph) -> list[int]:
     """Active REGULAR edges: the ones whose matches constrain a translation."""
     return [k for k in graph.active_edges() if graph.edges[k].scene_kind == SceneKind.REGULAR.value]

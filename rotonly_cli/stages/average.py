@@ -17,7 +17,7 @@ import numpy as np
 from rotonly_cli.errors import AlgorithmError
 from rotonly_cli.geometry.averaging import AveragingOptions, average_rotations
 from rotonly_cli.options import AverageOptions
-from rotonly_cli.scene.view_graph import ViewGraph, largest_component, view_index
+from rotonly_cli.scene.view_graph import ViewGraph, bridge_edges, largest_component, view_index
 
 logger = logging.getLogger(__name__)
 OUTLIER_REASON = "rotation averaging outlier"
@@ -76,3 +76,25 @@ def average_graph(graph: ViewGraph, options: AverageOptions = AverageOptions()) 
     logger.info("average: %d views registered, %d outlier edges filtered in %d round(s)", len(component),
                 num_outliers, len(rounds))
     return R, report
+
+
+def unchecked_edges(graph: ViewGraph, registered: set[int]) -> list[tuple[int, int]]:
+    """The active edges between ``registered`` views that no cycle of those edges runs through
+    (bridges): the rotation between their two sides is that pair's two-view estimate alone, and
+    neither the averaging's residuals nor GRRM can tell a wrong one. None with fewer than three
+    registered views (two views have nothing else to check against)."""
+    if len(registered) < 3:
+        return []
+    pairs = [(graph.edges[k].i, graph.edges[k].j) for k in graph.active_edges()
+             if graph.edges[k].i in registered and graph.edges[k].j in registered]
+    return [pair for pair, bridge in zip(pairs, bridge_edges(pairs)) if bridge]
+
+
+def unchecked_edges_warning(edges: list[tuple[int, int]], max_shown: int = 8) -> str | None:
+    """The run summary's warning for :func:`unchecked_edges`; None without any."""
+    if not edges:
+        return None
+    shown = ", ".join(f"{i}-{j}" for i, j in edges[:max_shown]) + (" ..." if len(edges) > max_shown else "")
+    return (f"{len(edges)} pair(s) of the view graph lie on no cycle (edges {shown}): the rotation across each "
+            f"rests on that pair's two-view estimate alone, which nothing checks; images overlapping both sides "
+            f"would close cycles (reports/run.json: edges_on_no_cycle)")

@@ -11,7 +11,7 @@ from rotonly_cli.errors import InputError
 from rotonly_cli.geometry import so3
 from rotonly_cli.io.workspace import WorkspaceState, load_state, save_state, write_view_graph_json
 from rotonly_cli.scene.types import View
-from rotonly_cli.scene.view_graph import Edge, ViewGraph, largest_component
+from rotonly_cli.scene.view_graph import Edge, ViewGraph, bridge_edges, largest_component
 
 
 def _graph(pairs: list[tuple[int, int]], num_views: int, seed: int = 0) -> ViewGraph:
@@ -40,6 +40,33 @@ def test_tie_goes_to_the_component_with_the_smallest_view_id():
     graph = _graph([(3, 4), (1, 2)], num_views=4)
     assert largest_component(graph) == [1, 2]
     assert graph.unregistered_views == [3, 4]
+
+
+def test_bridge_edges_are_the_ones_on_no_cycle():
+    # a chain: every edge
+    assert bridge_edges([(3, 7), (7, 10), (10, 11)]) == [True, True, True]
+    # two triangles joined by one edge, and a leaf on the second
+    pairs = [(0, 1), (1, 2), (2, 0), (2, 3), (3, 4), (4, 5), (5, 3), (5, 6)]
+    assert bridge_edges(pairs) == [False, False, False, True, False, False, False, True]
+    # the same pair twice is a cycle of two; a second component is searched too
+    assert bridge_edges([(0, 1), (0, 1), (5, 6)]) == [False, False, True]
+    # a long cycle with a chord: no bridge (the DFS is iterative, no recursion limit)
+    ring = [(v, (v + 1) % 5000) for v in range(5000)] + [(0, 2500)]
+    assert not any(bridge_edges(ring))
+    assert bridge_edges([]) == []
+
+
+def test_unchecked_edges_warn_for_the_chain_part_only():
+    from rotonly_cli.stages.average import unchecked_edges, unchecked_edges_warning
+
+    graph = _graph([(1, 2), (2, 3), (1, 3), (3, 4), (4, 5), (5, 6)], num_views=6)
+    graph.edges[5].filter("too few inliers")  # 5-6 is not in the graph the run used
+    assert unchecked_edges(graph, {1, 2, 3, 4, 5}) == [(3, 4), (4, 5)]
+    assert unchecked_edges(graph, {1, 2, 3}) == []  # the triangle checks itself
+    assert unchecked_edges(graph, {3, 4}) == []  # two views: nothing to check against
+    warning = unchecked_edges_warning([(3, 4), (4, 5)])
+    assert warning.startswith("2 pair(s) of the view graph lie on no cycle (edges 3-4, 4-5)")
+    assert unchecked_edges_warning([]) is None
 
 
 def test_first_filter_reason_wins_and_filtering_can_disconnect():
