@@ -40,7 +40,13 @@ from scipy.sparse.linalg import eigsh
 
 from rotonly_cli.errors import AlgorithmError, InputError
 from rotonly_cli.geometry.so3 import hat
-from rotonly_cli.geometry.tracks import EVALUATION_PARTS, even_ranges, pairs_within_tracks, segment_sums
+from rotonly_cli.geometry.tracks import (
+    EVALUATION_PARTS,
+    even_ranges,
+    in_tracks_of_two,
+    pairs_within_tracks,
+    segment_sums,
+)
 from rotonly_cli.options import LiGTOptions
 
 __all__ = ["LiGTOptions", "LiGTResult", "RobustLiGTResult", "ligt_translations", "ligt_normal_matrix",
@@ -355,8 +361,6 @@ def rigid_views(obs_track: np.ndarray, obs_view: np.ndarray, num_views: int,
     ``max_track_views`` views stand for it. The largest set counts views, then pairs."""
     from scipy.sparse.csgraph import connected_components
 
-    from rotonly_cli.geometry.tracks import pairs_within_tracks
-
     obs_track = np.asarray(obs_track, dtype=np.int64)
     obs_view = np.asarray(obs_view, dtype=np.int64)
     if view_mask is not None:
@@ -457,9 +461,7 @@ def observation_errors(R: np.ndarray, centers: np.ndarray, obs_track: np.ndarray
     from rotonly_cli.geometry.triangulation import TriangulationOptions, triangulate_tracks
 
     posed = np.all(np.isfinite(centers), axis=1)
-    used = used & posed[obs_view]
-    counts = np.bincount(obs_track[used], minlength=int(obs_track.max()) + 1 if obs_track.size else 0)
-    used &= counts[obs_track] >= 2
+    used = in_tracks_of_two(obs_track, used & posed[obs_view])
     error = np.full(obs_track.size, np.inf)
     if not used.any():
         return error
@@ -638,20 +640,14 @@ def _updated_normal_matrix(parts: _TrackParts, assembled, used: np.ndarray, peer
     return _merged_normal_matrix(normal) if normal else None
 
 
-def _tracks_of_two(obs_track: np.ndarray, selected: np.ndarray) -> np.ndarray:
-    """``selected`` without the observations left alone in their track."""
-    counts = np.bincount(obs_track[selected], minlength=int(obs_track.max()) + 1 if obs_track.size else 0)
-    return selected & (counts[obs_track] >= 2)
-
-
 def _rigid_observations(parts: _TrackParts, keep: np.ndarray, view_mask: np.ndarray | None,
                         options: LiGTOptions) -> tuple[np.ndarray, np.ndarray]:
     """(the ``keep`` observations a solve uses: those of the largest rigid set of views
     (:func:`rigid_views`) in tracks of two or more; that set (n,) bool)."""
-    used = _tracks_of_two(parts.obs_track, keep)
+    used = in_tracks_of_two(parts.obs_track, keep)
     rigid = rigid_views(parts.obs_track[used], parts.obs_view[used], parts.R.shape[0], view_mask,
                         options.max_base_search_views)
-    return _tracks_of_two(parts.obs_track, used & rigid[parts.obs_view]), rigid
+    return in_tracks_of_two(parts.obs_track, used & rigid[parts.obs_view]), rigid
 
 
 def _robust_rounds(parts: _TrackParts, obs_focal_px: np.ndarray, view_mask: np.ndarray | None,

@@ -137,6 +137,13 @@ def gather_observations(tracks: Tracks, per_view_points: Sequence[np.ndarray]) -
     return stacked[start[tracks.view] + tracks.feature]
 
 
+def in_tracks_of_two(obs_track: np.ndarray, selected: np.ndarray) -> np.ndarray:
+    """``selected`` (per observation, bool) without the observations left alone in their track
+    (``obs_track``: track id per observation)."""
+    counts = np.bincount(obs_track[selected], minlength=int(obs_track.max()) + 1 if obs_track.size else 0)
+    return selected & (counts[obs_track] >= 2)
+
+
 def pairs_within_tracks(offsets: np.ndarray, max_pairs: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """All ordered observation pairs ``(a, b)``, ``a < b``, inside each track; vectorised.
 

@@ -18,6 +18,7 @@ from rotonly_cli.errors import AlgorithmError
 from rotonly_cli.geometry.averaging import AveragingOptions, average_rotations
 from rotonly_cli.options import AverageOptions
 from rotonly_cli.scene.view_graph import ViewGraph, bridge_edges, largest_component, view_index
+from rotonly_cli.stages import listed
 
 logger = logging.getLogger(__name__)
 OUTLIER_REASON = "rotation averaging outlier"
@@ -94,7 +95,7 @@ def unchecked_edges_warning(edges: list[tuple[int, int]], max_shown: int = 8) ->
     """The run summary's warning for :func:`unchecked_edges`; None without any."""
     if not edges:
         return None
-    shown = ", ".join(f"{i}-{j}" for i, j in edges[:max_shown]) + (" ..." if len(edges) > max_shown else "")
+    shown = listed((f"{i}-{j}" for i, j in edges), max_shown)
     return (f"{len(edges)} pair(s) of the view graph lie on no cycle (edges {shown}): the rotation across each "
             f"rests on that pair's two-view estimate alone, which nothing checks; images overlapping both sides "
             f"would close cycles (reports/run.json: edges_on_no_cycle)")

@@ -20,6 +20,7 @@ from rotonly_cli.geometry.ligt import (
 )
 from rotonly_cli.scene.tracks import TrackCache, graph_tracks
 from rotonly_cli.scene.view_graph import ViewGraph, regular_edges, view_index
+from rotonly_cli.stages import listed
 
 logger = logging.getLogger(__name__)
 
@@ -73,7 +74,7 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
         logger.debug("translate round %d: %d observations, sigma %.3f px, threshold %.2f px, %d dropped, "
                      "%d re-admitted", number, round_["observations"], round_["sigma_px"], round_["threshold_px"],
                      round_["dropped"], round_["readmitted"])
-    shown = ", ".join(map(str, without[:8])) + (" ..." if len(without) > 8 else "")
+    shown = listed(map(str, without))
     logger.info("translate (LiGT): %d tracks, %d REGULAR edges, %d views with a centre%s; %d of %d "
                 "observations kept", tracks.num_tracks, len(edges), report["num_views_with_centre"],
                 f", {len(without)} without (views {shown}: outside the largest set of views whose distances "
@@ -114,8 +115,8 @@ def baseline_warning(report: dict | None) -> str | None:
     off = views_off(report)
     if not off:
         return None
-    shown = ", ".join(f"{v} ({angle:.0f} deg)" for v, angle in list(off.items())[:8])
+    shown = listed(f"{v} ({angle:.0f} deg)" for v, angle in off.items())
     return (f"positions may have collapsed: the centre(s) of {len(off)} view(s) disagree with their pairs' own "
             f"translation directions by more than {report['baselines']['threshold_deg']:g} deg (median over their "
-            f"edges): view {shown}{' ...' if len(off) > 8 else ''}; LiGT may have shrunk the other centres around "
+            f"edges): view {shown}; LiGT may have shrunk the other centres around "
             f"one point (reports/translate.json)")

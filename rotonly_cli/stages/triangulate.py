@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.geometry.ligt import LiGTOptions, observation_errors, outlier_threshold_px
-from rotonly_cli.geometry.tracks import Tracks, tracks_from_arrays
+from rotonly_cli.geometry.tracks import Tracks, in_tracks_of_two, tracks_from_arrays
 from rotonly_cli.geometry.triangulation import TriangulationOptions, triangulate_tracks
 from rotonly_cli.io.images import image_file
 from rotonly_cli.scene.ids import observation_lists
@@ -180,8 +180,7 @@ def start_keypoint_colors(scene: SfMScene, image_root: str | Path | None) -> For
 def _keep_observations(tracks: Tracks, obs_xy: np.ndarray, keep: np.ndarray) -> tuple[Tracks, np.ndarray]:
     """The tracks without the observations where ``keep`` is False; tracks left with fewer
     than two observations go."""
-    counts = np.bincount(tracks.track_id[keep], minlength=tracks.num_tracks)
-    keep = keep & (counts[tracks.track_id] >= 2)
+    keep = in_tracks_of_two(tracks.track_id, keep)
     if keep.all():
         return tracks, obs_xy
     track_id = np.unique(tracks.track_id[keep], return_inverse=True)[1]
