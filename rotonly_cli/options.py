@@ -412,6 +412,11 @@ class IntrinsicsOptions:
     #: 15 iterations instead of 9 on fountain-P11's guessed focal, for 0.001 px of focal)
     ba_function_tolerance: float = 1e-6
     max_rounds: int = 4
+    #: the principal point is estimated only for a camera (or group of cameras given the same
+    #: intrinsics) seen in at least this many images: in one image a shift of it is, to first
+    #: order, a rotation of the camera (fountain-P11 with a camera per image: the eleven
+    #: estimates spread over 749-767 px, GT 761; shared, 759.4 px)
+    min_images_principal_point: int = 2
     #: a parameter group (focal, principal point, distortion) changes only when the change
     #: moves some pixel of the image by more than this fraction of its half diagonal
     #: (0.5 %: 4.6 px on 1536 x 1024; calibrated inputs move by <= 4.2 px)
@@ -428,6 +433,8 @@ class IntrinsicsOptions:
     def validate(self) -> IntrinsicsOptions:
         if self.mode not in INTRINSICS_MODES:
             raise InputError(f"must be one of {', '.join(INTRINSICS_MODES)}", field="intrinsics")
+        if self.min_images_principal_point < 1:
+            raise InputError("min_images_principal_point >= 1 needed", field="intrinsics")
         if self.max_points < 100 or self.max_rounds < 1:
             raise InputError("max_points >= 100 and max_rounds >= 1 needed", field="intrinsics")
         if not 0 <= self.ba_function_tolerance < 1:

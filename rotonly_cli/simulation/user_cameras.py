@@ -64,16 +64,19 @@ def arc_scene(rng: np.random.Generator, num_views: int = 8, num_points: int = 40
 
 def simulate_user_cameras(seed: int, focal_error: float, k1: float, *, num_views: int = 8, num_points: int = 4000,
                           noise_px: float = 0.5, outlier_fraction: float = 0.05, width: int = 1536,
-                          height: int = 1024, focal: float = 1380.0, min_shared: int = 50) -> UserCameraProblem:
-    """One problem: the true camera SIMPLE_RADIAL(focal, centre, k1); the guess has the focal
-    off by ``focal_error`` (relative) and no distortion. Keypoints: projections through the
+                          height: int = 1024, focal: float = 1380.0, min_shared: int = 50,
+                          principal_offset: tuple[float, float] = (0.0, 0.0)) -> UserCameraProblem:
+    """One problem: the true camera SIMPLE_RADIAL(focal, centre + ``principal_offset``, k1);
+    the guess has the focal off by ``focal_error`` (relative), the principal point at the
+    image centre and no distortion. Keypoints: projections through the
     true camera plus Gaussian noise (``noise_px`` per coordinate); ``outlier_fraction`` of
     each pair's matches point at a random keypoint."""
     from rotonly_cli.io.colmap.cameras import pycolmap_camera
 
     rng = np.random.default_rng(seed)
     rotations, centers, points = arc_scene(rng, num_views, num_points)
-    true = Intrinsics(1, "SIMPLE_RADIAL", width, height, np.array([focal, width / 2, height / 2, k1]))
+    true = Intrinsics(1, "SIMPLE_RADIAL", width, height,
+                      np.array([focal, width / 2 + principal_offset[0], height / 2 + principal_offset[1], k1]))
     guessed = Intrinsics(1, "SIMPLE_RADIAL", width, height,
                          np.array([focal * (1 + focal_error), width / 2, height / 2, 0.0]), prior_focal=False)
     camera = pycolmap_camera(true)
@@ -126,14 +129,17 @@ def verified_pairs(problem: UserCameraProblem) -> dict[tuple[int, int], PairMatc
 
 
 def user_scene(problem: UserCameraProblem, intrinsics: Intrinsics,
-               pairs: dict[tuple[int, int], PairMatches]) -> SfMScene:
-    """The input scene: one camera ``intrinsics``, the keypoints, the verified ``pairs``."""
+               pairs: dict[tuple[int, int], PairMatches], camera_per_view: bool = False) -> SfMScene:
+    """The input scene: one camera ``intrinsics`` (or, with ``camera_per_view``, a copy of it
+    per view, ids ``intrinsics.id`` + view - 1: what COLMAP's feature extractor makes by
+    default), the keypoints, the verified ``pairs``."""
     from rotonly_cli.io.cameras import normalize
 
     scene = SfMScene(source="simulation")
-    scene.intrinsics[intrinsics.id] = intrinsics
     for view_id, name in problem.names.items():
-        scene.views[view_id] = View(view_id, name, intrinsics.id, width=intrinsics.width, height=intrinsics.height)
+        camera_id = intrinsics.id + (view_id - 1 if camera_per_view else 0)
+        scene.intrinsics[camera_id] = replace(intrinsics, id=camera_id)
+        scene.views[view_id] = View(view_id, name, camera_id, width=intrinsics.width, height=intrinsics.height)
         scene.keypoints[view_id] = problem.keypoints[view_id]
         scene.normalized[view_id] = normalize(intrinsics, problem.keypoints[view_id])
     scene.pairs = {key: replace(pair) for key, pair in sorted(pairs.items())}
@@ -158,10 +164,11 @@ def openmvg_intrinsics(intrinsics: Intrinsics) -> Intrinsics:
 
 
 def write_inputs(out_dir: PathLike, problem: UserCameraProblem, formats: tuple[str, ...] = ("colmap", "openmvg"),
-                 true_intrinsics: bool = False) -> dict[str, Path]:
+                 true_intrinsics: bool = False, camera_per_view: bool = False) -> dict[str, Path]:
     """``out_dir/database.db`` (COLMAP) and ``out_dir/openmvg/sfm_data.json`` (OpenMVG, with its
-    features and matches) with the guessed intrinsics (or the true ones, marked known),
-    and ``out_dir/gt/sfm_data.json``. Returns the paths by format (and "gt")."""
+    features and matches) with the guessed intrinsics (or the true ones, marked known; with
+    ``camera_per_view`` a camera per view), and ``out_dir/gt/sfm_data.json``. Returns the
+    paths by format (and "gt")."""
     from rotonly_cli.io import colmap, openmvg
     from rotonly_cli.scene.ids import shift_ids
 
@@ -172,10 +179,10 @@ def write_inputs(out_dir: PathLike, problem: UserCameraProblem, formats: tuple[s
     paths = {}
     if "colmap" in formats:
         paths["colmap"] = out_dir / "database.db"
-        colmap.write_database(paths["colmap"], user_scene(problem, intrinsics, pairs))
+        colmap.write_database(paths["colmap"], user_scene(problem, intrinsics, pairs, camera_per_view))
     if "openmvg" in formats:
-        openmvg.write_project(out_dir / "openmvg", shift_ids(user_scene(problem, openmvg_intrinsics(intrinsics), pairs),
-                                                             -1, 0))
+        openmvg.write_project(out_dir / "openmvg", shift_ids(user_scene(problem, openmvg_intrinsics(intrinsics), pairs,
+                                                                        camera_per_view), -1, 0))
         paths["openmvg"] = out_dir / "openmvg" / "sfm_data.json"
     paths["gt"] = out_dir / "gt" / "sfm_data.json"
     gt = replace(gt_scene(problem), intrinsics={1: replace(openmvg_intrinsics(problem.true), id=1)})

@@ -15,7 +15,8 @@ the other stages (``--intrinsics auto|refine``; docs/algorithms.md §8):
    folder. The load stage then re-estimates every relative pose with a calibrated E.
 3. **Intrinsics from the reconstruction** (:func:`estimate_intrinsics`): once rotonly has
    rotations, centres and points, pycolmap's bundle adjuster estimates focal, principal
-   point and radial terms on the longest tracks. It moves poses and points too (with them
+   point and radial terms on the longest tracks (one principal point per set of cameras
+   given the same intrinsics, :func:`twin_cameras`, where at least two images see it). It moves poses and points too (with them
    held, K barely moves: docs/tuning.md "Intrinsics"), but it serves **only as an intrinsics
    estimator**: its poses and points are discarded, and the pipeline runs rotonly's own
    stages again on keypoints normalized with the new intrinsics. The poses rotonly writes
@@ -259,25 +260,30 @@ def longest_tracks(scene: SfMScene, max_points: int, seed: int = 0) -> SfMScene:
     return replace(scene, structure=subset)
 
 
-def estimate_intrinsics(scene: SfMScene, refine: set[int],
-                        options: IntrinsicsOptions) -> tuple[dict[int, Intrinsics], dict]:
-    """Intrinsics of the cameras in ``refine`` (in :func:`io.cameras.refinement_model`
-    terms) estimated by pycolmap's bundle adjuster on the posed ``scene``'s longest tracks,
-    every pose, point and those cameras' parameters free (two cameras fix the gauge). The
-    adjusted poses and points are discarded: only the intrinsics leave this function."""
+def twin_cameras(intrinsics: dict[int, Intrinsics], camera_ids) -> list[list[int]]:
+    """``camera_ids`` grouped by identical intrinsics as given (model, size, parameters and
+    whether the focal is a guess): what COLMAP's front end makes of one device when it
+    gives every image its own camera (its default), each group sorted."""
+    groups: dict[tuple, list[int]] = {}
+    for camera_id in sorted(camera_ids):
+        k = intrinsics[camera_id]
+        key = (k.model, int(k.width), int(k.height), tuple(np.asarray(k.params, dtype=np.float64).ravel().tolist()),
+               k.prior_focal)
+        groups.setdefault(key, []).append(camera_id)
+    return list(groups.values())
+
+
+def _adjust(subset: SfMScene, refine: set[int], offset: int, options: IntrinsicsOptions, principal_point: bool):
+    """pycolmap's bundle adjuster on the posed ``subset``: every pose and point free, and the
+    parameters of the cameras in ``refine`` (the principal point only if
+    ``principal_point``); two cameras fix the gauge. Returns (reconstruction, summary, mean
+    reprojection error before)."""
     import pycolmap
 
-    start = time.perf_counter()
-    models = {camera_id: cameras.refinement_model(intrinsic) for camera_id, intrinsic in scene.intrinsics.items()}
-    unsupported = sorted(c for c in refine if models.get(c) is None)
-    refine = {c for c in refine if models.get(c) is not None}
-    subset = longest_tracks(scene, options.max_points, options.seed)
-    subset = replace(subset, intrinsics={c: models[c] or cameras.to_colmap_intrinsics(k)
-                                         for c, k in scene.intrinsics.items()})
     reconstruction = model_reconstruction(subset)
-    offset = id_offset(scene.intrinsics)
     ba = pycolmap.BundleAdjustmentOptions()
-    ba.refine_focal_length = ba.refine_principal_point = ba.refine_extra_params = True
+    ba.refine_focal_length = ba.refine_extra_params = True
+    ba.refine_principal_point = principal_point
     ba.refine_rig_from_world = ba.refine_points3D = True
     ba.print_summary = False
     ba.ceres.solver_options.max_num_iterations = 100
@@ -292,6 +298,89 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int],
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
     error_before = reconstruction.compute_mean_reprojection_error()
     summary = pycolmap.create_default_bundle_adjuster(ba, config, reconstruction).solve()
+    return reconstruction, summary, error_before
+
+
+def _merged(subset: SfMScene, groups: list[list[int]]) -> SfMScene:
+    """``subset`` with the cameras of each group as one camera (the group's first, with the
+    median of the group's focal lengths), which all the group's views use."""
+    intrinsics, owner = dict(subset.intrinsics), {}
+    for group in groups:
+        first = intrinsics[group[0]]
+        focal = cameras.parameter_groups(first)["focal"]
+        params = np.array(first.params, dtype=np.float64)
+        params[focal] = np.median([np.asarray(intrinsics[c].params, dtype=np.float64)[focal] for c in group], axis=0)
+        intrinsics[group[0]] = replace(first, params=params)
+        for camera_id in group[1:]:
+            del intrinsics[camera_id]
+            owner[camera_id] = group[0]
+    views = {v: replace(view, intrinsics_id=owner.get(view.intrinsics_id, view.intrinsics_id))
+             for v, view in subset.views.items()}
+    return replace(subset, intrinsics=intrinsics, views=views)
+
+
+def _with_params(subset: SfMScene, params: dict[int, np.ndarray]) -> SfMScene:
+    intrinsics = dict(subset.intrinsics)
+    for camera_id, values in params.items():
+        intrinsics[camera_id] = replace(intrinsics[camera_id], params=np.array(values, dtype=np.float64))
+    return replace(subset, intrinsics=intrinsics)
+
+
+def estimate_intrinsics(scene: SfMScene, refine: set[int], options: IntrinsicsOptions,
+                        twins: list[list[int]] = ()) -> tuple[dict[int, Intrinsics], dict]:
+    """Intrinsics of the cameras in ``refine`` (in :func:`io.cameras.refinement_model`
+    terms) estimated by pycolmap's bundle adjuster on the posed ``scene``'s longest tracks,
+    every pose, point and those cameras' parameters free (two cameras fix the gauge). The
+    adjusted poses and points are discarded: only the intrinsics leave this function.
+
+    The principal point is estimated per group of ``twins`` (cameras given identical
+    intrinsics, :func:`twin_cameras`; a camera not named there is its own group), shared by
+    the group's cameras, and only for a group seen in at least
+    ``options.min_images_principal_point`` images; the other groups keep theirs. A shift of
+    the principal point of one image is, to first order, a rotation of that camera
+    (docs/algorithms.md §8), so only the images that share it pin it down. With a group of
+    several cameras or a principal point kept, a first adjustment estimates the shared
+    principal points (each group as one camera) and a second the focal lengths and
+    distortion per camera, with the principal points held."""
+    start = time.perf_counter()
+    models = {camera_id: cameras.refinement_model(intrinsic) for camera_id, intrinsic in scene.intrinsics.items()}
+    unsupported = sorted(c for c in refine if models.get(c) is None)
+    refine = {c for c in refine if models.get(c) is not None}
+    subset = longest_tracks(scene, options.max_points, options.seed)
+    subset = replace(subset, intrinsics={c: models[c] or cameras.to_colmap_intrinsics(k)
+                                         for c, k in scene.intrinsics.items()})
+    offset = id_offset(scene.intrinsics)
+    grouped = {c for group in twins for c in group}
+    groups = [[c for c in group if c in refine] for group in twins] + [[c] for c in sorted(refine - grouped)]
+    groups = [group for group in groups if group]
+    images = {c: 0 for c in refine}
+    for view_id in subset.poses:
+        camera_id = subset.views[view_id].intrinsics_id
+        if camera_id in images:
+            images[camera_id] += 1
+    shared = [group for group in groups if sum(images[c] for c in group) >= options.min_images_principal_point]
+    kept = [c for group in groups if group not in shared for c in group]
+    merged = [group for group in shared if len(group) > 1]
+    passes = 1
+    if not merged and not kept:
+        reconstruction, summary, error_before = _adjust(subset, refine, offset, options, True)
+    elif not shared:
+        reconstruction, summary, error_before = _adjust(subset, refine, offset, options, False)
+    else:
+        passes = 2
+        first, _, error_before = _adjust(_merged(subset, merged), refine, offset, options, True)
+        params = {c: np.array(first.cameras[c + offset].params, dtype=np.float64) for c in refine
+                  if c + offset in first.cameras}
+        for group in groups:
+            pp = cameras.parameter_groups(subset.intrinsics[group[0]])["principal_point"]
+            for camera_id in group:
+                values = params.get(camera_id, params[group[0]]).copy()
+                # a group seen in too few images keeps its principal point; the others share
+                # the one the group's images give
+                values[pp] = (np.asarray(subset.intrinsics[camera_id].params)[pp] if group not in shared
+                              else params[group[0]][pp])
+                params[camera_id] = values
+        reconstruction, summary, _ = _adjust(_with_params(subset, params), refine, offset, options, False)
     reconstruction.update_point_3d_errors()
     error_after = reconstruction.compute_mean_reprojection_error()
     estimated, rejected = {}, []
@@ -305,6 +394,8 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int],
     report = {"cameras": sorted(refine), "unsupported_models": unsupported, "implausible_estimates": rejected,
               "num_points": 0 if subset.structure is None else len(subset.structure.points),
               "num_images": len(reconstruction.reg_image_ids()),
+              "principal_point_groups": [group for group in shared], "principal_point_kept": sorted(kept),
+              "adjustments": passes,
               "mean_reprojection_error_px": [float(error_before), float(error_after)],
               "termination": getattr(summary.termination_type, "name", str(summary.termination_type)),
               "estimate": {str(c): describe(k) for c, k in estimated.items()},
@@ -454,7 +545,8 @@ class Calibration:
         """One round: the intrinsics estimated from the reconstruction ``posed``, each change
         kept when significant (:func:`gate`); ``scene`` takes the new intrinsics. True when
         they moved the image by no more than ``converged_shift`` (settled)."""
-        estimated, report = estimate_intrinsics(posed, set(self.calibrate), self.options)
+        estimated, report = estimate_intrinsics(posed, set(self.calibrate), self.options,
+                                                 twin_cameras(self.given, self.calibrate))
         changed, shifts, moved = {}, {}, 0.0
         for camera_id, estimate in estimated.items():
             # a focal the input marks as a guess has no value to protect: the view-graph focal
