@@ -2,13 +2,15 @@
 COLMAP's front end only guessed (issue 20's time and accuracy targets).
 
 Usage: python scripts/bench/guessed_focal.py --scene DATA/strecha/fountain-P11
-                                       [--database DB] [--rounds N] [-o RESULTS_DIR]
-                                       [--results-md docs/results.md]
+                                       [--database DB] [--camera-per-image] [--rounds N]
+                                       [-o RESULTS_DIR] [--results-md docs/results.md]
 
 Both tools get the same database (``SCENE/database_guessed_focal.db`` by default: COLMAP 3.8's
 CLI defaults, ``SIMPLE_RADIAL``, f guessed as 1.2 x the image size, ``prior_focal_length =
-0``), the mapper on a private copy, in N alternating rounds (strecha_tools.alternating_runs: a slow
-stretch of the shared machine falls on both alike), timed as whole processes:
+0``; with ``--camera-per-image`` rewritten with a copy of the camera per image, as COLMAP's
+feature extractor leaves a database by default), the mapper on a private copy, in N
+alternating rounds (strecha_tools.alternating_runs: a slow stretch of the shared machine
+falls on both alike), timed as whole processes:
 
 * ``rotonly -q run DB -o OUT`` (default settings: ``--intrinsics auto`` calibrates the guess);
 * ``colmap mapper`` (the Debian package's CLI: incremental mapping with its bundle adjustment
@@ -43,7 +45,7 @@ from strecha_tools import (
 
 from rotonly_cli.bench import results_md
 from rotonly_cli.bench.common import code_version
-from rotonly_cli.io import detect, openmvg
+from rotonly_cli.io import colmap, detect, openmvg
 
 TARGET_RATIO = 0.3
 
@@ -71,12 +73,28 @@ def rotonly_result(out: Path, gt):
     return evaluate_scene("rotonly run", gt, openmvg.read_sfm_data(out / "sfm_data.json"), None), focal, report
 
 
+def camera_per_image(database: Path, out: Path) -> Path:
+    """``database`` written to ``out`` with every image on its own copy of its camera (what
+    ``colmap feature_extractor`` makes without ``--ImageReader.single_camera``)."""
+    from dataclasses import replace
+
+    scene = colmap.read_database(database)
+    intrinsics, views = {}, {}
+    for number, (view_id, view) in enumerate(sorted(scene.views.items()), start=1):
+        intrinsics[number] = replace(scene.intrinsics[view.intrinsics_id], id=number)
+        views[view_id] = replace(view, intrinsics_id=number)
+    colmap.write_database(out, replace(scene, intrinsics=intrinsics, views=views))
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", type=Path, required=True, help="Strecha scene folder (gt_dense_cameras/, images/)")
     parser.add_argument("--database", type=Path, default=None,
                         help="the database (default: SCENE/database_guessed_focal.db)")
+    parser.add_argument("--camera-per-image", action="store_true",
+                        help="give both tools the database with a camera per image (COLMAP's default)")
     parser.add_argument("--rounds", type=int, default=5, help="alternating rounds (default 5)")
     parser.add_argument("--colmap", default="colmap", help="the colmap executable (default: colmap on PATH)")
     parser.add_argument("-o", "--output", type=Path, default=Path("bench_results/guessed_focal"),
@@ -99,6 +117,9 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="guessed_focal.") as tmp:
         work = Path(tmp)
+        given = database
+        if args.camera_per_image:
+            database = camera_per_image(given, work / "camera_per_image.db")
 
         def mapper_run(k: int) -> list[str]:
             folder = _round_dir(work, "colmap", k)
@@ -134,10 +155,12 @@ def main(argv: list[str] | None = None) -> int:
         f"\n\nrotonly / colmap mapper, ratio of the median wall times over {args.rounds} alternating rounds: "
         f"**{ratio:.2f}x** (per round {per_round.min():.2f}-{per_round.max():.2f}x; target <= {TARGET_RATIO}x: "
         f"{verdict}). rotonly's warnings: {'; '.join(warnings) if warnings else 'none'}.\n\n"
-        f"Database {database.name} ({scene.name}); load average (1 min) at start / end {load_at_start:.1f} / "
+        f"Database {given.name}{' with a camera per image' if args.camera_per_image else ''} ({scene.name}); "
+        f"load average (1 min) at start / end {load_at_start:.1f} / "
         f"{os.getloadavg()[0]:.1f}; code {code_version()}; {time.perf_counter() - start:.0f} s in all.")
     print(body)
-    payload = {"database": str(database), "rounds": args.rounds, "times_s": times, "ratio_of_medians": ratio,
+    payload = {"database": str(given), "camera_per_image": args.camera_per_image, "rounds": args.rounds,
+               "times_s": times, "ratio_of_medians": ratio,
                "rotonly": vars(ours), "colmap": None if theirs is None else vars(theirs),
                "focal_px": {"rotonly": ours_focal, "colmap": theirs_focal}, "rotonly_warnings": warnings,
                "code_version": code_version()}
@@ -147,7 +170,9 @@ def main(argv: list[str] | None = None) -> int:
     with staging_dir(results_dir) as out:
         (out / "results.json").write_text(json.dumps(payload, indent=1, default=float) + "\n")
         (out / "table.md").write_text(f"# Guessed focal: rotonly against colmap mapper\n\n{body}\n")
-    results_md.record(args.results_md, "guessed-focal", "Guessed focal: rotonly against colmap mapper",
+    section = "guessed-focal-per-image" if args.camera_per_image else "guessed-focal"
+    title = "Guessed focal, a camera per image" if args.camera_per_image else "Guessed focal"
+    results_md.record(args.results_md, section, f"{title}: rotonly against colmap mapper",
                       results_md.command_line("python scripts/bench/guessed_focal.py", argv), body)
     return 0
 

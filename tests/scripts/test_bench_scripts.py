@@ -323,3 +323,30 @@ def test_global_mapper_runs_as_a_process_and_both_times_are_kept(tmp_path):
     lines = bench_strecha.ratio_lines([ours, mapper])
     assert len(lines) == 2 and "0.25x (global_mapping call" in lines[1]
     assert f"{mapper.time_s / 4 / mapper.extra['process_wall_s']:.2f}x of its process wall" in lines[1]
+
+
+def test_guessed_focal_bench_gives_every_image_its_camera(tmp_path: Path):
+    """--camera-per-image: the same database as COLMAP's extractor leaves it by default."""
+    from rotonly_cli.io import colmap
+
+    sys.path.insert(0, str(ROOT / "scripts" / "bench"))
+    try:
+        guessed_focal = _load_script("guessed_focal")
+    finally:
+        sys.path.remove(str(ROOT / "scripts" / "bench"))
+    source = FIXTURES / "herzjesu_p8" / "database.db"
+    before = _digest(source)
+    given = colmap.read_database(source)
+    rewritten = colmap.read_database(guessed_focal.camera_per_image(source, tmp_path / "per_image.db"))
+    assert _digest(source) == before
+    assert len(given.intrinsics) == 1 and len(rewritten.intrinsics) == len(rewritten.views) == len(given.views)
+    assert sorted({view.intrinsics_id for view in rewritten.views.values()}) == sorted(rewritten.intrinsics)
+    for view_id, view in rewritten.views.items():
+        camera, original = rewritten.intrinsics[view.intrinsics_id], given.intrinsics[given.views[view_id].intrinsics_id]
+        assert (camera.model, camera.params.tolist(), camera.prior_focal) == \
+            (original.model, original.params.tolist(), original.prior_focal)
+        np.testing.assert_array_equal(rewritten.keypoints[view_id], given.keypoints[view_id])
+    assert sorted(rewritten.pairs) == sorted(given.pairs)
+    for key, pair in given.pairs.items():
+        np.testing.assert_array_equal(rewritten.pairs[key].matches, pair.matches)
+        assert rewritten.pairs[key].config == pair.config
