@@ -16,10 +16,11 @@ the other stages (``--intrinsics auto|refine``; docs/algorithms.md §8):
 3. **Intrinsics from the reconstruction** (:func:`estimate_intrinsics`): once rotonly has
    rotations, centres and points, pycolmap's bundle adjuster estimates focal, principal
    point and radial terms on the longest tracks (one principal point per set of cameras
-   given the same intrinsics, :func:`twin_cameras`, where at least two images see it). It moves poses and points too (with them
-   held, K barely moves: docs/tuning.md "Intrinsics"), but it serves **only as an intrinsics
-   estimator**: its poses and points are discarded, and the pipeline runs rotonly's own
-   stages again on keypoints normalized with the new intrinsics. The poses rotonly writes
+   given the same intrinsics, :func:`twin_cameras`, where at least two images see it). It
+   moves poses and points too (with them held, K barely moves: docs/tuning.md
+   "Intrinsics"), but it serves **only as an intrinsics estimator**: its poses and points
+   are discarded, and the pipeline runs rotonly's own stages again on keypoints normalized
+   with the new intrinsics. The poses rotonly writes
    are always the product of its rotation-only stages.
 4. **Only significant changes** (:func:`gate`): a change of the focal, the principal point
    or the distortion is kept when it moves some pixel of the image by more than

@@ -342,7 +342,8 @@ def test_guessed_focal_bench_gives_every_image_its_camera(tmp_path: Path):
     assert len(given.intrinsics) == 1 and len(rewritten.intrinsics) == len(rewritten.views) == len(given.views)
     assert sorted({view.intrinsics_id for view in rewritten.views.values()}) == sorted(rewritten.intrinsics)
     for view_id, view in rewritten.views.items():
-        camera, original = rewritten.intrinsics[view.intrinsics_id], given.intrinsics[given.views[view_id].intrinsics_id]
+        camera = rewritten.intrinsics[view.intrinsics_id]
+        original = given.intrinsics[given.views[view_id].intrinsics_id]
         assert (camera.model, camera.params.tolist(), camera.prior_focal) == \
             (original.model, original.params.tolist(), original.prior_focal)
         np.testing.assert_array_equal(rewritten.keypoints[view_id], given.keypoints[view_id])
