@@ -20,8 +20,8 @@ the other stages (``--intrinsics auto|refine``; docs/algorithms.md §8):
    moves poses and points too (with them held, K barely moves: docs/tuning.md
    "Intrinsics"), but it serves **only as an intrinsics estimator**: its poses and points
    are discarded, and the pipeline runs rotonly's own stages again on keypoints normalized
-   with the new intrinsics. The poses rotonly writes
-   are always the product of its rotation-only stages.
+   with the new intrinsics. The poses rotonly writes are always the product of its
+   rotation-only stages.
 4. **Only significant changes** (:func:`gate`): a change of the focal, the principal point
    or the distortion is kept when it moves some pixel of the image by more than
    ``min_shift`` of its half diagonal; refining parameters that were right costs accuracy.
@@ -375,7 +375,8 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int], options: IntrinsicsOp
         for group in groups:
             pp = cameras.parameter_groups(subset.intrinsics[group[0]])["principal_point"]
             for camera_id in group:
-                values = params.get(camera_id, params[group[0]]).copy()
+                # a merged group's other cameras start from the group's adjusted camera
+                values = (params[camera_id] if camera_id in params else params[group[0]]).copy()
                 # a group seen in too few images keeps its principal point; the others share
                 # the one the group's images give
                 values[pp] = (np.asarray(subset.intrinsics[camera_id].params)[pp] if group not in shared
@@ -395,7 +396,7 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int], options: IntrinsicsOp
     report = {"cameras": sorted(refine), "unsupported_models": unsupported, "implausible_estimates": rejected,
               "num_points": 0 if subset.structure is None else len(subset.structure.points),
               "num_images": len(reconstruction.reg_image_ids()),
-              "principal_point_groups": [group for group in shared], "principal_point_kept": sorted(kept),
+              "principal_point_groups": shared, "principal_point_kept": sorted(kept),
               "adjustments": passes,
               "mean_reprojection_error_px": [float(error_before), float(error_after)],
               "termination": getattr(summary.termination_type, "name", str(summary.termination_type)),
