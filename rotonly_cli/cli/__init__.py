@@ -228,8 +228,7 @@ def console_main() -> None:
     try:
         from rotonly_cli.runtime import startup
 
-        startup.one_blas_thread_per_process()  # before numpy is imported
-        startup.keep_freed_heap()
+        startup.rotonly_process_settings()  # before numpy is imported
         startup.defer_unused_numpy_submodules()
     except KeyboardInterrupt:
         click.echo("error: interrupted", err=True)

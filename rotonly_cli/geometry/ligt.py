@@ -36,16 +36,18 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import eigsh
+from scipy.sparse.linalg import LinearOperator, eigsh, splu
 
 from rotonly_cli.errors import AlgorithmError, InputError
 from rotonly_cli.geometry.so3 import hat
 from rotonly_cli.geometry.tracks import (
     EVALUATION_PARTS,
+    compact_track_ids,
     even_ranges,
     in_tracks_of_two,
     pairs_within_tracks,
     segment_sums,
+    track_starts,
 )
 from rotonly_cli.options import LiGTOptions
 
@@ -229,8 +231,6 @@ def _smallest_eigenvector(matrix: sp.csr_matrix, options: LiGTOptions) -> tuple[
         lift = 2.0 * float(np.abs(dense).sum(axis=1).max()) + 1.0
         values, vectors = np.linalg.eigh(dense + lift * (gauge @ gauge.T))
         return vectors[:, 0], values[: min(2, size - 3)]
-    from scipy.sparse.linalg import LinearOperator, splu
-
     # shift slightly below 0 so (LᵀL − σI) is positive definite: the null space makes LᵀL singular
     sigma = -1e-8 * matrix.diagonal().mean()
     factor = splu((matrix - sigma * sp.identity(size, format="csr")).tocsc())
@@ -276,8 +276,8 @@ def _view_masked_normal_matrix(R: np.ndarray, obs_track: np.ndarray, obs_view: n
         obs_track, obs_view, obs_xy = obs_track[keep], obs_view[keep], obs_xy[keep]
     if not obs_track.size:
         return None
-    tracks, compact = np.unique(obs_track, return_inverse=True)
-    LTL, extras = ligt_normal_matrix(R, compact.astype(np.int64), obs_view, obs_xy, R.shape[0], options)
+    tracks, compact = compact_track_ids(obs_track)
+    LTL, extras = ligt_normal_matrix(R, compact, obs_view, obs_xy, R.shape[0], options)
     extras["sign_track"] = tracks[extras["sign_track"]]
     return LTL, extras
 
@@ -369,7 +369,7 @@ def rigid_views(obs_track: np.ndarray, obs_view: np.ndarray, num_views: int,
     rigid = np.zeros(num_views, dtype=bool)
     if not obs_track.size:
         return rigid
-    starts = np.flatnonzero(np.r_[True, obs_track[1:] != obs_track[:-1]])
+    starts = track_starts(obs_track)
     length = np.diff(np.append(starts, obs_track.size))
     # a two-view body {a, b} joins only bodies that hold both a and b already: it adds no view
     # and links no two bodies that do not share a and b themselves. So the tracks of three or
@@ -442,10 +442,6 @@ class RobustLiGTResult:
     rounds: list[dict]  # per round: observations used, sigma, threshold, dropped, re-admitted
 
 
-def _renumber(track: np.ndarray) -> np.ndarray:
-    return np.unique(track, return_inverse=True)[1].astype(np.int64)
-
-
 #: Gauss-Newton steps of the points of :func:`observation_errors`: their errors decide drops at
 #: a pixel or more, and with 2 (of the final triangulation's 5) every drop on the eight Strecha
 #: inputs is the same (the written models are byte-identical); ~0.03 s of 0.13 s per call on
@@ -465,13 +461,13 @@ def observation_errors(R: np.ndarray, centers: np.ndarray, obs_track: np.ndarray
     error = np.full(obs_track.size, np.inf)
     if not used.any():
         return error
-    tracks_used = np.unique(obs_track[used])
+    tracks_used, track_index = compact_track_ids(obs_track[used])
     # the points only serve an outlier test at a pixel: two Gauss-Newton steps from the
     # linear start (the final triangulation takes five) and no parallax
     loose = TriangulationOptions(max_reprojection_error=np.inf, min_parallax_deg=0.0,
                                  num_refinement_iterations=ERROR_REFINEMENT_ITERATIONS)
     C = np.where(posed[:, None], centers, 0.0)
-    solved = triangulate_tracks(R, C, _renumber(obs_track[used]), obs_view[used], obs_xy[used],
+    solved = triangulate_tracks(R, C, track_index, obs_view[used], obs_xy[used],
                                 tracks_used.size, loose, with_parallax=False)
     point = np.full((int(obs_track.max()) + 1, 3), np.nan)
     point[tracks_used] = solved.points_in_world
@@ -545,8 +541,7 @@ class _TrackParts:
                  view_mask: np.ndarray | None, options: LiGTOptions):
         self.R, self.obs_track, self.obs_view, self.obs_xy = R, obs_track, obs_view, obs_xy
         self.view_mask, self.options = view_mask, options
-        starts = np.flatnonzero(np.r_[True, obs_track[1:] != obs_track[:-1]]) if obs_track.size else np.zeros(0, int)
-        bounds = np.append(starts, obs_track.size)
+        bounds = np.append(track_starts(obs_track), obs_track.size)
         self.ranges = [(int(bounds[a]), int(bounds[b])) for a, b in even_ranges(np.diff(bounds), EVALUATION_PARTS)]
 
     def __call__(self, message):

@@ -137,6 +137,22 @@ def gather_observations(tracks: Tracks, per_view_points: Sequence[np.ndarray]) -
     return stacked[start[tracks.view] + tracks.feature]
 
 
+def track_starts(obs_track: np.ndarray) -> np.ndarray:
+    """Index of each track's first observation, ``obs_track`` grouped by track (non-decreasing)."""
+    if not obs_track.size:
+        return np.zeros(0, dtype=np.int64)
+    return np.flatnonzero(np.r_[True, obs_track[1:] != obs_track[:-1]])
+
+
+def compact_track_ids(obs_track: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(the distinct track ids ascending, each observation's index among them) of ``obs_track``
+    grouped by track: ``np.unique(obs_track, return_inverse=True)`` without its sort."""
+    starts = track_starts(obs_track)
+    first = np.zeros(obs_track.size, dtype=np.int64)
+    first[starts] = 1
+    return obs_track[starts], np.cumsum(first) - 1
+
+
 def in_tracks_of_two(obs_track: np.ndarray, selected: np.ndarray) -> np.ndarray:
     """``selected`` (per observation, bool) without the observations left alone in their track
     (``obs_track``: track id per observation)."""

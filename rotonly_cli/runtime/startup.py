@@ -119,3 +119,11 @@ def collector_paused() -> Iterator[None]:
     finally:
         if enabled:
             gc.enable()
+
+
+def rotonly_process_settings() -> None:
+    """The process settings of ``rotonly`` (:func:`one_blas_thread_per_process`,
+    :func:`keep_freed_heap`), for the console script and for benchmarks that time rotonly's
+    stages in their own process; before numpy is imported."""
+    one_blas_thread_per_process()
+    keep_freed_heap()

@@ -40,8 +40,7 @@ from rotonly_cli.runtime import startup
 
 # the process `rotonly run` runs in (cli.console_main): one BLAS thread, freed heap kept;
 # before numpy is imported
-startup.one_blas_thread_per_process()
-startup.keep_freed_heap()
+startup.rotonly_process_settings()
 
 import numpy as np  # noqa: E402
 

@@ -3,8 +3,16 @@
 from __future__ import annotations
 
 import numpy as np
+from hypothesis import given
+from hypothesis import strategies as st
 
-from rotonly_cli.geometry.tracks import build_tracks, gather_observations, pairs_within_tracks
+from rotonly_cli.geometry.tracks import (
+    build_tracks,
+    compact_track_ids,
+    gather_observations,
+    pairs_within_tracks,
+    track_starts,
+)
 
 from helpers import make_street_scene
 
@@ -85,3 +93,13 @@ def test_empty_and_gather():
 def test_pairs_within_tracks():
     a, b = pairs_within_tracks(np.array([0, 3, 4, 6]))
     assert list(zip(a.tolist(), b.tolist())) == [(0, 1), (0, 2), (1, 2), (4, 5)]
+
+
+@given(st.lists(st.integers(0, 40), max_size=60))
+def test_compact_track_ids_are_numpy_unique_of_sorted_tracks(ids):
+    obs_track = np.sort(np.asarray(ids, dtype=np.int64))
+    distinct, index = compact_track_ids(obs_track)
+    expected, inverse = np.unique(obs_track, return_inverse=True)
+    np.testing.assert_array_equal(distinct, expected)
+    np.testing.assert_array_equal(index, inverse.ravel())
+    np.testing.assert_array_equal(obs_track[track_starts(obs_track)], expected)
