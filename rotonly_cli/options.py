@@ -347,8 +347,10 @@ class LoadOptions:
     #: the largest edges whose RANSAC inliers give the noise sigma
     noise_sample_edges: int = 30
     #: seeded RANSAC runs per edge; an edge keeps the matches that are inliers of all of them
-    #: (the stable consensus) and the pose of the run closest to the others
-    consensus_runs: int = 3
+    #: (the stable consensus) and the pose of the run closest to the others. Four, not three:
+    #: three runs can all settle on the same wrong model of a repeated-structure pair
+    #: (docs/tuning.md, castle-P19's OpenMVG matches)
+    consensus_runs: int = 4
     #: a RANSAC run on an edge with more matches samples and scores a seeded random subset of
     #: this size; the inliers are then all matches within the threshold of its model. Its cost
     #: grows with the matches (~15 µs each: the local optimisation), its model's accuracy hardly
