@@ -94,6 +94,7 @@ def optimize_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_fr
               "rotation_change_deg": {"mean": float(change.mean()), "max": float(change.max())},
               "views_kept_averaged": sorted(registered - set(views)),
               "history": list(result.history), "processes": int(result.processes),
+              "start": result.start, "descents": int(result.descents),
               "time_s": time.perf_counter() - start}
     logger.info("optimize (GRRM): %d views, %d edges, cost %.6g -> %.6g in %d iterations, mean change %.4f deg",
                 len(views), len(edges), result.initial_cost, result.cost, result.iterations, change.mean())

@@ -2,9 +2,10 @@
 edges, 2124 matches; data_fixtures/grrm_castle_subset, made by
 scripts/fixtures/make_grrm_subset_fixture.py) from its averaged start, 0.05-0.32 deg off.
 
-GRRM's first step from there is 0.3 deg, so the λ_min phase runs, and its end has the lower
-GRRM cost; but GRRM from it turns views 16 and 18 about 1.2 deg off against a 412-match pair
-(mean 0.74 deg), where GRRM from the averaged start ends at a lower cost and 0.03-0.15 deg."""
+GRRM's first step from there is no small accepted one, so the λ_min phase runs, and its end
+has the lower GRRM cost; but GRRM from it turns views 16 and 18 about 1.2 deg off against a
+412-match pair (mean 0.74 deg), where GRRM from the averaged start ends at a lower cost and
+0.03-0.15 deg."""
 
 from __future__ import annotations
 
@@ -42,6 +43,7 @@ def test_grrm_keeps_the_descent_from_the_averaged_start_when_it_ends_lower(subse
     result = _grrm(subset, GRRMOptions())
     errors = _errors_deg(result.R_cam_from_world, subset["R_gt"])
     assert errors.max() < 0.2 and errors.mean() < start.mean()  # 0.15 / 0.076 deg reached
+    assert (result.descents, result.start) == (2, "input")
     # the other descent: from the λ_min phase's end, at the same loss scale, it ends worse
     batch = EdgeBatch(subset["x_i"], subset["x_j"], subset["offsets"])
     free = np.ones(3 * len(subset["R_start"]), dtype=bool)

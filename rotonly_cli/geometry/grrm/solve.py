@@ -6,7 +6,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.linalg
@@ -34,6 +34,10 @@ class GRRMResult:
     num_observations: int = 0
     loss_scale: float = 0.0
     processes: int = 1  #: processes the evaluation ran in (GRRMSystem.parallel)
+    #: where the kept descent started: "input", or "lambda_min" (the λ_min phase's end; GRRM
+    #: then also descended from the input start, and kept the lower final cost)
+    start: str = "input"
+    descents: int = 1  #: LM descents run (2 when the λ_min phase's start was taken)
 
 
 def validate_inputs(R_cam_from_world, edge_views, batch: pg.EdgeBatch,
@@ -312,10 +316,10 @@ def _levenberg_marquardt(problem: GRRMSystem, R: np.ndarray, edge_views: np.ndar
         other = descend(R_input, *from_input[1:])
         problem.batch = batch
         ends = [problem.linearize(r.R_cam_from_world, options.loss, scale, False, False)[0] for r in (result, other)]
-        log.debug("GRRM: from the λ_min phase's start cost %.6e, from the input start %.6e; %s kept", ends[0],
-                  ends[1], "the first" if ends[0] <= ends[1] else "the second")
-        if ends[1] < ends[0]:
-            result = other
+        result = replace(result, start="lambda_min") if ends[0] <= ends[1] else other
+        log.debug("GRRM: final cost from the λ_min phase's start %.6e, from the input start %.6e: the %s kept",
+                  ends[0], ends[1], "first" if result.start == "lambda_min" else "second")
+        result.descents = 2
     return result
 
 
