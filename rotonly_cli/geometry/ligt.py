@@ -46,6 +46,7 @@ from rotonly_cli.geometry.tracks import (
     even_ranges,
     in_tracks_of_two,
     pairs_within_tracks,
+    segment_indices,
     segment_sums,
     track_starts,
 )
@@ -384,7 +385,7 @@ def rigid_views(obs_track: np.ndarray, obs_view: np.ndarray, num_views: int,
         return rigid
     starts, length = starts[length >= 3], length[length >= 3]
     capped = np.minimum(length, max_track_views)
-    first = np.repeat(starts, capped) + (np.arange(capped.sum()) - np.repeat(np.cumsum(capped) - capped, capped))
+    first = segment_indices(starts, capped)
     offsets = np.zeros(capped.size + 1, dtype=np.int64)
     np.cumsum(capped, out=offsets[1:])
     a, b = pairs_within_tracks(offsets)

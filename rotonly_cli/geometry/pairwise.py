@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rotonly_cli.geometry import so3
+from rotonly_cli.geometry.tracks import segment_indices
 from rotonly_cli.options import MIN_MATCHES  # noqa: F401 (re-exported)
 
 
@@ -64,9 +65,7 @@ class EdgeBatch:
         counts = self.counts[edges]
         starts = self.offsets[:-1][edges]
         new_offsets = np.concatenate([[0], np.cumsum(counts)])
-        # index of every kept match: start of its edge + position inside the edge
-        within = np.arange(new_offsets[-1]) - np.repeat(new_offsets[:-1], counts)
-        idx = np.repeat(starts, counts) + within
+        idx = segment_indices(starts, counts)  # every kept match: its edge's start + its place in it
         return EdgeBatch(self.x_i[idx], self.x_j[idx], new_offsets,
                          None if self.weights is None else self.weights[idx])
 

@@ -137,6 +137,18 @@ def gather_observations(tracks: Tracks, per_view_points: Sequence[np.ndarray]) -
     return stacked[start[tracks.view] + tracks.feature]
 
 
+def ranks_within(lengths: np.ndarray) -> np.ndarray:
+    """0, 1, ..., k-1 for every segment of length k in ``lengths``, concatenated."""
+    lengths = np.asarray(lengths, dtype=np.int64)
+    return np.arange(int(lengths.sum())) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+
+
+def segment_indices(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """The positions ``starts[k], ..., starts[k] + counts[k] - 1`` of every segment k,
+    concatenated (the first ``counts[k]`` elements of segments that begin at ``starts[k]``)."""
+    return np.repeat(np.asarray(starts, dtype=np.int64), counts) + ranks_within(counts)
+
+
 def track_starts(obs_track: np.ndarray) -> np.ndarray:
     """Index of each track's first observation, ``obs_track`` grouped by track (non-decreasing)."""
     if not obs_track.size:

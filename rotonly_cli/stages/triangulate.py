@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.geometry.ligt import LiGTOptions, observation_errors, outlier_threshold_px
-from rotonly_cli.geometry.tracks import Tracks, in_tracks_of_two, tracks_from_arrays
+from rotonly_cli.geometry.tracks import Tracks, compact_track_ids, in_tracks_of_two, tracks_from_arrays
 from rotonly_cli.geometry.triangulation import TriangulationOptions, triangulate_tracks
 from rotonly_cli.io.images import image_file
 from rotonly_cli.scene.ids import observation_lists
@@ -183,7 +183,7 @@ def _keep_observations(tracks: Tracks, obs_xy: np.ndarray, keep: np.ndarray) -> 
     keep = in_tracks_of_two(tracks.track_id, keep)
     if keep.all():
         return tracks, obs_xy
-    track_id = np.unique(tracks.track_id[keep], return_inverse=True)[1]
+    track_id = compact_track_ids(tracks.track_id[keep])[1]  # Tracks.track_id is grouped by track
     return (tracks_from_arrays(track_id, tracks.view[keep], tracks.feature[keep], tracks.num_inconsistent),
             obs_xy[keep])
 

@@ -11,6 +11,8 @@ from rotonly_cli.geometry.tracks import (
     compact_track_ids,
     gather_observations,
     pairs_within_tracks,
+    ranks_within,
+    segment_indices,
     track_starts,
 )
 
@@ -103,3 +105,12 @@ def test_compact_track_ids_are_numpy_unique_of_sorted_tracks(ids):
     np.testing.assert_array_equal(distinct, expected)
     np.testing.assert_array_equal(index, inverse.ravel())
     np.testing.assert_array_equal(obs_track[track_starts(obs_track)], expected)
+
+
+@given(st.lists(st.tuples(st.integers(0, 30), st.integers(0, 6)), max_size=20))
+def test_segment_indices_and_ranks_are_the_python_loops(segments):
+    starts = np.array([start for start, _ in segments], dtype=np.int64)
+    counts = np.array([count for _, count in segments], dtype=np.int64)
+    np.testing.assert_array_equal(ranks_within(counts), [r for c in counts.tolist() for r in range(c)])
+    np.testing.assert_array_equal(segment_indices(starts, counts),
+                                  [s + r for s, c in zip(starts.tolist(), counts.tolist()) for r in range(c)])

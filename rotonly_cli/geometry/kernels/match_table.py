@@ -8,6 +8,7 @@ import numpy as np
 
 from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry.kernels.soa import edge_groups
+from rotonly_cli.geometry.tracks import segment_indices
 
 XI, XJ, XJH, INV_NXI, NXI2, NXJ2, INV_NXJ = 0, 3, 6, 9, 10, 11, 12
 TABLE_ROWS = 13
@@ -66,10 +67,7 @@ class MatchTable:
 
     def match_index(self, edges: np.ndarray) -> np.ndarray:
         """Positions (in this table) of the matches of ``edges``, edge by edge."""
-        counts = self.counts[edges]
-        starts = self.offsets[:-1][edges]
-        within = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-        return np.repeat(starts, counts) + within
+        return segment_indices(self.offsets[:-1][edges], self.counts[edges])
 
     def subset(self, edges: np.ndarray) -> MatchTable:
         edges = np.asarray(edges, dtype=np.int64)

@@ -10,6 +10,7 @@ from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry.kernels.lean import smallest_eigenpair_lean
 from rotonly_cli.geometry.kernels.match_table import INV_NXI, LEAN_CHUNK, XI, XJH, MatchTable
 from rotonly_cli.geometry.kernels.soa import edge_groups, pinv_shifted
+from rotonly_cli.geometry.tracks import ranks_within
 
 # ----------------------------------------------------------------------------- λ_min(Pˢ) from moments
 _LEVI = np.zeros((3, 3, 3))
@@ -114,7 +115,7 @@ def segment_median(values: np.ndarray, offsets: np.ndarray) -> np.ndarray:
         block = np.full((len(edges), W), np.inf)
         block[np.arange(W)[None, :] < lead[:, None]] = -np.inf
         rows = np.repeat(np.arange(len(edges)), n)
-        within = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
+        within = ranks_within(n)
         src = np.repeat(offsets[:-1][edges], n) + within
         block[rows, np.repeat(lead, n) + within] = values[src]
         out[edges] = np.partition(block, K, axis=1)[:, K]

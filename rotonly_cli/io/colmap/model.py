@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.errors import InputError
+from rotonly_cli.geometry.tracks import ranks_within
 from rotonly_cli.io import atomic
 from rotonly_cli.io.colmap.cameras import import_pycolmap, normalize_keypoints, pycolmap_camera, to_colmap_intrinsics
 from rotonly_cli.io.colmap.database import id_offset
@@ -89,8 +90,7 @@ def _model_points(scene: SfMScene, posed: list[int]) -> tuple[_ModelPoints, dict
     is_extra = in_model & ((features < 0) | (features >= num_keypoints[view_row]))
     extra_observations = np.flatnonzero(is_extra)
     if extra_observations.size:  # rare (not in the pipeline): a Python loop is fine
-        row_in_track = np.arange(len(view_feature)) - np.repeat(np.cumsum(track_lengths) - track_lengths,
-                                                                track_lengths)
+        row_in_track = ranks_within(track_lengths)
         first_use: dict[tuple[int, int], int] = {}
         extras: dict[int, list[np.ndarray]] = {view_id: [] for view_id in posed}
         for observation in extra_observations.tolist():

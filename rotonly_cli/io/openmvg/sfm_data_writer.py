@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from rotonly_cli.errors import InputError
+from rotonly_cli.geometry.tracks import ranks_within
 from rotonly_cli.io import atomic
 from rotonly_cli.io.openmvg.cameras import INTRINSIC_DISTORTION_FIELDS, check_model, distort_project, to_openmvg_pixels
 from rotonly_cli.io.openmvg.sfm_data import CEREAL_MSB, CEREAL_POLY_PLAIN, UNDEFINED_INDEX
@@ -208,7 +209,7 @@ def _structure_text(scene: SfMScene) -> str:
     # Value slots: per landmark id, X (3), then per observation view, id_feat, x (2).
     num_values = 4 * num_points + 4 * len(flat.view_feature)
     landmark_start = 4 * np.arange(num_points) + 4 * (np.cumsum(lengths) - lengths)
-    observation_start = np.repeat(landmark_start + 4, lengths) + 4 * _rank_within_track(lengths)
+    observation_start = np.repeat(landmark_start + 4, lengths) + 4 * ranks_within(lengths)
     values = np.empty(num_values, dtype=object)
     values[landmark_start] = _integer_texts(flat.point_ids)
     values[(landmark_start[:, None] + np.arange(1, 4)).reshape(-1)] = _float_reprs(flat.points)
@@ -232,13 +233,6 @@ def _structure_text(scene: SfMScene) -> str:
     pieces[0::2] = texts
     pieces[1::2] = values
     return "".join(pieces.tolist())
-
-
-def _rank_within_track(track_lengths: np.ndarray) -> np.ndarray:
-    """0, 1, ..., k-1 for every track of length k, concatenated."""
-    total = int(track_lengths.sum())
-    track_starts = np.repeat(np.cumsum(track_lengths) - track_lengths, track_lengths)
-    return np.arange(total) - track_starts
 
 
 def sfm_data_document(scene: SfMScene, include_structure: bool = True) -> dict:
