@@ -231,7 +231,7 @@ def reject_stage(run: Run) -> None:
     of every solve (first and re-solves, undone ones too) and ``solves`` their number; the
     reject report's ``time_s`` is its own checks: the stage times add up to the run's."""
     from rotonly_cli.stages.reject import reject_round
-    from rotonly_cli.stages.translate import views_off
+    from rotonly_cli.stages.translate import views_off, views_without_centre
 
     start = time.perf_counter()
     solve_time = {k: float((run.reports.get(k) or {}).get("time_s") or 0.0) for k in ("optimize", "translate")}
@@ -266,14 +266,19 @@ def reject_stage(run: Run) -> None:
         for key in solve_time:
             solve_time[key] += float((run.reports.get(key) or {}).get("time_s") or 0.0)
         off_after = list(views_off(run.reports.get("translate")))
-        if len(off_after) > len(views_off(reports_before["translate"])):
+        lost = sorted(views_without_centre(run.reports.get("translate"))
+                      - views_without_centre(reports_before["translate"]))
+        if len(off_after) > len(views_off(reports_before["translate"])) or lost:
             # LiGT's solve on the cleaned tracks collapsed where the previous one had not (castle-P19,
-            # OpenMVG matches, 5 consensus runs, seed 3: 17.6 GT units): the round is undone
+            # OpenMVG matches, 5 consensus runs, seed 3: 17.6 GT units), or the dropped matches cut
+            # views out of the set that tracks tie together (the same input, seed 1: views 12-15
+            # lost their centres in the second round): the round is undone
             run.graph, run.rotations, run.centers = graph_before, rotations_before, centers_before
             run.reports.update(reports_before)
-            report["undone"] = {"views_off": off_after}
-            logger.info("reject: round undone, its LiGT solve put view(s) %s off their pairs' baselines",
-                        ", ".join(off_after))
+            report["undone"] = {"views_off": off_after, "views_without_centre": lost}
+            logger.info("reject: round undone, its LiGT solve %s",
+                        f"put view(s) {', '.join(off_after)} off their pairs' baselines" if off_after else
+                        f"left view(s) {', '.join(map(str, lost))} without a centre")
             break
     if solves > 1:
         for key, seconds in solve_time.items():

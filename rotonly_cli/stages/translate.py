@@ -110,6 +110,11 @@ def views_off(report: dict | None) -> dict[str, float]:
     return ((report or {}).get("baselines") or {}).get("views_off") or {}
 
 
+def views_without_centre(report: dict | None) -> set[int]:
+    """The registered views a translate report left without a centre (empty for no report)."""
+    return set((report or {}).get("views_without_centre") or [])
+
+
 def baseline_warning(report: dict | None) -> str | None:
     """The run summary's warning when the translate report's baseline check found views off."""
     off = views_off(report)

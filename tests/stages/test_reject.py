@@ -65,9 +65,9 @@ def _run_for_reject_stage(graph, normalized, R, C):
     return run
 
 
-def _fake_solves(monkeypatch, views_off: dict):
+def _fake_solves(monkeypatch, views_off: dict, views_without_centre: tuple = ()):
     """optimize: rotations unchanged (a copy); translate: centres moved, the baseline check
-    reporting ``views_off``."""
+    reporting ``views_off``, LiGT leaving ``views_without_centre`` without a centre."""
     from rotonly_cli import chain
 
     def optimize(run):
@@ -75,7 +75,8 @@ def _fake_solves(monkeypatch, views_off: dict):
 
     def translate(run):
         run.centers = run.centers * 0.01
-        run.reports["translate"] = {"baselines": {"views_off": dict(views_off)}, "solve": "after the round"}
+        run.reports["translate"] = {"baselines": {"views_off": dict(views_off)}, "solve": "after the round",
+                                    "views_without_centre": list(views_without_centre)}
 
     monkeypatch.setattr(chain, "optimize_stage", optimize)
     monkeypatch.setattr(chain, "translate_stage", translate)
@@ -91,9 +92,26 @@ def test_round_whose_ligt_solve_collapses_is_undone(monkeypatch):
     _fake_solves(monkeypatch, {"1": 40.0})
     reject_stage(run)
     first_round = run.reports["reject"]["rounds"][0]
-    assert first_round["num_dropped"] >= 30 and first_round["undone"] == {"views_off": ["1"]}
+    assert first_round["num_dropped"] >= 30
+    assert first_round["undone"] == {"views_off": ["1"], "views_without_centre": []}
     assert len(run.reports["reject"]["rounds"]) == 1 and run.reports["reject"]["num_dropped"] == 0
     assert run.graph.edges[0].num_inliers == 200 and not run.graph.edges[0].dropped_matches
+    assert run.rotations is R and run.centers is C and run.reports["translate"]["solve"] == "first"
+
+
+def test_round_that_leaves_views_without_a_centre_is_undone(monkeypatch):
+    """A round whose dropped matches cut views out of the set LiGT's tracks tie together
+    (castle-P19, OpenMVG matches, seed 1: views 12-15) is undone: a registered view is worth
+    more than the matches the round would drop."""
+    from rotonly_cli.chain import reject_stage
+
+    graph, normalized, R, C = _graph(np.random.default_rng(0), wrong_px=15.0, num_wrong=60)
+    run = _run_for_reject_stage(graph, normalized, R, C)
+    _fake_solves(monkeypatch, {}, views_without_centre=(2,))
+    reject_stage(run)
+    rounds = run.reports["reject"]["rounds"]
+    assert len(rounds) == 1 and rounds[0]["undone"] == {"views_off": [], "views_without_centre": [2]}
+    assert run.reports["reject"]["num_dropped"] == 0 and run.graph.edges[0].num_inliers == 200
     assert run.rotations is R and run.centers is C and run.reports["translate"]["solve"] == "first"
 
 
