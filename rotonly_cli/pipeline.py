@@ -287,6 +287,7 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
     with (reports/intrinsics.json), and the run's warnings (the calibration's, the baseline
     check of the centres, the edges on no cycle), each also logged."""
     from rotonly_cli.stages.average import unchecked_edges, unchecked_edges_warning
+    from rotonly_cli.stages.reject import undone_round_warning
     from rotonly_cli.stages.translate import baseline_warning
 
     if run.calibration is not None:
@@ -294,7 +295,8 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
         summary.update(run.calibration.summary())
     bridges = unchecked_edges(run.graph, set(scene.poses))
     summary["edges_on_no_cycle"] = [list(pair) for pair in bridges]
-    found = [baseline_warning(run.reports.get("translate")), unchecked_edges_warning(bridges)]
+    found = [baseline_warning(run.reports.get("translate")), unchecked_edges_warning(bridges),
+             undone_round_warning(run.reports.get("reject"))]
     summary["warnings"] = summary.get("warnings", []) + [warning for warning in found if warning]
     for warning in summary["warnings"]:
         logger.warning("%s", warning)

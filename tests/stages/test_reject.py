@@ -168,3 +168,34 @@ def test_stage_times_add_up_over_the_re_solves(monkeypatch):
     assert run.reports["optimize"] == {"time_s": 3.0, "solve": "after the round", "solves": 2}
     assert run.reports["translate"]["time_s"] == 4.5 and run.reports["translate"]["solves"] == 2
     assert 0.0 <= run.reports["reject"]["time_s"] < 1.0
+
+
+def test_undone_round_warning_names_the_views_and_the_matches():
+    from rotonly_cli.stages.reject import undone_round_warning
+
+    assert undone_round_warning(None) is None
+    assert undone_round_warning({"rounds": [{"num_dropped": 40}]}) is None
+    lost = undone_round_warning({"rounds": [{"num_dropped": 226}, {"num_dropped": 338, "undone": {
+        "views_off": [], "views_without_centre": [12, 13, 14, 15]}}]})
+    assert "view(s) 12, 13, 14, 15 " in lost and "the 338 matches" in lost and "could not place them" in lost
+    off = undone_round_warning({"rounds": [{"num_dropped": 60, "undone": {"views_off": ["1"],
+                                                                           "views_without_centre": []}}]})
+    assert "view(s) 1 " in off and "off their pairs' baselines" in off
+
+
+def test_run_summary_carries_the_undone_round_warning(monkeypatch):
+    """The round undone for a lost centre ends up among the run's warnings (stderr, run.json)."""
+    from rotonly_cli.chain import reject_stage
+    from rotonly_cli.pipeline import summarize_outcome
+
+    graph, normalized, R, C = _graph(np.random.default_rng(0), wrong_px=15.0, num_wrong=60)
+    run = _run_for_reject_stage(graph, normalized, R, C)
+    _fake_solves(monkeypatch, {}, views_without_centre=(2,))
+    reject_stage(run)
+
+    class Scene:
+        poses = {0: None, 1: None, 2: None}
+
+    summary: dict = {}
+    summarize_outcome(run, Scene(), summary)
+    assert any(w.startswith("view(s) 2 are tied to the rest by few tracks") for w in summary["warnings"])
