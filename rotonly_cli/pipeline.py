@@ -285,7 +285,8 @@ def _written(out_dir: Path, write, *args, field: str | None = "-o"):
 def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
     """Into ``summary`` (and run.reports): the intrinsics each camera started from and ended
     with (reports/intrinsics.json), and the run's warnings (the calibration's, the baseline
-    check of the centres, the edges on no cycle), each also logged."""
+    check of the centres, the edges on no cycle, the views a rejection round cut loose), each
+    also logged."""
     from rotonly_cli.stages.average import unchecked_edges, unchecked_edges_warning
     from rotonly_cli.stages.reject import undone_round_warning
     from rotonly_cli.stages.translate import baseline_warning
