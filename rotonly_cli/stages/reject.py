@@ -40,8 +40,8 @@ def undone_round_warning(report: dict | None) -> str | None:
         undone = round_.get("undone")
         if not undone:
             continue
-        lost = [str(v) for v in undone.get("views_without_centre", [])]
-        views = sorted(set(lost) | {str(v) for v in undone.get("views_off", [])}, key=lambda v: (len(v), v))
+        lost = undone.get("views_without_centre", [])
+        views = map(str, sorted({int(v) for v in lost} | {int(v) for v in undone.get("views_off", [])}))  # view ids
         failure = "could not place them" if lost else "put them off their pairs' baselines"
         return (f"view(s) {listed(views)} are tied to the rest by few tracks: without the {round_['num_dropped']} "
                 f"matches inconsistent with the global poses, LiGT {failure}, so those matches "
