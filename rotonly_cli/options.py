@@ -413,6 +413,10 @@ class IntrinsicsOptions:
     #: fraction (Ceres's own default; COLMAP's 0 runs on to the gradient tolerance:
     #: 15 iterations instead of 9 on fountain-P11's guessed focal, for 0.001 px of focal)
     ba_function_tolerance: float = 1e-6
+    #: that bundle adjustment weighs reprojection errors beyond this many pixels by a Huber
+    #: loss (None: squared): wrong matches the rejection kept (repeated structure) otherwise
+    #: pull the principal point, and the rounds drift with it (docs/tuning.md "Intrinsics")
+    ba_huber_px: float | None = 1.0
     max_rounds: int = 4
     #: the principal point is estimated only for a camera (or group of cameras given the same
     #: intrinsics) seen in at least this many images: in one image a shift of it is, to first
@@ -441,6 +445,8 @@ class IntrinsicsOptions:
             raise InputError("max_points >= 100 and max_rounds >= 1 needed", field="intrinsics")
         if not 0 <= self.ba_function_tolerance < 1:
             raise InputError("ba_function_tolerance must be in [0, 1)", field="intrinsics")
+        if self.ba_huber_px is not None and not self.ba_huber_px > 0:
+            raise InputError("ba_huber_px must be > 0", field="intrinsics")
         return self
 
 

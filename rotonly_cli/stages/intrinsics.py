@@ -277,8 +277,8 @@ def twin_cameras(intrinsics: dict[int, Intrinsics], camera_ids) -> list[list[int
 def _adjust(subset: SfMScene, refine: set[int], offset: int, options: IntrinsicsOptions, principal_point: bool):
     """pycolmap's bundle adjuster on the posed ``subset``: every pose and point free, and the
     parameters of the cameras in ``refine`` (the principal point only if
-    ``principal_point``); two cameras fix the gauge. Returns (reconstruction, summary, mean
-    reprojection error before)."""
+    ``principal_point``); two cameras fix the gauge; a Huber loss at ``options.ba_huber_px``.
+    Returns (reconstruction, summary, mean reprojection error before)."""
     import pycolmap
 
     reconstruction = model_reconstruction(subset)
@@ -290,6 +290,9 @@ def _adjust(subset: SfMScene, refine: set[int], offset: int, options: Intrinsics
     ba.ceres.solver_options.max_num_iterations = 100
     ba.ceres.solver_options.function_tolerance = options.ba_function_tolerance
     ba.ceres.solver_options.num_threads = 1
+    if options.ba_huber_px is not None:
+        ba.ceres.loss_function_type = pycolmap.LossFunctionType.HUBER
+        ba.ceres.loss_function_scale = options.ba_huber_px
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in reconstruction.reg_image_ids():
         config.add_image(image_id)
