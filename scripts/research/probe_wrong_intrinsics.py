@@ -1,0 +1,139 @@
+#!/usr/bin/env python
+"""Probe: does `auto` calibrate wrong intrinsics on real scenes it was not tuned on? Each
+Strecha scene's inputs rewritten as a user's would arrive, run (in-process) and scored
+against the ground truth.
+
+* ``guessed db``: the COLMAP database with COLMAP's own guess for an unknown camera
+  (SIMPLE_RADIAL, f = 1.2 x max(w, h), principal point at the centre, k1 = 0,
+  ``prior_focal_length = 0``) and its E-verified pairs marked UNCALIBRATED, as a database
+  matched without camera parameters says; the matches are the scene's own.
+* ``omvg x F``: the OpenMVG project with the focal F x the given one (a wrong EXIF focal) and
+  the principal point at the image centre; nothing marks it as a guess.
+* ``phone db``: ``database_guessed_focal.db`` where the scene has one (COLMAP's own
+  extraction and matching without camera parameters).
+
+One table row per run: mean rotation and position error, registered views, the final focal
+and principal point (COLMAP's pixel convention) against the ground truth's. ``--ba-huber-px``
+sets ``IntrinsicsOptions.ba_huber_px`` (``none``: squared loss) to compare the loss.
+
+    python scripts/research/probe_wrong_intrinsics.py --root DATA/strecha --scenes castle-P19 entry-P10
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+GUESS_FACTOR = 1.2  #: COLMAP's focal guess for a camera without parameters: 1.2 x max(w, h)
+
+
+def guessed_database(database: Path, out: Path) -> Path:
+    """``database`` rewritten with COLMAP's guess for an unknown camera (module docstring)."""
+    from rotonly_cli.io.colmap import read_database, write_database
+    from rotonly_cli.scene.types import Intrinsics
+
+    scene = read_database(database)
+    intrinsics = {c: Intrinsics(c, "SIMPLE_RADIAL", k.width, k.height,
+                                np.array([GUESS_FACTOR * max(k.width, k.height), k.width / 2, k.height / 2, 0.0]),
+                                prior_focal=False) for c, k in scene.intrinsics.items()}
+    pairs = {key: replace(pair, config="UNCALIBRATED" if pair.config == "CALIBRATED" else pair.config)
+             for key, pair in scene.pairs.items()}
+    write_database(out, replace(scene, intrinsics=intrinsics, pairs=pairs))
+    return out
+
+
+def wrong_focal_project(sfm_data: Path, factor: float, out: Path) -> Path:
+    """``sfm_data`` with every intrinsic's focal x ``factor`` and its principal point at the
+    image centre, image root made absolute (the features stay where they are)."""
+    data = json.loads(sfm_data.read_text())
+    for intrinsic in data["intrinsics"]:
+        camera = intrinsic["value"]["ptr_wrapper"]["data"]
+        camera["focal_length"] *= factor
+        camera["principal_point"] = [camera["width"] / 2, camera["height"] / 2]
+    data["root_path"] = str((sfm_data.parent / data["root_path"]).resolve())
+    out.write_text(json.dumps(data))
+    return out
+
+
+def gt_intrinsics(gt_scene) -> np.ndarray:
+    """The ground truth's mean f and principal point (COLMAP convention) over its cameras."""
+    from rotonly_cli.io.cameras import to_colmap_intrinsics
+
+    values = []
+    for intrinsic in gt_scene.intrinsics.values():
+        colmap = to_colmap_intrinsics(intrinsic)
+        params = np.asarray(colmap.params)
+        principal_point = params[2:4] if colmap.model == "PINHOLE" else params[1:3]
+        values.append([intrinsic.focal_px, *principal_point])
+    return np.mean(values, axis=0)
+
+
+def run_row(label: str, input_path: Path, gt: Path, options, matches_dir: Path | None) -> dict:
+    import rotonly_cli
+    from rotonly_cli.io.detect import read_ground_truth
+
+    result = rotonly_cli.run(input_path, gt=gt, matches_dir=matches_dir, options=options)
+    evaluation = result.evaluation
+    camera = next(iter(result.summary["intrinsics"].values()))  # the scenes have one camera
+    end = np.asarray(camera["end"], dtype=float)
+    true = gt_intrinsics(read_ground_truth(gt))
+    return {"input": label, "rotation_deg": evaluation["rotation_error_deg"]["mean"],
+            "position": (evaluation.get("position_error") or {}).get("mean", float("nan")),
+            "registered": f"{len(result.rotations)}/{result.summary['num_views']}",
+            "focal_error_pct": 100 * (end[0] / true[0] - 1),
+            "principal_point_error_px": float(np.hypot(*(end[1:3] - true[1:3])))}
+
+
+def print_row(row: dict) -> None:
+    print(f"{row['input']:28s} {row['rotation_deg']:.4f} deg  pos {row['position']:.4f}  {row['registered']}  "
+          f"f {row['focal_error_pct']:+.2f} %  pp {row['principal_point_error_px']:.1f} px", flush=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from rotonly_cli.options import IntrinsicsOptions, RunOptions
+    from rotonly_cli.runtime.parallel import usable_cpus
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--root", type=Path, required=True, help="folder of Strecha scenes (data/strecha layout)")
+    parser.add_argument("--scenes", nargs="+", default=["Herz-Jesus-P8", "entry-P10", "castle-P19", "fountain-P11"])
+    parser.add_argument("--factors", type=float, nargs="+", default=[1.2, 0.85], help="OpenMVG focal factors")
+    parser.add_argument("--ba-huber-px", default=None, help="IntrinsicsOptions.ba_huber_px (none: squared loss)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    intrinsics = IntrinsicsOptions()
+    if args.ba_huber_px is not None:
+        intrinsics = replace(intrinsics, ba_huber_px=None if args.ba_huber_px == "none" else float(args.ba_huber_px))
+    options = RunOptions(jobs=usable_cpus(), intrinsics=intrinsics)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="rotonly-probe-") as scratch:
+        for scene in args.scenes:
+            folder, gt = args.root / scene, args.root / scene / "gt_dense_cameras"
+            work = Path(scratch) / scene
+            work.mkdir()
+            runs = [(f"{scene} guessed db", guessed_database(folder / "database.db", work / "guessed.db"), None)]
+            if (folder / "database_guessed_focal.db").exists():
+                runs.insert(0, (f"{scene} phone db", folder / "database_guessed_focal.db", None))
+            for factor in args.factors:
+                project = wrong_focal_project(folder / "openmvg" / "sfm_data.json", factor,
+                                              work / f"sfm_data_x{factor}.json")
+                runs.append((f"{scene} omvg x{factor}", project, folder / "openmvg"))
+            for label, input_path, matches_dir in runs:
+                rows.append(run_row(label, input_path, gt, options, matches_dir))
+                print_row(rows[-1])
+    print("\n| input | rot. mean (deg) | position mean | registered | focal error (%) | principal point error (px) |")
+    print("|---|---|---|---|---|---|")
+    for row in rows:
+        print(f"| {row['input']} | {row['rotation_deg']:.4f} | {row['position']:.4f} | {row['registered']} | "
+              f"{row['focal_error_pct']:+.2f} | {row['principal_point_error_px']:.1f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
