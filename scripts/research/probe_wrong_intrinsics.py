@@ -7,6 +7,9 @@ against the ground truth.
   (SIMPLE_RADIAL, f = 1.2 x max(w, h), principal point at the centre, k1 = 0,
   ``prior_focal_length = 0``) and its E-verified pairs marked UNCALIBRATED, as a database
   matched without camera parameters says; the matches are the scene's own.
+* ``db x F``: the COLMAP database with its focal length(s) F x the given ones and still marked
+  known (``prior_focal_length = 1``), as an EXIF focal that is off; found only by the
+  reprojection errors.
 * ``omvg x F``: the OpenMVG project with the focal F x the given one (a wrong EXIF focal) and
   the principal point at the image centre; nothing marks it as a guess.
 * ``phone db``: ``database_guessed_focal.db`` where the scene has one (COLMAP's own
@@ -49,6 +52,21 @@ def guessed_database(database: Path, out: Path) -> Path:
     return out
 
 
+def wrong_focal_database(database: Path, factor: float, out: Path) -> Path:
+    """``database`` with every camera's focal length(s) x ``factor``, still marked known."""
+    from rotonly_cli.io.cameras import parameter_groups
+    from rotonly_cli.io.colmap import read_database, write_database
+
+    scene = read_database(database)
+    intrinsics = {}
+    for camera_id, intrinsic in scene.intrinsics.items():
+        params = np.array(intrinsic.params, dtype=np.float64)
+        params[parameter_groups(intrinsic)["focal"]] *= factor
+        intrinsics[camera_id] = replace(intrinsic, params=params, prior_focal=True)
+    write_database(out, replace(scene, intrinsics=intrinsics))
+    return out
+
+
 def wrong_focal_project(sfm_data: Path, factor: float, out: Path) -> Path:
     """``sfm_data`` with every intrinsic's focal x ``factor`` and its principal point at the
     image centre, image root made absolute (the features stay where they are)."""
@@ -62,17 +80,13 @@ def wrong_focal_project(sfm_data: Path, factor: float, out: Path) -> Path:
     return out
 
 
-def gt_intrinsics(gt_scene) -> np.ndarray:
-    """The ground truth's mean f and principal point (COLMAP convention) over its cameras."""
-    from rotonly_cli.io.cameras import to_colmap_intrinsics
+def focal_and_principal_point(intrinsic) -> np.ndarray:
+    """(mean focal, cx, cy) of a camera, in COLMAP's pixel convention."""
+    from rotonly_cli.io.cameras import parameter_groups, to_colmap_intrinsics
 
-    values = []
-    for intrinsic in gt_scene.intrinsics.values():
-        colmap = to_colmap_intrinsics(intrinsic)
-        params = np.asarray(colmap.params)
-        principal_point = params[2:4] if colmap.model == "PINHOLE" else params[1:3]
-        values.append([intrinsic.focal_px, *principal_point])
-    return np.mean(values, axis=0)
+    colmap = to_colmap_intrinsics(intrinsic)
+    params, groups = np.asarray(colmap.params, dtype=np.float64), parameter_groups(colmap)
+    return np.array([params[groups["focal"]].mean(), *params[groups["principal_point"]]])
 
 
 def run_row(label: str, input_path: Path, gt: Path, options, matches_dir: Path | None) -> dict:
@@ -81,9 +95,9 @@ def run_row(label: str, input_path: Path, gt: Path, options, matches_dir: Path |
 
     result = rotonly_cli.run(input_path, gt=gt, matches_dir=matches_dir, options=options)
     evaluation = result.evaluation
-    camera = next(iter(result.summary["intrinsics"].values()))  # the scenes have one camera
-    end = np.asarray(camera["end"], dtype=float)
-    true = gt_intrinsics(read_ground_truth(gt))
+    (camera,) = result.scene.intrinsics.values()  # the Strecha scenes have one camera
+    end = focal_and_principal_point(camera)
+    true = np.mean([focal_and_principal_point(k) for k in read_ground_truth(gt).intrinsics.values()], axis=0)
     return {"input": label, "rotation_deg": evaluation["rotation_error_deg"]["mean"],
             "position": (evaluation.get("position_error") or {}).get("mean", float("nan")),
             "registered": f"{len(result.rotations)}/{result.summary['num_views']}",
@@ -104,6 +118,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--root", type=Path, required=True, help="folder of Strecha scenes (data/strecha layout)")
     parser.add_argument("--scenes", nargs="+", default=["Herz-Jesus-P8", "entry-P10", "castle-P19", "fountain-P11"])
     parser.add_argument("--factors", type=float, nargs="+", default=[1.2, 0.85], help="OpenMVG focal factors")
+    parser.add_argument("--db-factors", type=float, nargs="*", default=[1.05, 0.97],
+                        help="focal factors of the database's camera, marked known")
     parser.add_argument("--ba-huber-px", default=None, help="IntrinsicsOptions.ba_huber_px (none: squared loss)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
@@ -120,6 +136,9 @@ def main(argv: list[str] | None = None) -> int:
             runs = [(f"{scene} guessed db", guessed_database(folder / "database.db", work / "guessed.db"), None)]
             if (folder / "database_guessed_focal.db").exists():
                 runs.insert(0, (f"{scene} phone db", folder / "database_guessed_focal.db", None))
+            for factor in args.db_factors:
+                runs.append((f"{scene} db x{factor}",
+                             wrong_focal_database(folder / "database.db", factor, work / f"x{factor}.db"), None))
             for factor in args.factors:
                 project = wrong_focal_project(folder / "openmvg" / "sfm_data.json", factor,
                                               work / f"sfm_data_x{factor}.json")
