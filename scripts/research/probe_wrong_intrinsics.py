@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--root", type=Path, required=True, help="folder of Strecha scenes (data/strecha layout)")
     parser.add_argument("--scenes", nargs="+", default=["Herz-Jesus-P8", "entry-P10", "castle-P19", "fountain-P11"])
-    parser.add_argument("--factors", type=float, nargs="+", default=[1.2, 0.85], help="OpenMVG focal factors")
+    parser.add_argument("--factors", type=float, nargs="*", default=[1.2, 0.85], help="OpenMVG focal factors")
     parser.add_argument("--db-factors", type=float, nargs="*", default=[1.05, 0.97],
                         help="focal factors of the database's camera, marked known")
     parser.add_argument("--ba-huber-px", default=None, help="IntrinsicsOptions.ba_huber_px (none: squared loss)")
