@@ -115,16 +115,16 @@ def load_scene(scene: SfMScene, kind: InputKind, input_label: str, options: RunO
 def _probe_for_suspects(input_label: str, kind: InputKind, calibration: Calibration, options: RunOptions,
                         noise_sigma) -> bool:
     """auto, no camera marked as a guess, the matches' noise under the essential-matrix model
-    (the load stage's measurement) above ``suspect_reprojection_px``: an estimation pass
+    (the load stage's measurement) above ``probe_noise_px``: an estimation pass
     (ESTIMATION_LOAD, ESTIMATION_STAGES) whose reprojection errors tell whether some camera's
     intrinsics are wrong, before the full load stage and chain run with them (with a wrong
     EXIF focal that pass costs a fifth of them: docs/tuning.md "Intrinsics"). True if some
     camera joined the calibration. Calibrated inputs (noise 0.13-0.25 px on Strecha) never
     probe."""
-    if not isinstance(noise_sigma, float) or noise_sigma <= options.intrinsics.suspect_reprojection_px:
+    if not isinstance(noise_sigma, float) or noise_sigma <= options.intrinsics.probe_noise_px:
         return False
     logger.info("intrinsics: the matches fit essential matrices at sigma %.2f px (> %.2f px): a quick estimation "
-                "pass checks the cameras first", noise_sigma, options.intrinsics.suspect_reprojection_px)
+                "pass checks the cameras first", noise_sigma, options.intrinsics.probe_noise_px)
     try:
         probe = _build_graph(input_label, kind, calibration.scene, options, estimation=True, noise_sigma=noise_sigma)
         probe = _rerun(probe, calibration.scene, probe, estimation=True)

@@ -399,9 +399,14 @@ class IntrinsicsOptions:
     #: auto: a camera whose reprojection errors after the first reconstruction (robust sigma
     #: over every observation, before triangulation drops any) are above ``suspect_noise_sigmas``
     #: x the matches' noise sigma (fundamental-matrix fits) and above ``suspect_reprojection_px``
-    #: is calibrated too (docs/tuning.md "Intrinsics")
-    suspect_noise_sigmas: float = 2.5
-    suspect_reprojection_px: float = 0.5
+    #: is calibrated too: a focal 2 % off already costs the Strecha scenes 0.25-1.3 deg and
+    #: raises that sigma to 0.33-0.93 px, 1.5-4.3 noise sigmas; calibrated cameras reproject
+    #: at 0.19-0.28 px (docs/tuning.md "Intrinsics")
+    suspect_noise_sigmas: float = 1.5
+    suspect_reprojection_px: float = 0.3
+    #: the quick estimation pass checks the cameras before the full load stage when the load
+    #: stage's noise sigma (essential-matrix fits, which wrong intrinsics inflate) is above this
+    probe_noise_px: float = 0.5
     #: the largest pairs whose fundamental-matrix fits give the noise sigma
     noise_sample_pairs: int = 30
     #: F re-fit on each pair's verified matches before the view-graph calibration (pixels)

@@ -73,7 +73,7 @@ def test_suspect_threshold_follows_the_noise():
     options = IntrinsicsOptions()
     assert stage.suspect_threshold_px(None, options) == options.suspect_reprojection_px
     assert stage.suspect_threshold_px(0.1, options) == options.suspect_reprojection_px
-    assert stage.suspect_threshold_px(1.0, options) == pytest.approx(2.5)
+    assert stage.suspect_threshold_px(1.0, options) == pytest.approx(1.5)
     assert stage.suspect_cameras({1: 0.2, 2: 4.0}, 1.0) == {2}
 
 
@@ -281,6 +281,29 @@ def test_a_failed_quick_estimation_pass_falls_back_to_the_full_chain(user_inputs
     assert "quick estimation pass found no reconstruction" in log
     end = next(iter(summary["intrinsics"].values()))["end"]
     assert end[0] == pytest.approx(1380.0, rel=0.005)  # found by the first reconstruction instead
+
+
+def test_an_exif_focal_two_percent_off_is_calibrated(tmp_path):
+    """The Herz-Jesu fixture's database with both focal lengths 2 % short, still marked known
+    (an EXIF focal that is off). Its first reconstruction reprojects at 0.32 px, 1.7 noise
+    sigmas: under the former thresholds (2.5 sigmas, 0.5 px) nothing was calibrated and the
+    rotations ended at 0.241 deg, without a warning. Now the camera is a suspect, calibrated
+    to 0.1 % and the rotations are the given-intrinsics run's (0.0193 deg)."""
+    from rotonly_cli.io.cameras import parameter_groups
+    from rotonly_cli.io.colmap import read_database, write_database
+
+    scene = read_database(DATA_FIXTURES / "herzjesu_p8" / "database.db")
+    (camera_id, given), = scene.intrinsics.items()
+    params = np.array(given.params, dtype=np.float64)
+    params[parameter_groups(given)["focal"]] *= 0.98
+    write_database(tmp_path / "exif.db", replace(scene, intrinsics={camera_id: replace(given, params=params)}))
+    summary = run_pipeline(tmp_path / "exif.db", tmp_path / "out", _options())
+    report = json.loads((tmp_path / "out" / "reports" / "intrinsics.json").read_text())
+    camera = report["cameras"][str(camera_id)]
+    assert camera["calibrated"] == "suspect" and camera["prior_focal"] is True
+    assert camera["end"]["params"][:2] == pytest.approx(np.asarray(given.params)[:2], rel=0.002)
+    assert summary["num_registered"] == 8
+    assert _rotation_error(tmp_path / "out", DATA_FIXTURES / "herzjesu_p8" / "gt_dense_cameras") < 0.025
 
 
 # ============================================================================ real repeated structure
