@@ -41,7 +41,7 @@ def undone_round_warning(report: dict | None) -> str | None:
         if not undone:
             continue
         lost = undone.get("views_without_centre", [])
-        views = map(str, sorted({int(v) for v in lost} | {int(v) for v in undone.get("views_off", [])}))  # view ids
+        views = map(str, sorted({int(v) for v in [*lost, *undone.get("views_off", [])]}))  # both lists hold view ids
         failure = "could not place them" if lost else "put them off their pairs' baselines"
         return (f"view(s) {listed(views)} are tied to the rest by few tracks: without the {round_['num_dropped']} "
                 f"matches inconsistent with the global poses, LiGT {failure}, so those matches "

@@ -37,12 +37,12 @@ import numpy as np
 GUESS_FACTOR = 1.2  #: COLMAP's focal guess for a camera without parameters: 1.2 x max(w, h)
 
 
-def guessed_database(database: Path, out: Path) -> Path:
-    """``database`` rewritten with COLMAP's guess for an unknown camera (module docstring)."""
-    from rotonly_cli.io.colmap import read_database, write_database
+def guessed_database(scene, out: Path) -> Path:
+    """``scene`` (a database as read) written to ``out`` with COLMAP's guess for an unknown
+    camera (module docstring)."""
+    from rotonly_cli.io.colmap import write_database
     from rotonly_cli.scene.types import Intrinsics
 
-    scene = read_database(database)
     intrinsics = {c: Intrinsics(c, "SIMPLE_RADIAL", k.width, k.height,
                                 np.array([GUESS_FACTOR * max(k.width, k.height), k.width / 2, k.height / 2, 0.0]),
                                 prior_focal=False) for c, k in scene.intrinsics.items()}
@@ -52,12 +52,12 @@ def guessed_database(database: Path, out: Path) -> Path:
     return out
 
 
-def wrong_focal_database(database: Path, factor: float, out: Path) -> Path:
-    """``database`` with every camera's focal length(s) x ``factor``, still marked known."""
+def wrong_focal_database(scene, factor: float, out: Path) -> Path:
+    """``scene`` (a database as read) written to ``out`` with every camera's focal length(s)
+    x ``factor``, still marked known."""
     from rotonly_cli.io.cameras import parameter_groups
-    from rotonly_cli.io.colmap import read_database, write_database
+    from rotonly_cli.io.colmap import write_database
 
-    scene = read_database(database)
     intrinsics = {}
     for camera_id, intrinsic in scene.intrinsics.items():
         params = np.array(intrinsic.params, dtype=np.float64)
@@ -89,15 +89,15 @@ def focal_and_principal_point(intrinsic) -> np.ndarray:
     return np.array([params[groups["focal"]].mean(), *params[groups["principal_point"]]])
 
 
-def run_row(label: str, input_path: Path, gt: Path, options, matches_dir: Path | None) -> dict:
+def run_row(label: str, input_path: Path, gt: Path, true: np.ndarray, options, matches_dir: Path | None) -> dict:
+    """One run scored against the ground truth ``gt`` and its camera ``true``
+    (:func:`focal_and_principal_point`, averaged over the GT's cameras)."""
     import rotonly_cli
-    from rotonly_cli.io.detect import read_ground_truth
 
     result = rotonly_cli.run(input_path, gt=gt, matches_dir=matches_dir, options=options)
     evaluation = result.evaluation
     (camera,) = result.scene.intrinsics.values()  # the Strecha scenes have one camera
     end = focal_and_principal_point(camera)
-    true = np.mean([focal_and_principal_point(k) for k in read_ground_truth(gt).intrinsics.values()], axis=0)
     return {"input": label, "rotation_deg": evaluation["rotation_error_deg"]["mean"],
             "position": (evaluation.get("position_error") or {}).get("mean", float("nan")),
             "registered": f"{len(result.rotations)}/{result.summary['num_views']}",
@@ -111,6 +111,8 @@ def print_row(row: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from rotonly_cli.io.colmap import read_database
+    from rotonly_cli.io.detect import read_ground_truth
     from rotonly_cli.options import IntrinsicsOptions, RunOptions
     from rotonly_cli.runtime.parallel import usable_cpus
 
@@ -133,18 +135,20 @@ def main(argv: list[str] | None = None) -> int:
             folder, gt = args.root / scene, args.root / scene / "gt_dense_cameras"
             work = Path(scratch) / scene
             work.mkdir()
-            runs = [(f"{scene} guessed db", guessed_database(folder / "database.db", work / "guessed.db"), None)]
+            database = read_database(folder / "database.db")
+            true = np.mean([focal_and_principal_point(k) for k in read_ground_truth(gt).intrinsics.values()], axis=0)
+            runs = [(f"{scene} guessed db", guessed_database(database, work / "guessed.db"), None)]
             if (folder / "database_guessed_focal.db").exists():
                 runs.insert(0, (f"{scene} phone db", folder / "database_guessed_focal.db", None))
             for factor in args.db_factors:
                 runs.append((f"{scene} db x{factor}",
-                             wrong_focal_database(folder / "database.db", factor, work / f"x{factor}.db"), None))
+                             wrong_focal_database(database, factor, work / f"x{factor}.db"), None))
             for factor in args.factors:
                 project = wrong_focal_project(folder / "openmvg" / "sfm_data.json", factor,
                                               work / f"sfm_data_x{factor}.json")
                 runs.append((f"{scene} omvg x{factor}", project, folder / "openmvg"))
             for label, input_path, matches_dir in runs:
-                rows.append(run_row(label, input_path, gt, options, matches_dir))
+                rows.append(run_row(label, input_path, gt, true, options, matches_dir))
                 print_row(rows[-1])
     print("\n| input | rot. mean (deg) | position mean | registered | focal error (%) | principal point error (px) |")
     print("|---|---|---|---|---|---|")
