@@ -354,7 +354,8 @@ def calibrated_chain(loaded: Run, chain=_chain) -> Run:
     run = _rerun(loaded, loaded.scene, loaded, estimation=guessed, chain=chain)
     suspects = options.mode == intrinsics.Mode.AUTO and calibration.add_suspects(
         run.reports["triangulate"]["outlier_sigma_px_by_camera"], run.scene)
-    if not suspects and not guessed:
+    checked = options.mode == intrinsics.Mode.AUTO and not suspects and calibration.check_centred(output_scene(run))
+    if not suspects and not checked and not guessed:
         return run  # every camera fits: the intrinsics stay as given
     if not guessed:
         calibration.fallback = run  # the result if no change turns out significant

@@ -404,6 +404,14 @@ class IntrinsicsOptions:
     #: at 0.19-0.28 px (docs/tuning.md "Intrinsics")
     suspect_noise_sigmas: float = 1.5
     suspect_reprojection_px: float = 0.3
+    #: auto: a camera marked known whose principal point lies within this many pixels of the
+    #: image centre (both axes) carries the default COLMAP's and OpenMVG's front ends write
+    #: when they do not know it, not a calibration: one adjustment on the first reconstruction
+    #: checks it, and the camera is calibrated if that moves it significantly (``min_shift``).
+    #: The Strecha scenes' principal points lie 11 px off the centre, and with it there their
+    #: rotations are 2-8x worse while the reprojection errors stay below the suspect
+    #: thresholds (docs/tuning.md "Intrinsics"). None: no check.
+    centred_principal_point_px: float | None = 0.5
     #: the quick estimation pass checks the cameras before the full load stage when the load
     #: stage's noise sigma (essential-matrix fits, which wrong intrinsics inflate) is above this
     probe_noise_px: float = 0.5
@@ -452,6 +460,8 @@ class IntrinsicsOptions:
             raise InputError("ba_function_tolerance must be in [0, 1)", field="intrinsics")
         if self.ba_huber_px is not None and not self.ba_huber_px > 0:
             raise InputError("ba_huber_px must be > 0", field="intrinsics")
+        if self.centred_principal_point_px is not None and not self.centred_principal_point_px >= 0:
+            raise InputError("centred_principal_point_px must be >= 0", field="intrinsics")
         return self
 
 

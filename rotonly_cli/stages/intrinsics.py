@@ -148,6 +148,18 @@ def fundamental_noise_sigma_px(scene: SfMScene, options: IntrinsicsOptions) -> f
     return 1.4826 * float(np.median(errors)) if errors.size >= MIN_NOISE_SAMPLES else None
 
 
+def centred_principal_point(intrinsics: Intrinsics, tolerance_px: float) -> bool:
+    """Whether the camera's principal point lies within ``tolerance_px`` of the image centre
+    on both axes: what COLMAP's feature extractor and OpenMVG's image listing write when they
+    do not know it (COLMAP's convention: (w/2, h/2); OpenMVG's w/2 is half a pixel further)."""
+    index = cameras.parameter_groups(intrinsics)["principal_point"]
+    if index.size != 2:
+        return False
+    offset = np.asarray(intrinsics.params, dtype=np.float64)[index] - 0.5 * np.array([intrinsics.width,
+                                                                                       intrinsics.height])
+    return bool(np.all(np.abs(offset) <= tolerance_px + 1e-9))
+
+
 def suspect_cameras(per_camera_px: dict[int, float], threshold_px: float) -> set[int]:
     """Cameras whose mean reprojection error shows their intrinsics wrong."""
     return {camera_id for camera_id, error in per_camera_px.items() if error > threshold_px}
@@ -502,6 +514,8 @@ class Calibration:
     #: if none of their changes is significant
     fallback: object | None = None
     settled: bool | None = None  #: whether the last round moved the intrinsics by little (None: no round)
+    #: the report of :meth:`check_centred` (None: no camera was checked)
+    centred_check: dict | None = None
     result: dict = field(default_factory=dict)
     jobs: int = 1  #: processes for the fundamental-matrix fits
     #: wall time the calibration added to the run (view-graph focals, estimation passes and
@@ -545,6 +559,44 @@ class Calibration:
                         self.suspect_threshold_px)
             self._calibrate_focals(dict.fromkeys(sorted(suspects), "suspect"))
         return bool(suspects)
+
+    def check_centred(self, posed: SfMScene) -> bool:
+        """auto: cameras marked known (not yet calibrated) whose principal point sits at the
+        image centre (:func:`centred_principal_point`) are checked by one estimate from the
+        first reconstruction ``posed``; those it moves significantly (:func:`gate` against
+        the given intrinsics) join the calibration, starting from the gated estimate. True if
+        any did. The reprojection errors cannot show such a camera: an 11 px principal point
+        error leaves them at calibrated cameras' level (docs/tuning.md "Intrinsics")."""
+        tolerance = self.options.centred_principal_point_px
+        if tolerance is None:
+            return False
+        checked = {c for c, k in self.given.items() if c not in self.calibrate and k.prior_focal is not False
+                   and cameras.refinement_model(k) is not None and centred_principal_point(k, tolerance)}
+        if not checked:
+            return False
+        estimated, report = estimate_intrinsics(posed, checked, self.options, twin_cameras(self.given, checked))
+        changed, shifts, moved = {}, {}, 0.0
+        for camera_id, estimate in estimated.items():
+            reference = cameras.refinement_model(self.given[camera_id])
+            gated, shifts[camera_id] = gate(reference, estimate, self.options)
+            new = cameras.from_refinement_model(self.given[camera_id], gated)
+            if not _same(new, self.given[camera_id]):
+                changed[camera_id] = new
+                self.calibrate[camera_id] = "centred principal point"
+                self.reference[camera_id] = reference
+                moved = max(moved, shift_px(self.given[camera_id], new) / half_diagonal(new))
+        report.update(cameras=sorted(checked), shifts_px={str(c): v for c, v in shifts.items()},
+                      calibrated=sorted(changed), moved=moved)
+        self.centred_check = report
+        self.time_s += report["time_s"]
+        logger.info("intrinsics: camera(s) %s have their principal point at the image centre (a default); "
+                    "one adjustment moves them by %s px (limit %s): %s", sorted(checked),
+                    ", ".join(f"{max(shifts.get(c, {}).values(), default=0.0):.1f}" for c in sorted(checked)),
+                    ", ".join(f"{self.options.min_shift * half_diagonal(self.given[c]):.1f}" for c in sorted(checked)),
+                    f"calibrating {sorted(changed)}" if changed else "kept as given")
+        if changed:
+            self.scene = with_intrinsics(self.scene, changed)
+        return bool(changed)
 
     def estimate(self, posed: SfMScene) -> bool:
         """One round: the intrinsics estimated from the reconstruction ``posed``, each change
@@ -602,6 +654,7 @@ class Calibration:
                         for c in sorted(self.given)},
             "reprojection_error_px": overall, "view_graph_calibration": self.view_graph, "rounds": self.rounds,
             "settled": self.settled, "suspect_threshold_px": self.suspect_threshold_px,
+            "centred_principal_point_check": self.centred_check,
             "noise_sigma_px": self.noise_sigma_px,
             "kept_given_intrinsics": all(_same(final[c], k) for c, k in self.given.items()),
             "warnings": warnings, "time_s": self.time_s}

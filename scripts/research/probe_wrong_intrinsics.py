@@ -10,6 +10,9 @@ against the ground truth.
 * ``db x F``: the COLMAP database with its focal length(s) F x the given ones and still marked
   known (``prior_focal_length = 1``), as an EXIF focal that is off; found only by the
   reprojection errors.
+* ``exif db x F``: the COLMAP database as COLMAP's feature extractor writes a camera whose
+  EXIF gives the focal: SIMPLE_RADIAL, F x the given (mean) focal, the principal point at the
+  image centre, k1 = 0, ``prior_focal_length = 1``.
 * ``omvg x F``: the OpenMVG project with the focal F x the given one (a wrong EXIF focal) and
   the principal point at the image centre; nothing marks it as a guess.
 * ``phone db``: ``database_guessed_focal.db`` where the scene has one (COLMAP's own
@@ -63,6 +66,19 @@ def wrong_focal_database(scene, factor: float, out: Path) -> Path:
         params = np.array(intrinsic.params, dtype=np.float64)
         params[parameter_groups(intrinsic)["focal"]] *= factor
         intrinsics[camera_id] = replace(intrinsic, params=params, prior_focal=True)
+    write_database(out, replace(scene, intrinsics=intrinsics))
+    return out
+
+
+def exif_database(scene, factor: float, out: Path) -> Path:
+    """``scene`` (a database as read) written to ``out`` as COLMAP writes an EXIF camera
+    (module docstring)."""
+    from rotonly_cli.io.colmap import write_database
+    from rotonly_cli.scene.types import Intrinsics
+
+    intrinsics = {c: Intrinsics(c, "SIMPLE_RADIAL", k.width, k.height,
+                                np.array([factor * k.focal_px, k.width / 2, k.height / 2, 0.0]), prior_focal=True)
+                  for c, k in scene.intrinsics.items()}
     write_database(out, replace(scene, intrinsics=intrinsics))
     return out
 
@@ -122,6 +138,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--factors", type=float, nargs="*", default=[1.2, 0.85], help="OpenMVG focal factors")
     parser.add_argument("--db-factors", type=float, nargs="*", default=[1.05, 0.97],
                         help="focal factors of the database's camera, marked known")
+    parser.add_argument("--exif-factors", type=float, nargs="*", default=[1.0],
+                        help="focal factors of the database written as an EXIF camera (principal point at the centre)")
     parser.add_argument("--ba-huber-px", default=None, help="IntrinsicsOptions.ba_huber_px (none: squared loss)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
@@ -143,6 +161,9 @@ def main(argv: list[str] | None = None) -> int:
             for factor in args.db_factors:
                 runs.append((f"{scene} db x{factor}",
                              wrong_focal_database(database, factor, work / f"x{factor}.db"), None))
+            for factor in args.exif_factors:
+                runs.append((f"{scene} exif db x{factor}", exif_database(database, factor, work / f"exif{factor}.db"),
+                             None))
             for factor in args.factors:
                 project = wrong_focal_project(folder / "openmvg" / "sfm_data.json", factor,
                                               work / f"sfm_data_x{factor}.json")

@@ -369,19 +369,20 @@ def test_probe_view_subsets_refuses_a_subset_larger_than_the_scene(tmp_path):
 # ============================================================================ probe_wrong_intrinsics
 
 def test_probe_wrong_intrinsics_on_fixture(tmp_path, capsys):
-    """The Herz-Jesu fixture's database with COLMAP's guess and with its focal 5 % long but
-    marked known, and its OpenMVG project with the focal 20 % long: a row each, every view
+    """The Herz-Jesu fixture's database with COLMAP's guess, with its focal 5 % long but
+    marked known and as COLMAP writes an EXIF camera (principal point at the centre), and its
+    OpenMVG project with the focal 20 % long: a row each, every view
     registered, the focal calibrated to within 0.5 % and the principal point to a few pixels;
     the inputs are untouched."""
     (tmp_path / "root").mkdir()
     (tmp_path / "root" / "Herz-Jesus-P8").symlink_to(FIXTURES / "herzjesu_p8")
     before = _digest(FIXTURES / "herzjesu_p8" / "database.db")
     assert probe_intrinsics.main(["--root", str(tmp_path / "root"), "--scenes", "Herz-Jesus-P8",
-                                  "--factors", "1.2", "--db-factors", "1.05"]) == 0
+                                  "--factors", "1.2", "--db-factors", "1.05", "--exif-factors", "1.0"]) == 0
     assert _digest(FIXTURES / "herzjesu_p8" / "database.db") == before
     rows = [line.split(" | ") for line in capsys.readouterr().out.splitlines() if line.startswith("| Herz")]
     assert [cells[0] for cells in rows] == ["| Herz-Jesus-P8 guessed db", "| Herz-Jesus-P8 db x1.05",
-                                            "| Herz-Jesus-P8 omvg x1.2"]
+                                            "| Herz-Jesus-P8 exif db x1.0", "| Herz-Jesus-P8 omvg x1.2"]
     for cells in rows:
         assert cells[3] == "8/8" and float(cells[1]) < 0.1
         assert abs(float(cells[4])) < 0.5 and float(cells[5].rstrip(" |")) < 5.0

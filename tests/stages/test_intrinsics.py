@@ -42,6 +42,22 @@ def test_options_reject_a_loss_scale_that_is_not_positive():
     assert IntrinsicsOptions(ba_huber_px=None).validate().ba_huber_px is None  # squared loss
 
 
+def test_options_reject_a_negative_centre_tolerance():
+    with pytest.raises(InputError, match="centred_principal_point_px"):
+        IntrinsicsOptions(centred_principal_point_px=-1.0).validate()
+    assert IntrinsicsOptions(centred_principal_point_px=None).validate().centred_principal_point_px is None
+
+
+def test_a_principal_point_at_the_image_centre_reads_as_a_default():
+    assert stage.centred_principal_point(CAMERA, 0.5)  # COLMAP's default: (w/2, h/2)
+    # OpenMVG's image listing writes (w/2, h/2) in its convention: +0.5 px in COLMAP's
+    openmvg = Intrinsics(0, "pinhole_radial_k3", 1536, 1024, np.array([1380.0, 768.5, 512.5, 0.0, 0.0, 0.0]))
+    assert stage.centred_principal_point(openmvg, 0.5)
+    calibrated = Intrinsics(1, "PINHOLE", 1536, 1024, np.array([1379.74, 1382.08, 760.595, 503.655]))
+    assert not stage.centred_principal_point(calibrated, 0.5)
+    assert not stage.centred_principal_point(replace(CAMERA, params=np.array([1380.0, 768.0, 513.0, 0.0])), 0.5)
+
+
 def test_cameras_to_calibrate_by_mode():
     scene = SfMScene(intrinsics={1: CAMERA, 2: Intrinsics(2, "PINHOLE", 10, 10, np.ones(4), prior_focal=False)})
     assert stage.cameras_to_calibrate(scene, Mode.FIXED) == set()
@@ -304,6 +320,50 @@ def test_an_exif_focal_two_percent_off_is_calibrated(tmp_path):
     assert camera["end"]["params"][:2] == pytest.approx(np.asarray(given.params)[:2], rel=0.002)
     assert summary["num_registered"] == 8
     assert _rotation_error(tmp_path / "out", DATA_FIXTURES / "herzjesu_p8" / "gt_dense_cameras") < 0.025
+
+
+def test_a_default_principal_point_is_checked_and_calibrated(tmp_path):
+    """The Herz-Jesu fixture's database as COLMAP writes it for a camera whose focal the
+    EXIF gives: SIMPLE_RADIAL, that focal (here the right one), the principal point at the
+    image centre, k1 = 0, the focal marked known. The true principal point is 11 px off the
+    centre; the first reconstruction reprojects as well as a calibrated camera's, so no
+    suspect test sees it, and with it as given the rotations end at 0.088 deg (0.019 deg with
+    the true camera). One adjustment on that reconstruction moves it by 11 px: the camera is
+    calibrated, the principal point ends within 1 px of the truth and the rotations at
+    0.027 deg."""
+    from rotonly_cli.io.colmap import read_database, write_database
+
+    scene = read_database(DATA_FIXTURES / "herzjesu_p8" / "database.db")
+    (camera_id, given), = scene.intrinsics.items()
+    exif = Intrinsics(camera_id, "SIMPLE_RADIAL", given.width, given.height,
+                      np.array([given.focal_px, given.width / 2, given.height / 2, 0.0]), prior_focal=True)
+    write_database(tmp_path / "exif.db", replace(scene, intrinsics={camera_id: exif}))
+    summary = run_pipeline(tmp_path / "exif.db", tmp_path / "out", _options())
+    report = json.loads((tmp_path / "out" / "reports" / "intrinsics.json").read_text())
+    camera = report["cameras"][str(camera_id)]
+    assert camera["calibrated"] == "centred principal point"
+    assert report["centred_principal_point_check"]["shifts_px"][str(camera_id)]["principal_point"] > 9.0
+    assert np.hypot(*(np.asarray(camera["end"]["params"][1:3]) - np.asarray(given.params)[2:4])) < 1.5
+    assert summary["num_registered"] == 8
+    assert _rotation_error(tmp_path / "out", DATA_FIXTURES / "herzjesu_p8" / "gt_dense_cameras") < 0.035
+
+
+@pytest.mark.parametrize("fmt", ["colmap", "openmvg"])
+def test_a_centred_principal_point_that_is_right_is_kept(tmp_path, fmt):
+    """A simulated camera whose principal point is at the image centre, given right: the
+    check's adjustment moves it by < 1 px, nothing is calibrated, and the run writes what
+    --intrinsics fixed writes."""
+    problem = simulate_user_cameras(3, 0.0, 0.0, num_views=6, num_points=2000, noise_px=0.3)
+    inputs = write_inputs(tmp_path / "true", problem, true_intrinsics=True)
+    outputs = {}
+    for mode in ("fixed", "auto"):
+        run_pipeline(inputs[fmt], tmp_path / mode, _options(mode))
+        outputs[mode] = (tmp_path / mode / "sfm_data.json").read_bytes()
+    assert outputs["auto"] == outputs["fixed"]
+    report = json.loads((tmp_path / "auto" / "reports" / "intrinsics.json").read_text())
+    check = report["centred_principal_point_check"]
+    assert len(check["cameras"]) == 1 and check["calibrated"] == [] and not report["rounds"]
+    assert max(next(iter(check["shifts_px"].values())).values()) < 1.0
 
 
 # ============================================================================ real repeated structure
