@@ -64,8 +64,9 @@ class Intrinsics(StrEnum):
     #: and radial terms estimated from the reconstruction
     REFINE = "refine"
     #: cameras the input marks as a guess (COLMAP ``prior_focal_length = 0``) calibrated as
-    #: ``refine`` does, and cameras whose reprojection error shows them wrong; the others
-    #: stay as given
+    #: ``refine`` does, cameras whose reprojection error shows them wrong, and cameras whose
+    #: principal point sits at the image centre (a default) where one adjustment moves it
+    #: significantly; the others stay as given
     AUTO = "auto"
 
 

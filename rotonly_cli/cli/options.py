@@ -85,8 +85,10 @@ intrinsics = click.option(
     "--intrinsics", type=click.Choice(INTRINSICS_MODES), default=IntrinsicsOptions.mode.value, show_default=True,
     help="Camera intrinsics: fixed = used as given; refine = every camera calibrated (focal from the view graph, "
          "then focal, principal point and radial terms from the reconstruction); auto = cameras the input marks as "
-         "a guess (COLMAP prior_focal_length = 0) and cameras whose reprojection error shows them wrong are "
-         "calibrated, the others stay as given. Poses always come from the rotation-only stages.")
+         "a guess (COLMAP prior_focal_length = 0), cameras whose reprojection error shows them wrong, and "
+         "cameras whose principal point sits at the image centre (the front ends' default) where one "
+         "adjustment moves it are calibrated, the others stay as given. Poses always come from the "
+         "rotation-only stages.")
 #: the load stage's options (`run` and `identify`)
 load_options = _all(matches_dir, matches_file, image_path, min_inliers, reestimate, ransac_max_error, seed,
                     intrinsics)
