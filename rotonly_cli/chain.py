@@ -354,7 +354,8 @@ def calibrated_chain(loaded: Run, chain=_chain) -> Run:
     run = _rerun(loaded, loaded.scene, loaded, estimation=guessed, chain=chain)
     suspects = options.mode == intrinsics.Mode.AUTO and calibration.add_suspects(
         run.reports["triangulate"]["outlier_sigma_px_by_camera"], run.scene)
-    checked = options.mode == intrinsics.Mode.AUTO and not suspects and calibration.check_centred(output_scene(run))
+    # after the suspects: the cameras they left (a suspect among twins leaves the others)
+    checked = options.mode == intrinsics.Mode.AUTO and calibration.check_centred(output_scene(run))
     if not suspects and not checked and not guessed:
         return run  # every camera fits: the intrinsics stay as given
     if not guessed:

@@ -357,7 +357,8 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int], options: IntrinsicsOp
     (docs/algorithms.md §8), so only the images that share it pin it down. With a group of
     several cameras or a principal point kept, a first adjustment estimates the shared
     principal points (each group as one camera) and a second the focal lengths and
-    distortion per camera, with the principal points held."""
+    distortion per camera, with the principal points held; a group whose focal the input
+    marks known takes all of the first adjustment's camera instead."""
     start = time.perf_counter()
     models = {camera_id: cameras.refinement_model(intrinsic) for camera_id, intrinsic in scene.intrinsics.items()}
     unsupported = sorted(c for c in refine if models.get(c) is None)
@@ -377,19 +378,28 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int], options: IntrinsicsOp
     shared = [group for group in groups if sum(images[c] for c in group) >= options.min_images_principal_point]
     kept = [c for group in groups if group not in shared for c in group]
     merged = [group for group in shared if len(group) > 1]
-    passes = 1
+    passes, whole = 1, set()
     if not merged and not kept:
         reconstruction, summary, error_before = _adjust(subset, refine, offset, options, True)
     elif not shared:
         reconstruction, summary, error_before = _adjust(subset, refine, offset, options, False)
     else:
         passes = 2
-        first, _, error_before = _adjust(_merged(subset, merged), refine, offset, options, True)
+        first, summary, error_before = _adjust(_merged(subset, merged), refine, offset, options, True)
         params = {c: np.array(first.cameras[c + offset].params, dtype=np.float64) for c in refine
                   if c + offset in first.cameras}
+        # a group whose focal the input holds as known (an EXIF focal: the same value, the same
+        # zoom) takes all of the group's adjusted camera; a guessed one (one 1.2 x size guess
+        # can hide several zooms) only its principal point, and each camera's own focal and
+        # distortion from the second adjustment. One image's own focal is weakly fixed: castle-
+        # P19's database with a camera per image, EXIF-like, moved view 16's 1.9 %.
+        whole = {c for group in merged if scene.intrinsics[group[0]].prior_focal is True for c in group}
         for group in groups:
             pp = cameras.parameter_groups(subset.intrinsics[group[0]])["principal_point"]
             for camera_id in group:
+                if camera_id in whole:
+                    params[camera_id] = params[group[0]].copy()
+                    continue
                 # a merged group's other cameras start from the group's adjusted camera
                 values = (params[camera_id] if camera_id in params else params[group[0]]).copy()
                 # a group seen in too few images keeps its principal point; the others share
@@ -397,13 +407,16 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int], options: IntrinsicsOp
                 values[pp] = (np.asarray(subset.intrinsics[camera_id].params)[pp] if group not in shared
                               else params[group[0]][pp])
                 params[camera_id] = values
-        reconstruction, summary, _ = _adjust(_with_params(subset, params), refine, offset, options, False)
+        if refine - whole:
+            reconstruction, summary, _ = _adjust(_with_params(subset, params), refine - whole, offset, options, False)
+        else:
+            passes, reconstruction = 1, first
     reconstruction.update_point_3d_errors()
     error_after = reconstruction.compute_mean_reprojection_error()
     estimated, rejected = {}, []
     for camera_id in sorted(refine):
-        estimate = replace(models[camera_id], params=np.array(reconstruction.cameras[camera_id + offset].params,
-                                                              dtype=np.float64))
+        values = params[camera_id] if camera_id in whole else reconstruction.cameras[camera_id + offset].params
+        estimate = replace(models[camera_id], params=np.array(values, dtype=np.float64))
         if plausible(estimate):
             estimated[camera_id] = estimate
         else:
@@ -552,7 +565,12 @@ class Calibration:
         if any(v > self.options.suspect_reprojection_px for v in per_camera.values()):
             noise = self.noise_sigma_px = fundamental_noise_sigma_px(scene, self.options)
         self.suspect_threshold_px = suspect_threshold_px(noise, self.options)
-        suspects = {c for c in suspect_cameras(per_camera, self.suspect_threshold_px) if c not in self.calibrate}
+        suspects = suspect_cameras(per_camera, self.suspect_threshold_px)
+        # twins are one device as the front end left it: what shows one of them wrong shows
+        # the others (whose own errors may sit just below the threshold) and they are
+        # calibrated together, sharing their principal point
+        suspects = {c for group in twin_cameras(self.given, self.given) if suspects & set(group) for c in group
+                    if c not in self.calibrate}
         if suspects:
             logger.info("intrinsics: camera(s) %s reproject with sigma %s px (> %.2f px): calibrating them",
                         sorted(suspects), ", ".join(f"{per_camera[c]:.2f}" for c in sorted(suspects)),

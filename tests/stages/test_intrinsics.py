@@ -192,6 +192,62 @@ def test_a_camera_per_image_shares_its_principal_point(tmp_path):
     assert rounds[-1]["principal_point_groups"] == [[1, 2, 3, 4, 5, 6]] and rounds[-1]["adjustments"] == 2
 
 
+def _exif_camera_per_image(tmp_path, noise_px: float):
+    """COLMAP's default with an EXIF focal, simulated: a camera per image, each with the focal
+    (here the right one) marked known and the principal point at the centre, 10 px off."""
+    from rotonly_cli.io.colmap import read_database, write_database
+
+    problem = simulate_user_cameras(1, 0.0, 0.0, num_views=6, num_points=2000, principal_offset=(8.0, -6.0),
+                                    noise_px=noise_px)
+    paths = write_inputs(tmp_path / "in", problem, ("colmap",), camera_per_view=True)
+    scene = read_database(paths["colmap"])
+    exif = {c: replace(k, prior_focal=True) for c, k in scene.intrinsics.items()}
+    write_database(tmp_path / "exif.db", replace(scene, intrinsics=exif))
+    summary = run_pipeline(tmp_path / "exif.db", tmp_path / "out", _options())
+    report = json.loads((tmp_path / "out" / "reports" / "intrinsics.json").read_text())
+    ends = np.array([camera["end"] for camera in summary["intrinsics"].values()])
+    assert np.all(ends == ends[0])  # calibrated as one camera
+    assert np.abs(ends[0, 1:3] - problem.true.params[1:3]).max() < 1.5
+    assert _rotation_error(tmp_path / "out", paths["gt"]) < 0.02
+    return report
+
+
+def test_a_camera_per_image_with_a_known_focal_is_checked_as_one_camera(tmp_path):
+    """The Herz-Jesu fixture's database as COLMAP writes it by default with an EXIF focal: a
+    camera per image, SIMPLE_RADIAL, the right focal marked known, the principal point at the
+    centre (11 px off). No camera is a suspect; the centred-principal-point check calibrates
+    the eight as one camera: the same EXIF focal is the same zoom, so the twins share focal
+    and distortion too, in one adjustment (each image's own focal is weakly fixed: castle-P19's
+    database so written moved one view's by 1.9 %)."""
+    from rotonly_cli.io.colmap import read_database, write_database
+
+    scene = read_database(DATA_FIXTURES / "herzjesu_p8" / "database.db")
+    (given,) = scene.intrinsics.values()
+    intrinsics = {v: Intrinsics(v, "SIMPLE_RADIAL", given.width, given.height,
+                                np.array([given.focal_px, given.width / 2, given.height / 2, 0.0]), prior_focal=True)
+                  for v in scene.views}
+    views = {v: replace(view, intrinsics_id=v) for v, view in scene.views.items()}
+    write_database(tmp_path / "exif.db", replace(scene, intrinsics=intrinsics, views=views))
+    summary = run_pipeline(tmp_path / "exif.db", tmp_path / "out", _options())
+    check = json.loads((tmp_path / "out" / "reports" / "intrinsics.json").read_text())["centred_principal_point_check"]
+    assert check["calibrated"] == sorted(scene.views) and check["adjustments"] == 1
+    assert check["principal_point_groups"] == [sorted(scene.views)]
+    ends = np.array([camera["end"] for camera in summary["intrinsics"].values()])
+    assert np.all(ends == ends[0]) and summary["num_registered"] == 8
+    assert np.hypot(*(ends[0, 1:3] - np.asarray(given.params)[2:4])) < 1.5
+    assert _rotation_error(tmp_path / "out", DATA_FIXTURES / "herzjesu_p8" / "gt_dense_cameras") < 0.035
+
+
+def test_a_suspect_takes_its_twins_along(tmp_path):
+    """At 0.5 px noise five of the six cameras reproject above the suspect threshold and one
+    (camera 1) just below it. Calibrated alone, the five left camera 1's principal point as
+    given and their own estimate was gated back to the given (the rotations 0.09 deg, as with
+    the given intrinsics); twins are one device, so all six are suspects: 0.012 deg."""
+    report = _exif_camera_per_image(tmp_path, 0.5)
+    assert {camera["calibrated"] for camera in report["cameras"].values()} == {"suspect"}
+    assert report["centred_principal_point_check"] is None  # nothing left to check
+
+
 def test_a_principal_point_seen_in_one_image_is_kept(tmp_path):
     """Cameras given different intrinsics, one image each: their principal points are not
     estimated; focal lengths are."""
