@@ -11,6 +11,7 @@ pipeline.py runs it into a workspace (files, OUT handling, stage subcommands).
 from __future__ import annotations
 
 import copy
+import functools
 import logging
 import time
 from concurrent.futures import Future
@@ -131,7 +132,8 @@ def _probe_for_suspects(input_label: str, kind: InputKind, calibration: Calibrat
     except AlgorithmError as exc:  # the full chain decides, as without the probe
         logger.info("intrinsics: the quick estimation pass found no reconstruction (%s)", exc)
         return False
-    return calibration.add_suspects(probe.reports["triangulate"]["outlier_sigma_px_by_camera"], calibration.scene)
+    return calibration.add_suspects(probe.reports["triangulate"]["outlier_sigma_px_by_camera"], calibration.scene,
+                                    lambda: output_scene(probe))
 
 
 def _load_options(options: RunOptions, estimation: bool = False):
@@ -352,10 +354,12 @@ def calibrated_chain(loaded: Run, chain=_chain) -> Run:
     guessed = bool(calibration.calibrate)
     started = time.perf_counter()
     run = _rerun(loaded, loaded.scene, loaded, estimation=guessed, chain=chain)
-    suspects = options.mode == intrinsics.Mode.AUTO and calibration.add_suspects(
-        run.reports["triangulate"]["outlier_sigma_px_by_camera"], run.scene)
-    # after the suspects: the cameras they left (a suspect among twins leaves the others)
-    checked = options.mode == intrinsics.Mode.AUTO and calibration.check_centred(output_scene(run))
+    auto = options.mode == intrinsics.Mode.AUTO
+    posed = functools.cache(lambda: output_scene(run))  # made only if some camera is checked
+    suspects = auto and calibration.add_suspects(run.reports["triangulate"]["outlier_sigma_px_by_camera"],
+                                                 run.scene, posed)
+    # after the suspects: the cameras they left
+    checked = auto and calibration.check_centred(posed)
     if not suspects and not checked and not guessed:
         return run  # every camera fits: the intrinsics stay as given
     if not guessed:

@@ -400,7 +400,8 @@ class IntrinsicsOptions:
     #: auto: a camera whose reprojection errors after the first reconstruction (robust sigma
     #: over every observation, before triangulation drops any) are above ``suspect_noise_sigmas``
     #: x the matches' noise sigma (fundamental-matrix fits) and above ``suspect_reprojection_px``
-    #: is calibrated too: a focal 2 % off already costs the Strecha scenes 0.25-1.3 deg and
+    #: is a suspect, calibrated if one adjustment on that reconstruction moves it significantly
+    #: (``min_shift``): a focal 2 % off already costs the Strecha scenes 0.25-1.3 deg and
     #: raises that sigma to 0.33-0.93 px, 1.5-4.3 noise sigmas; calibrated cameras reproject
     #: at 0.19-0.28 px (docs/tuning.md "Intrinsics")
     suspect_noise_sigmas: float = 1.5

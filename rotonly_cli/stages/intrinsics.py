@@ -7,7 +7,9 @@ the other stages (``--intrinsics auto|refine``; docs/algorithms.md §8):
 1. **Which cameras are guesses** (:func:`cameras_to_calibrate`): COLMAP marks a focal it
    guessed (1.2 x the image size) with ``prior_focal_length = 0``; OpenMVG marks nothing,
    so there the data decides after a first reconstruction (:func:`suspect_cameras`: a mean
-   reprojection error well above calibrated cameras' 0.2 px).
+   reprojection error well above calibrated cameras' 0.2 px, confirmed by one adjustment;
+   :meth:`Calibration.check_centred`: a principal point left at the image centre, the front
+   ends' default, checked by one adjustment).
 2. **Focal lengths from the view graph** (:func:`view_graph_focals`), before any rotation is
    estimated: F re-fitted on every verified pair's matches, then
    ``pycolmap.calibrate_view_graph`` — COLMAP's port of GLOMAP's ViewGraphCalibrator
@@ -32,6 +34,7 @@ from __future__ import annotations
 import logging
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -529,6 +532,10 @@ class Calibration:
     settled: bool | None = None  #: whether the last round moved the intrinsics by little (None: no round)
     #: the report of :meth:`check_centred` (None: no camera was checked)
     centred_check: dict | None = None
+    #: the report of the adjustment that confirms suspects (None: none to confirm)
+    suspect_check: dict | None = None
+    #: cameras one of those adjustments has looked at already
+    adjusted_once: set = field(default_factory=set)
     result: dict = field(default_factory=dict)
     jobs: int = 1  #: processes for the fundamental-matrix fits
     #: wall time the calibration added to the run (view-graph focals, estimation passes and
@@ -553,12 +560,17 @@ class Calibration:
                         self.given[camera_id]):
                     self.scene = with_intrinsics(self.scene, {camera_id: self.given[camera_id]})
 
-    def add_suspects(self, sigma_by_camera: dict[str, float], scene: SfMScene) -> bool:
+    def add_suspects(self, sigma_by_camera: dict[str, float], scene: SfMScene,
+                     posed: Callable[[], SfMScene] | None = None) -> bool:
         """auto: cameras not yet calibrated whose reprojection errors in the first
         reconstruction (``sigma_by_camera``: robust sigma in px of every observation's error
         before triangulation drops any, the triangulate stage's report) show them wrong join
         the calibration, starting with their focal from the view graph. True if any did.
-        The matches' noise (``scene``'s) is measured only if some sigma is above the floor."""
+        The matches' noise (``scene``'s) is measured only if some sigma is above the floor.
+        ``posed``: makes that reconstruction, whose one adjustment (:meth:`_one_adjustment`) must
+        confirm a suspect: the sigma alone cannot tell a camera 2 % off from a calibrated one
+        (docs/tuning.md "Intrinsics"), and a suspect the adjustment leaves where it was would
+        cost a round and a pass for the same result."""
         per_camera = {int(c): float(v) for c, v in sigma_by_camera.items()}
         self.first_reprojection_px = self.first_reprojection_px or per_camera  # a probe's came first
         noise = None
@@ -572,44 +584,61 @@ class Calibration:
         suspects = {c for group in twin_cameras(self.given, self.given) if suspects & set(group) for c in group
                     if c not in self.calibrate}
         if suspects:
+            sigmas = ", ".join(f"{per_camera.get(c, float('nan')):.2f}" for c in sorted(suspects))
+            if posed is not None:
+                confirmed, self.suspect_check = self._one_adjustment(posed(), suspects)
+                if not confirmed:
+                    logger.info("intrinsics: camera(s) %s reproject with sigma %s px (> %.2f px), but one adjustment "
+                                "moves them by less than %.1f px: kept as given", sorted(suspects), sigmas,
+                                self.suspect_threshold_px, self.options.min_shift * min(
+                                    half_diagonal(self.given[c]) for c in suspects))
+                    return False
             logger.info("intrinsics: camera(s) %s reproject with sigma %s px (> %.2f px): calibrating them",
-                        sorted(suspects), ", ".join(f"{per_camera[c]:.2f}" for c in sorted(suspects)),
-                        self.suspect_threshold_px)
+                        sorted(suspects), sigmas, self.suspect_threshold_px)
             self._calibrate_focals(dict.fromkeys(sorted(suspects), "suspect"))
         return bool(suspects)
 
-    def check_centred(self, posed: SfMScene) -> bool:
+    def _one_adjustment(self, posed: SfMScene, checked: set[int]) -> tuple[dict[int, Intrinsics], dict]:
+        """The cameras of ``checked`` whose estimate from the reconstruction ``posed`` (one
+        :func:`estimate_intrinsics`, twins sharing) differs significantly from the given
+        intrinsics (:func:`gate`): {camera: gated intrinsics}, and the report."""
+        estimated, report = estimate_intrinsics(posed, checked, self.options, twin_cameras(self.given, checked))
+        changed, shifts, moved = {}, {}, 0.0
+        for camera_id, estimate in estimated.items():
+            gated, shifts[camera_id] = gate(cameras.refinement_model(self.given[camera_id]), estimate, self.options)
+            new = cameras.from_refinement_model(self.given[camera_id], gated)
+            if not _same(new, self.given[camera_id]):
+                changed[camera_id] = new
+                moved = max(moved, shift_px(self.given[camera_id], new) / half_diagonal(new))
+        report.update(shifts_px={str(c): v for c, v in shifts.items()}, calibrated=sorted(changed), moved=moved)
+        self.time_s += report["time_s"]
+        self.adjusted_once |= set(checked)
+        return changed, report
+
+    def check_centred(self, posed: Callable[[], SfMScene]) -> bool:
         """auto: cameras marked known (not yet calibrated) whose principal point sits at the
         image centre (:func:`centred_principal_point`) are checked by one estimate from the
-        first reconstruction ``posed``; those it moves significantly (:func:`gate` against
+        first reconstruction (``posed`` makes it); those it moves significantly (:func:`gate` against
         the given intrinsics) join the calibration, starting from the gated estimate. True if
         any did. The reprojection errors cannot show such a camera: an 11 px principal point
         error leaves them at calibrated cameras' level (docs/tuning.md "Intrinsics")."""
         tolerance = self.options.centred_principal_point_px
         if tolerance is None:
             return False
-        checked = {c for c, k in self.given.items() if c not in self.calibrate and k.prior_focal is not False
+        checked = {c for c, k in self.given.items() if c not in self.calibrate and c not in self.adjusted_once
+                   and k.prior_focal is not False
                    and cameras.refinement_model(k) is not None and centred_principal_point(k, tolerance)}
         if not checked:
             return False
-        estimated, report = estimate_intrinsics(posed, checked, self.options, twin_cameras(self.given, checked))
-        changed, shifts, moved = {}, {}, 0.0
-        for camera_id, estimate in estimated.items():
-            reference = cameras.refinement_model(self.given[camera_id])
-            gated, shifts[camera_id] = gate(reference, estimate, self.options)
-            new = cameras.from_refinement_model(self.given[camera_id], gated)
-            if not _same(new, self.given[camera_id]):
-                changed[camera_id] = new
-                self.calibrate[camera_id] = "centred principal point"
-                self.reference[camera_id] = reference
-                moved = max(moved, shift_px(self.given[camera_id], new) / half_diagonal(new))
-        report.update(cameras=sorted(checked), shifts_px={str(c): v for c, v in shifts.items()},
-                      calibrated=sorted(changed), moved=moved)
+        changed, report = self._one_adjustment(posed(), checked)
+        for camera_id in changed:
+            self.calibrate[camera_id] = "centred principal point"
+            self.reference[camera_id] = cameras.refinement_model(self.given[camera_id])
         self.centred_check = report
-        self.time_s += report["time_s"]
+        shifts = report["shifts_px"]
         logger.info("intrinsics: camera(s) %s have their principal point at the image centre (a default); "
                     "one adjustment moves them by %s px (limit %s): %s", sorted(checked),
-                    ", ".join(f"{max(shifts.get(c, {}).values(), default=0.0):.1f}" for c in sorted(checked)),
+                    ", ".join(f"{max(shifts.get(str(c), {}).values(), default=0.0):.1f}" for c in sorted(checked)),
                     ", ".join(f"{self.options.min_shift * half_diagonal(self.given[c]):.1f}" for c in sorted(checked)),
                     f"calibrating {sorted(changed)}" if changed else "kept as given")
         if changed:
@@ -672,7 +701,7 @@ class Calibration:
                         for c in sorted(self.given)},
             "reprojection_error_px": overall, "view_graph_calibration": self.view_graph, "rounds": self.rounds,
             "settled": self.settled, "suspect_threshold_px": self.suspect_threshold_px,
-            "centred_principal_point_check": self.centred_check,
+            "centred_principal_point_check": self.centred_check, "suspect_check": self.suspect_check,
             "noise_sigma_px": self.noise_sigma_px,
             "kept_given_intrinsics": all(_same(final[c], k) for c, k in self.given.items()),
             "warnings": warnings, "time_s": self.time_s}

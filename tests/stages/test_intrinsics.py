@@ -238,6 +238,24 @@ def test_a_camera_per_image_with_a_known_focal_is_checked_as_one_camera(tmp_path
     assert _rotation_error(tmp_path / "out", DATA_FIXTURES / "herzjesu_p8" / "gt_dense_cameras") < 0.035
 
 
+@pytest.mark.parametrize("fmt", ["colmap", "openmvg"])
+def test_a_suspect_one_adjustment_leaves_in_place_is_kept(user_inputs, tmp_path, fmt):
+    """The simulated capture with its true intrinsics (k1 = -0.2, 0.5 px noise) reprojects
+    above the suspect threshold, as a camera 2 % off does. One adjustment on that
+    reconstruction moves the camera by < 1 px: it stays as given with no round, and the run
+    writes what --intrinsics fixed writes (before: a view-graph focal, an estimation pass and
+    a round to come back to the given intrinsics, and an sfm_data.json that differed)."""
+    _, _, true = user_inputs
+    outputs = {}
+    for mode in ("fixed", "auto"):
+        run_pipeline(true[fmt], tmp_path / mode, _options(mode))
+        outputs[mode] = (tmp_path / mode / "sfm_data.json").read_bytes()
+    assert outputs["auto"] == outputs["fixed"]
+    report = json.loads((tmp_path / "auto" / "reports" / "intrinsics.json").read_text())
+    assert report["suspect_check"]["calibrated"] == [] and not report["rounds"] and not report["view_graph_calibration"]
+    assert max(next(iter(report["suspect_check"]["shifts_px"].values())).values()) < 1.0
+
+
 def test_a_suspect_takes_its_twins_along(tmp_path):
     """At 0.5 px noise five of the six cameras reproject above the suspect threshold and one
     (camera 1) just below it. Calibrated alone, the five left camera 1's principal point as
