@@ -391,12 +391,14 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int], options: IntrinsicsOp
         first, summary, error_before = _adjust(_merged(subset, merged), refine, offset, options, True)
         params = {c: np.array(first.cameras[c + offset].params, dtype=np.float64) for c in refine
                   if c + offset in first.cameras}
-        # a group whose focal the input holds as known (an EXIF focal: the same value, the same
-        # zoom) takes all of the group's adjusted camera; a guessed one (one 1.2 x size guess
-        # can hide several zooms) only its principal point, and each camera's own focal and
-        # distortion from the second adjustment. One image's own focal is weakly fixed: castle-
-        # P19's database with a camera per image, EXIF-like, moved view 16's 1.9 %.
-        whole = {c for group in merged if scene.intrinsics[group[0]].prior_focal is True for c in group}
+        # a group whose focal the input does not call a guess (an EXIF focal: the same value,
+        # the same zoom; OpenMVG's image listing without grouping) takes all of the group's
+        # adjusted camera; a guessed one (COLMAP's one 1.2 x size guess can hide several
+        # zooms) only its principal point, and each camera's own focal and distortion from the
+        # second adjustment. One image's own focal is weakly fixed: castle-P19's database with
+        # a camera per image, EXIF-like, moved view 16's by 1.9 %; its OpenMVG project with an
+        # intrinsic per view moved view 3's by 3.9 % (0.170 deg; shared, 0.083 deg).
+        whole = {c for group in merged if scene.intrinsics[group[0]].prior_focal is not False for c in group}
         for group in groups:
             pp = cameras.parameter_groups(subset.intrinsics[group[0]])["principal_point"]
             for camera_id in group:
