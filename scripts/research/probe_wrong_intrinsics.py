@@ -16,7 +16,9 @@ against the ground truth.
   ``exif db per image x F``, the same camera given to every image on its own (COLMAP's
   default).
 * ``omvg x F``: the OpenMVG project with the focal F x the given one (a wrong EXIF focal) and
-  the principal point at the image centre; nothing marks it as a guess.
+  the principal point at the image centre; nothing marks it as a guess. With
+  ``--omvg-intrinsic-per-view`` also ``omvg per view x F``: that intrinsic copied to every
+  view, as OpenMVG's image listing writes them without grouping.
 * ``phone db``: ``database_guessed_focal.db`` where the scene has one (COLMAP's own
   extraction and matching without camera parameters).
 
@@ -87,14 +89,26 @@ def exif_database(scene, factor: float, out: Path, per_image: bool = False) -> P
     return out
 
 
-def wrong_focal_project(sfm_data: Path, factor: float, out: Path) -> Path:
+def wrong_focal_project(sfm_data: Path, factor: float, out: Path, per_view: bool = False) -> Path:
     """``sfm_data`` with every intrinsic's focal x ``factor`` and its principal point at the
-    image centre, image root made absolute (the features stay where they are)."""
+    image centre, image root made absolute (the features stay where they are); ``per_view``:
+    a copy of the (first) intrinsic for every view, as OpenMVG's image listing writes them
+    without grouping (``-g 0``)."""
+    import copy
+
     data = json.loads(sfm_data.read_text())
     for intrinsic in data["intrinsics"]:
         camera = intrinsic["value"]["ptr_wrapper"]["data"]
         camera["focal_length"] *= factor
         camera["principal_point"] = [camera["width"] / 2, camera["height"] / 2]
+    if per_view:
+        first, data["intrinsics"] = data["intrinsics"][0], []
+        for key, view in enumerate(data["views"]):
+            intrinsic = copy.deepcopy(first)
+            intrinsic["key"] = key
+            intrinsic["value"]["ptr_wrapper"]["id"] = first["value"]["ptr_wrapper"]["id"] + 1000 + key
+            data["intrinsics"].append(intrinsic)
+            view["value"]["ptr_wrapper"]["data"]["id_intrinsic"] = key
     data["root_path"] = str((sfm_data.parent / data["root_path"]).resolve())
     out.write_text(json.dumps(data))
     return out
@@ -147,6 +161,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="focal factors of the database written as an EXIF camera (principal point at the centre)")
     parser.add_argument("--exif-camera-per-image", action="store_true",
                         help="the --exif-factors databases with a camera per image too")
+    parser.add_argument("--omvg-intrinsic-per-view", action="store_true",
+                        help="the --factors projects with an intrinsic per view too")
     parser.add_argument("--ba-huber-px", default=None, help="IntrinsicsOptions.ba_huber_px (none: squared loss)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
@@ -178,6 +194,10 @@ def main(argv: list[str] | None = None) -> int:
                 project = wrong_focal_project(folder / "openmvg" / "sfm_data.json", factor,
                                               work / f"sfm_data_x{factor}.json")
                 runs.append((f"{scene} omvg x{factor}", project, folder / "openmvg"))
+                if args.omvg_intrinsic_per_view:
+                    project = wrong_focal_project(folder / "openmvg" / "sfm_data.json", factor,
+                                                  work / f"sfm_data_x{factor}_per_view.json", per_view=True)
+                    runs.append((f"{scene} omvg per view x{factor}", project, folder / "openmvg"))
             for label, input_path, matches_dir in runs:
                 rows.append(run_row(label, input_path, gt, true, options, matches_dir))
                 print_row(rows[-1])
