@@ -146,6 +146,14 @@ def user_scene(problem: UserCameraProblem, intrinsics: Intrinsics,
     return scene
 
 
+def camera_per_view(scene: SfMScene) -> SfMScene:
+    """``scene`` with every view given its own copy of its camera, id = the view's id: what
+    COLMAP's feature extractor makes by default and OpenMVG's image listing with ``-g 0``."""
+    views = {v: replace(view, intrinsics_id=v) for v, view in scene.views.items()}
+    intrinsics = {v: replace(scene.intrinsics[view.intrinsics_id], id=v) for v, view in scene.views.items()}
+    return replace(scene, intrinsics=intrinsics, views=views)
+
+
 def gt_scene(problem: UserCameraProblem) -> SfMScene:
     """Ground truth: the true camera and poses (``rotonly eval`` / evaluation.quality)."""
     scene = user_scene(problem, problem.true, {})

@@ -600,19 +600,39 @@ class Calibration:
             self._calibrate_focals(dict.fromkeys(sorted(suspects), "suspect"))
         return bool(suspects)
 
+    def _gated_estimates(self, posed: SfMScene, camera_ids: set[int], reference: dict[int, Intrinsics],
+                         guesses: frozenset[int] = frozenset()) -> tuple[dict[int, Intrinsics], dict]:
+        """One :func:`estimate_intrinsics` of ``camera_ids`` on the reconstruction ``posed``
+        (twins sharing), each camera's estimate gated against its ``reference`` (:func:`gate`;
+        the focal of a camera in ``guesses`` always taken): {camera: intrinsics as the input's
+        model}, and the report with the shifts."""
+        estimated, report = estimate_intrinsics(posed, camera_ids, self.options, twin_cameras(self.given, camera_ids))
+        gated, shifts = {}, {}
+        for camera_id, estimate in estimated.items():
+            # a focal the input marks as a guess has no value to protect: the view-graph focal
+            # is a start, and the estimate is better on average (algorithms.md §8 "Significant
+            # changes only"); the other groups change when significant
+            always = frozenset({"focal"}) if camera_id in guesses else frozenset()
+            camera, shifts[camera_id] = gate(reference[camera_id], estimate, self.options, always)
+            gated[camera_id] = cameras.from_refinement_model(self.given[camera_id], camera)
+        report["shifts_px"] = {str(c): v for c, v in shifts.items()}
+        return gated, report
+
+    def _changes(self, before: dict[int, Intrinsics], after: dict[int, Intrinsics]) -> tuple[dict, float]:
+        """The cameras of ``after`` that differ from ``before``, and the largest image shift
+        that makes, as a fraction of the half diagonal."""
+        changed = {c: k for c, k in after.items() if not _same(k, before[c])}
+        moved = max((shift_px(before[c], k) / half_diagonal(before[c]) for c, k in changed.items()), default=0.0)
+        return changed, moved
+
     def _one_adjustment(self, posed: SfMScene, checked: set[int]) -> tuple[dict[int, Intrinsics], dict]:
         """The cameras of ``checked`` whose estimate from the reconstruction ``posed`` (one
         :func:`estimate_intrinsics`, twins sharing) differs significantly from the given
         intrinsics (:func:`gate`): {camera: gated intrinsics}, and the report."""
-        estimated, report = estimate_intrinsics(posed, checked, self.options, twin_cameras(self.given, checked))
-        changed, shifts, moved = {}, {}, 0.0
-        for camera_id, estimate in estimated.items():
-            gated, shifts[camera_id] = gate(cameras.refinement_model(self.given[camera_id]), estimate, self.options)
-            new = cameras.from_refinement_model(self.given[camera_id], gated)
-            if not _same(new, self.given[camera_id]):
-                changed[camera_id] = new
-                moved = max(moved, shift_px(self.given[camera_id], new) / half_diagonal(new))
-        report.update(shifts_px={str(c): v for c, v in shifts.items()}, calibrated=sorted(changed), moved=moved)
+        gated, report = self._gated_estimates(posed, checked, {c: cameras.refinement_model(self.given[c])
+                                                               for c in checked})
+        changed, moved = self._changes(self.given, gated)
+        report.update(calibrated=sorted(changed), moved=moved)
         self.time_s += report["time_s"]
         self.adjusted_once |= set(checked)
         return changed, report
@@ -651,23 +671,11 @@ class Calibration:
         """One round: the intrinsics estimated from the reconstruction ``posed``, each change
         kept when significant (:func:`gate`); ``scene`` takes the new intrinsics. True when
         they moved the image by no more than ``converged_shift`` (settled)."""
-        estimated, report = estimate_intrinsics(posed, set(self.calibrate), self.options,
-                                                 twin_cameras(self.given, self.calibrate))
-        changed, shifts, moved = {}, {}, 0.0
-        for camera_id, estimate in estimated.items():
-            # a focal the input marks as a guess has no value to protect: the view-graph focal
-            # is a start, and the estimate is better on average (algorithms.md §8 "Significant
-            # changes only"); the other groups change when significant
-            always = frozenset({"focal"}) if self.calibrate[camera_id] == "guess" else frozenset()
-            gated, shifts[camera_id] = gate(self.reference[camera_id], estimate, self.options, always)
-            new = cameras.from_refinement_model(self.given[camera_id], gated)
-            current = self.scene.intrinsics[camera_id]
-            if not _same(new, current):
-                changed[camera_id] = new
-                moved = max(moved, shift_px(current, new) / half_diagonal(current))
+        gated, report = self._gated_estimates(posed, set(self.calibrate), self.reference,
+                                              frozenset(c for c, why in self.calibrate.items() if why == "guess"))
+        changed, moved = self._changes(self.scene.intrinsics, gated)
         self.scene = with_intrinsics(self.scene, changed) if changed else self.scene
-        report.update(shifts_px={str(c): v for c, v in shifts.items()}, moved=moved,
-                      result={str(c): describe(self.scene.intrinsics[c]) for c in sorted(self.calibrate)})
+        report.update(moved=moved, result={str(c): describe(self.scene.intrinsics[c]) for c in sorted(self.calibrate)})
         self.rounds.append(report)
         logger.info("intrinsics: round %d (%.2f s): %s", len(self.rounds), report["time_s"], "; ".join(
             f"camera {c} {np.round(self.scene.intrinsics[c].params, 4).tolist()}" for c in sorted(self.calibrate)))

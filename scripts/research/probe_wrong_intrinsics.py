@@ -79,13 +79,12 @@ def exif_database(scene, factor: float, out: Path, per_image: bool = False) -> P
     camera (module docstring); ``per_image``: a copy of it for every image."""
     from rotonly_cli.io.colmap import write_database
     from rotonly_cli.scene.types import Intrinsics
+    from rotonly_cli.simulation.user_cameras import camera_per_view
 
     (k,) = scene.intrinsics.values()
-    views = {v: replace(view, intrinsics_id=v if per_image else k.id) for v, view in scene.views.items()}
-    intrinsics = {c: Intrinsics(c, "SIMPLE_RADIAL", k.width, k.height,
-                                np.array([factor * k.focal_px, k.width / 2, k.height / 2, 0.0]), prior_focal=True)
-                  for c in sorted({view.intrinsics_id for view in views.values()})}
-    write_database(out, replace(scene, intrinsics=intrinsics, views=views))
+    exif = replace(scene, intrinsics={k.id: Intrinsics(k.id, "SIMPLE_RADIAL", k.width, k.height, np.array(
+        [factor * k.focal_px, k.width / 2, k.height / 2, 0.0]), prior_focal=True)})
+    write_database(out, camera_per_view(exif) if per_image else exif)
     return out
 
 
@@ -94,23 +93,18 @@ def wrong_focal_project(sfm_data: Path, factor: float, out: Path, per_view: bool
     image centre, image root made absolute (the features stay where they are); ``per_view``:
     a copy of the (first) intrinsic for every view, as OpenMVG's image listing writes them
     without grouping (``-g 0``)."""
-    import copy
+    from rotonly_cli.io.openmvg import read_sfm_data, write_sfm_data
+    from rotonly_cli.simulation.user_cameras import camera_per_view
 
     data = json.loads(sfm_data.read_text())
     for intrinsic in data["intrinsics"]:
         camera = intrinsic["value"]["ptr_wrapper"]["data"]
         camera["focal_length"] *= factor
         camera["principal_point"] = [camera["width"] / 2, camera["height"] / 2]
-    if per_view:
-        first, data["intrinsics"] = data["intrinsics"][0], []
-        for key, view in enumerate(data["views"]):
-            intrinsic = copy.deepcopy(first)
-            intrinsic["key"] = key
-            intrinsic["value"]["ptr_wrapper"]["id"] = first["value"]["ptr_wrapper"]["id"] + 1000 + key
-            data["intrinsics"].append(intrinsic)
-            view["value"]["ptr_wrapper"]["data"]["id_intrinsic"] = key
     data["root_path"] = str((sfm_data.parent / data["root_path"]).resolve())
     out.write_text(json.dumps(data))
+    if per_view:
+        write_sfm_data(out, camera_per_view(read_sfm_data(out)), include_structure=False)
     return out
 
 

@@ -18,7 +18,7 @@ from rotonly_cli.options import Intrinsics as Mode
 from rotonly_cli.options import IntrinsicsOptions, RunOptions
 from rotonly_cli.pipeline import STAGES, resume, run_pipeline
 from rotonly_cli.scene.types import Intrinsics, SfMScene, View
-from rotonly_cli.simulation.user_cameras import simulate_user_cameras, write_inputs
+from rotonly_cli.simulation.user_cameras import camera_per_view, simulate_user_cameras, write_inputs
 from rotonly_cli.stages import intrinsics as stage
 
 from helpers import DATA_FIXTURES
@@ -219,15 +219,7 @@ def test_a_camera_per_image_with_a_known_focal_is_checked_as_one_camera(tmp_path
     the eight as one camera: the same EXIF focal is the same zoom, so the twins share focal
     and distortion too, in one adjustment (each image's own focal is weakly fixed: castle-P19's
     database so written moved one view's by 1.9 %)."""
-    from rotonly_cli.io.colmap import read_database, write_database
-
-    scene = read_database(DATA_FIXTURES / "herzjesu_p8" / "database.db")
-    (given,) = scene.intrinsics.values()
-    intrinsics = {v: Intrinsics(v, "SIMPLE_RADIAL", given.width, given.height,
-                                np.array([given.focal_px, given.width / 2, given.height / 2, 0.0]), prior_focal=True)
-                  for v in scene.views}
-    views = {v: replace(view, intrinsics_id=v) for v, view in scene.views.items()}
-    write_database(tmp_path / "exif.db", replace(scene, intrinsics=intrinsics, views=views))
+    given, scene = _herzjesu_exif_database(tmp_path / "exif.db", per_image=True)
     summary = run_pipeline(tmp_path / "exif.db", tmp_path / "out", _options())
     check = json.loads((tmp_path / "out" / "reports" / "intrinsics.json").read_text())["centred_principal_point_check"]
     assert check["calibrated"] == sorted(scene.views) and check["adjustments"] == 1
@@ -244,21 +236,15 @@ def test_openmvg_intrinsics_per_view_are_checked_as_one_camera(tmp_path):
     point at the centre. They are twins and are calibrated as one camera (OpenMVG marks no
     focal as a guess): castle-P19's project so written ended at 0.170 deg with a focal per
     view (view 3's moved by 3.9 %), at 0.083 deg shared."""
-    import copy
+    from rotonly_cli.io.openmvg import read_sfm_data, write_sfm_data
 
     source = DATA_FIXTURES / "herzjesu_p8" / "openmvg"
-    sfm_data = json.loads((source / "sfm_data.json").read_text())
-    intrinsic = sfm_data["intrinsics"][0]
-    camera = intrinsic["value"]["ptr_wrapper"]["data"]
-    camera["principal_point"] = [camera["width"] / 2, camera["height"] / 2]
-    sfm_data["intrinsics"] = []
-    for key, view in enumerate(sfm_data["views"]):
-        copied = copy.deepcopy(intrinsic)
-        copied["key"] = key
-        copied["value"]["ptr_wrapper"]["id"] = intrinsic["value"]["ptr_wrapper"]["id"] + 1000 + key
-        sfm_data["intrinsics"].append(copied)
-        view["value"]["ptr_wrapper"]["data"]["id_intrinsic"] = key
-    (tmp_path / "sfm_data.json").write_text(json.dumps(sfm_data))
+    scene = read_sfm_data(source / "sfm_data.json")
+    (given,) = scene.intrinsics.values()
+    centre = np.array([given.width, given.height]) / 2 + 0.5  # OpenMVG's (w/2, h/2) in COLMAP's convention
+    centred = replace(given, params=np.concatenate([np.asarray(given.params)[:1], centre]))
+    write_sfm_data(tmp_path / "sfm_data.json", camera_per_view(replace(scene, intrinsics={given.id: centred})),
+                   include_structure=False)
     summary = run_pipeline(tmp_path / "sfm_data.json", tmp_path / "out", replace(_options(), matches_dir=str(source)))
     report = json.loads((tmp_path / "out" / "reports" / "intrinsics.json").read_text())
     ends = np.array([camera["end"] for camera in summary["intrinsics"].values()])
@@ -276,14 +262,9 @@ def test_a_suspect_one_adjustment_leaves_in_place_is_kept(user_inputs, tmp_path,
     writes what --intrinsics fixed writes (before: a view-graph focal, an estimation pass and
     a round to come back to the given intrinsics, and an sfm_data.json that differed)."""
     _, _, true = user_inputs
-    outputs = {}
-    for mode in ("fixed", "auto"):
-        run_pipeline(true[fmt], tmp_path / mode, _options(mode))
-        outputs[mode] = (tmp_path / mode / "sfm_data.json").read_bytes()
-    assert outputs["auto"] == outputs["fixed"]
-    report = json.loads((tmp_path / "auto" / "reports" / "intrinsics.json").read_text())
+    report, _ = _auto_writes_what_fixed_writes(true[fmt], tmp_path)
     assert report["suspect_check"]["calibrated"] == [] and not report["rounds"] and not report["view_graph_calibration"]
-    assert max(next(iter(report["suspect_check"]["shifts_px"].values())).values()) < 1.0
+    assert _largest_shift_px(report["suspect_check"]) < 1.0
 
 
 def test_a_suspect_takes_its_twins_along(tmp_path):
@@ -355,14 +336,9 @@ def test_auto_leaves_calibrated_cameras_alone(tmp_path, input_name):
     --against-fixed guard on the Strecha scenes, here on the bundled fixture)."""
     source = DATA_FIXTURES / "herzjesu_p8"
     shutil.copytree(source, tmp_path / "in")
-    outputs = {}
-    for mode in ("fixed", "auto"):
-        summary = run_pipeline(tmp_path / "in" / input_name, tmp_path / mode, _options(mode))
-        outputs[mode] = (tmp_path / mode / "sfm_data.json").read_bytes()
-        assert summary["warnings"] == []
-    assert outputs["auto"] == outputs["fixed"]
+    report, warnings = _auto_writes_what_fixed_writes(tmp_path / "in" / input_name, tmp_path)
+    assert warnings == []
     assert "quick estimation pass" not in (tmp_path / "auto" / "run.log").read_text()
-    report = json.loads((tmp_path / "auto" / "reports" / "intrinsics.json").read_text())
     assert report["kept_given_intrinsics"] and not report["rounds"]
 
 
@@ -426,6 +402,40 @@ def test_an_exif_focal_two_percent_off_is_calibrated(tmp_path):
     assert _rotation_error(tmp_path / "out", DATA_FIXTURES / "herzjesu_p8" / "gt_dense_cameras") < 0.025
 
 
+def _herzjesu_exif_database(path, per_image: bool = False):
+    """The Herz-Jesu fixture's database written to ``path`` as COLMAP writes a camera whose
+    focal the EXIF gives: SIMPLE_RADIAL, that focal (here the right one, marked known), the
+    principal point at the image centre, k1 = 0; ``per_image``: COLMAP's default, a copy
+    per image. Returns (the given camera, the scene written)."""
+    from rotonly_cli.io.colmap import read_database, write_database
+
+    scene = read_database(DATA_FIXTURES / "herzjesu_p8" / "database.db")
+    (given,) = scene.intrinsics.values()
+    exif = Intrinsics(given.id, "SIMPLE_RADIAL", given.width, given.height,
+                      np.array([given.focal_px, given.width / 2, given.height / 2, 0.0]), prior_focal=True)
+    scene = replace(scene, intrinsics={given.id: exif})
+    scene = camera_per_view(scene) if per_image else scene
+    write_database(path, scene)
+    return given, scene
+
+
+def _auto_writes_what_fixed_writes(input_path, tmp_path) -> tuple[dict, list[str]]:
+    """Runs ``input_path`` with --intrinsics fixed and auto and asserts that the two
+    sfm_data.json are the same bytes; returns auto's reports/intrinsics.json and the warnings
+    of both runs."""
+    outputs, warnings = {}, []
+    for mode in ("fixed", "auto"):
+        warnings += run_pipeline(input_path, tmp_path / mode, _options(mode))["warnings"]
+        outputs[mode] = (tmp_path / mode / "sfm_data.json").read_bytes()
+    assert outputs["auto"] == outputs["fixed"]
+    return json.loads((tmp_path / "auto" / "reports" / "intrinsics.json").read_text()), warnings
+
+
+def _largest_shift_px(check: dict) -> float:
+    """The largest image shift (px) of any camera and parameter group an adjustment report holds."""
+    return max(shift for shifts in check["shifts_px"].values() for shift in shifts.values())
+
+
 def test_a_default_principal_point_is_checked_and_calibrated(tmp_path):
     """The Herz-Jesu fixture's database as COLMAP writes it for a camera whose focal the
     EXIF gives: SIMPLE_RADIAL, that focal (here the right one), the principal point at the
@@ -435,13 +445,8 @@ def test_a_default_principal_point_is_checked_and_calibrated(tmp_path):
     the true camera). One adjustment on that reconstruction moves it by 11 px: the camera is
     calibrated, the principal point ends within 1 px of the truth and the rotations at
     0.027 deg."""
-    from rotonly_cli.io.colmap import read_database, write_database
-
-    scene = read_database(DATA_FIXTURES / "herzjesu_p8" / "database.db")
-    (camera_id, given), = scene.intrinsics.items()
-    exif = Intrinsics(camera_id, "SIMPLE_RADIAL", given.width, given.height,
-                      np.array([given.focal_px, given.width / 2, given.height / 2, 0.0]), prior_focal=True)
-    write_database(tmp_path / "exif.db", replace(scene, intrinsics={camera_id: exif}))
+    given, _ = _herzjesu_exif_database(tmp_path / "exif.db")
+    camera_id = given.id
     summary = run_pipeline(tmp_path / "exif.db", tmp_path / "out", _options())
     report = json.loads((tmp_path / "out" / "reports" / "intrinsics.json").read_text())
     camera = report["cameras"][str(camera_id)]
@@ -459,15 +464,10 @@ def test_a_centred_principal_point_that_is_right_is_kept(tmp_path, fmt):
     --intrinsics fixed writes."""
     problem = simulate_user_cameras(3, 0.0, 0.0, num_views=6, num_points=2000, noise_px=0.3)
     inputs = write_inputs(tmp_path / "true", problem, true_intrinsics=True)
-    outputs = {}
-    for mode in ("fixed", "auto"):
-        run_pipeline(inputs[fmt], tmp_path / mode, _options(mode))
-        outputs[mode] = (tmp_path / mode / "sfm_data.json").read_bytes()
-    assert outputs["auto"] == outputs["fixed"]
-    report = json.loads((tmp_path / "auto" / "reports" / "intrinsics.json").read_text())
+    report, _ = _auto_writes_what_fixed_writes(inputs[fmt], tmp_path)
     check = report["centred_principal_point_check"]
     assert len(check["cameras"]) == 1 and check["calibrated"] == [] and not report["rounds"]
-    assert max(next(iter(check["shifts_px"].values())).values()) < 1.0
+    assert _largest_shift_px(check) < 1.0
 
 
 # ============================================================================ real repeated structure
