@@ -293,6 +293,10 @@ class LiGTOptions:
     outlier_sigmas: float = 4.0
     #: ... and never within this many pixels (the sigma is measured, this is its floor)
     min_outlier_threshold_px: float = 1.0
+    #: ... which starts at this and halves every round down to ``min_outlier_threshold_px``
+    #: (None: no annealing): errors of a first solve that wrong tracks bend mark the good
+    #: observations of weak links too (docs/tuning.md "Robust LiGT")
+    outlier_threshold_start_px: float | None = 4.0
     #: at most this fraction of the observations is dropped per round, so that a first solve
     #: wrecked by outliers leaves most of the data to the next one
     max_drop_fraction: float = 0.3

@@ -401,12 +401,34 @@ def rigid_views(obs_track: np.ndarray, obs_view: np.ndarray, num_views: int,
                           shape=(keys.size, keys.size))
     num_components, component = connected_components(links, directed=False)
     pair_views = np.stack([keys // num_views, keys % num_views], axis=1)
-    views_of = np.zeros((num_components, num_views), dtype=bool)
-    views_of[np.repeat(component, 2), pair_views.ravel()] = True
-    size = views_of.sum(axis=1)
+    views_of = _views_of(np.repeat(component, 2), pair_views.ravel(), num_components, num_views)
     pairs = np.bincount(component, minlength=num_components)
+    # Each component is rigid, but two of them can share two views without a track holding
+    # both: (0, 1, 2), (0, 2, 3) and (1, 3, 4) tie 1-3 in the first two bodies and in the
+    # third, so the third shares their baseline. Merge bodies that share two views until none
+    # do (sequential captures: castle-P19 matched to its two neighbours lost views 14-19)
+    while num_components > 1:
+        shared = (views_of @ views_of.T).tocoo()
+        link = (shared.data >= 2) & (shared.row < shared.col)
+        if not link.any():
+            break
+        num_components, merged = connected_components(
+            sp.coo_matrix((np.ones(int(link.sum())), (shared.row[link], shared.col[link])),
+                          shape=views_of.shape[:1] * 2), directed=False)
+        rows, cols = views_of.nonzero()
+        views_of = _views_of(merged[rows], cols, num_components, num_views)
+        pairs = np.bincount(merged, weights=pairs, minlength=num_components)
+    size = np.asarray(views_of.sum(axis=1)).ravel()
     best = int(np.lexsort((-pairs, -size))[0])
-    return views_of[best]
+    return views_of[best].toarray().ravel() > 0
+
+
+def _views_of(body: np.ndarray, view: np.ndarray, num_bodies: int, num_views: int) -> sp.csr_matrix:
+    """(num_bodies, num_views) 0/1 int matrix: which views each body holds (from the
+    ``(body, view)`` incidences, repeats allowed)."""
+    incidence = sp.csr_matrix((np.ones(body.size, dtype=np.int64), (body, view)), shape=(num_bodies, num_views))
+    incidence.data[:] = 1
+    return incidence
 
 
 def ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_view: np.ndarray,
@@ -489,6 +511,13 @@ def outlier_threshold_px(error_px: np.ndarray, options: LiGTOptions) -> tuple[fl
     threshold = max(options.outlier_sigmas * sigma, options.min_outlier_threshold_px,
                     float(np.quantile(error_px, 1.0 - options.max_drop_fraction)))
     return sigma, threshold
+
+
+def _annealed_floor_px(round_number: int, options: LiGTOptions) -> float:
+    """The robust rounds' pixel floor in round ``round_number`` (0 = after the first solve):
+    ``outlier_threshold_start_px`` halved every round, down to ``min_outlier_threshold_px``."""
+    start = options.outlier_threshold_start_px or options.min_outlier_threshold_px
+    return max(options.min_outlier_threshold_px, start / 2.0 ** round_number)
 
 
 def baseline_disagreement_deg(R_cam_from_world: np.ndarray, centers: np.ndarray, edge_views: np.ndarray,
@@ -582,8 +611,9 @@ def robust_ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray
                              options: LiGTOptions | None = None, peer_class=None) -> RobustLiGTResult:
     """LiGT with outlier rejection by reprojection: solve, triangulate every track with the
     centres, and solve again without the observations whose error exceeds
-    max(``outlier_sigmas`` x sigma, ``min_outlier_threshold_px``) (sigma = 1.4826 x the median
-    error in pixels, ``obs_focal_px`` per observation). Each round judges every observation
+    max(``outlier_sigmas`` x sigma, a floor) (sigma = 1.4826 x the median error in pixels,
+    ``obs_focal_px`` per observation; the floor starts at ``outlier_threshold_start_px`` and
+    halves every round down to ``min_outlier_threshold_px``). Each round judges every observation
     afresh (one dropped by a wrecked first solve comes back), drops at most
     ``max_drop_fraction`` of the used ones, and the rounds stop when the set settles.
 
@@ -677,7 +707,13 @@ def _robust_rounds(parts: _TrackParts, obs_focal_px: np.ndarray, view_mask: np.n
         finite = used & np.isfinite(error)
         if not finite.any():
             break
-        sigma, threshold = outlier_threshold_px(error[finite], options)
+        sigma, final_threshold = outlier_threshold_px(error[finite], options)
+        # the floor anneals: the first solve is bent by the wrong tracks, and at 1 px its errors
+        # also mark the good observations of a weak link (the few tracks that tie two parts of
+        # a capture together, which such a solve fits worst): dropped, they leave the link to
+        # the wrong ones or cut it (castle-P19 matched sequentially lost 6-7 of 19 views)
+        floor = _annealed_floor_px(len(rounds), options)
+        threshold = max(final_threshold, floor)
         if best is not None and sigma > 2.0 * best[0]:
             # the solve broke down (a view lost its constraints, the eigenvector collapsed): the
             # errors of a wrecked solve would drop good observations; keep the best one
@@ -692,7 +728,9 @@ def _robust_rounds(parts: _TrackParts, obs_focal_px: np.ndarray, view_mask: np.n
         dropped, readmitted = int(np.count_nonzero(used & ~new_keep)), int(np.count_nonzero(~keep & new_keep))
         rounds.append({"observations": int(used.sum()), "sigma_px": sigma, "threshold_px": threshold,
                        "dropped": dropped, "readmitted": readmitted})
-        if dropped + readmitted <= options.min_change_fraction * max(int(used.sum()), 1):
+        settled = dropped + readmitted <= options.min_change_fraction * max(int(used.sum()), 1)
+        # not before the floor is annealed down, unless the lower floors would drop nothing either
+        if settled and (threshold <= final_threshold or not np.any(used & (error > final_threshold))):
             break
         keep = new_keep
     return RobustLiGTResult(result, used, error, threshold, rounds)

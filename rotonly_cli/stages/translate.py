@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -53,12 +54,28 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
 
     # half of every round's LᵀL and triangulation in a forked child where that is safe and pays
     peer_class = helper_class(tracks.num_observations, jobs, LIGT_HELPER_MIN_OBSERVATIONS)
-    robust = robust_ligt_translations(R, tracks.track_id, tracks.view, obs_xy, focal[tracks.view],
-                                      view_mask=registered, options=options, peer_class=peer_class)
+    options = options or LiGTOptions()
+
+    def solve(ligt_options: LiGTOptions):
+        robust = robust_ligt_translations(R, tracks.track_id, tracks.view, obs_xy, focal[tracks.view],
+                                          view_mask=registered, options=ligt_options, peer_class=peer_class)
+        centers = np.where(robust.result.has_translation[:, None], robust.result.centers, np.nan)
+        return robust, centers, baseline_report(graph, edges, index, R, centers, ligt_options)
+
+    robust, centers, baselines = solve(options)
+    annealing = None
+    if baselines["views_off"] and options.outlier_threshold_start_px is not None:
+        # the annealed rounds kept a weak link that the 1 px rounds would have cut, and its
+        # tracks put views off their own pairs' directions: the rounds without annealing are
+        # tried, and kept if fewer views are off (castle-P19, a 6-view subset: view 19)
+        plain = solve(replace(options, outlier_threshold_start_px=None))
+        taken = len(plain[2]["views_off"]) < len(baselines["views_off"])
+        annealing = {"views_off": baselines["views_off"], "without_views_off": plain[2]["views_off"],
+                     "kept": "without annealing" if taken else "annealed"}
+        if taken:
+            robust, centers, baselines = plain
     result = robust.result
-    centers = np.where(result.has_translation[:, None], result.centers, np.nan)
     ids = graph.view_ids()
-    baselines = baseline_report(graph, edges, index, R, centers, options or LiGTOptions())
     without = [ids[r] for r in np.flatnonzero(registered & ~result.has_translation)]
     report = {"num_edges": len(edges), "num_tracks": tracks.num_tracks, "num_observations": tracks.num_observations,
               "num_inconsistent_tracks": tracks.num_inconsistent,
@@ -68,6 +85,7 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
               "num_observations_used": int(robust.keep.sum()),
               "num_observations_dropped": int(tracks.num_observations - robust.keep.sum()),
               "outlier_threshold_px": robust.threshold_px, "baselines": baselines,
+              **({"annealing_checked": annealing} if annealing else {}),
               "processes": 1 if peer_class is None else 2,
               "time_s": time.perf_counter() - start}
     for number, round_ in enumerate(robust.rounds, 1):

@@ -38,6 +38,7 @@ probe = _load_script("probe_grrm_residuals")
 probe_structure = _load_script("probe_grrm_structure")
 probe_subsets = _load_script("probe_view_subsets")
 probe_intrinsics = _load_script("probe_wrong_intrinsics")
+probe_sequential = _load_script("probe_sequential")
 
 
 def _digest(path: Path) -> str:
@@ -364,6 +365,36 @@ def test_probe_view_subsets_refuses_a_subset_larger_than_the_scene(tmp_path):
         probe_subsets.main(["--root", str(tmp_path / "root"), "--scene", "Herz-Jesus-P8", "--input", "database",
                             "--views", "9"])
     assert exc.value.code == 2
+
+
+# ============================================================================ probe_sequential
+
+def test_sequential_pairs_keep_the_band_of_the_name_order():
+    from rotonly_cli.stages.load import read_input
+
+    scene, _ = read_input(FIXTURES / "herzjesu_p8" / "database.db")
+    rank = {v: r for r, v in enumerate(sorted(scene.views, key=lambda v: Path(scene.views[v].name).name))}
+    for window in (1, 2):
+        banded = probe_sequential.sequential_pairs(scene, window)
+        assert set(banded.pairs) == {key for key in scene.pairs if abs(rank[key[0]] - rank[key[1]]) <= window}
+        assert len(banded.pairs) == sum(8 - d for d in range(1, window + 1))  # 8 views, every pair matched
+    assert len(scene.pairs) == 28  # the scene read is not changed
+
+
+def test_probe_sequential_on_fixture(tmp_path, capsys):
+    """The Herz-Jesu fixture matched to its next image only (a chain of 7 pairs): every view
+    registered with a centre, errors in the fixture's range; the input is untouched."""
+    (tmp_path / "root").mkdir()
+    (tmp_path / "root" / "Herz-Jesus-P8").symlink_to(FIXTURES / "herzjesu_p8")
+    before = _digest(FIXTURES / "herzjesu_p8" / "database.db")
+    assert probe_sequential.main(["--root", str(tmp_path / "root"), "--scenes", "Herz-Jesus-P8", "--inputs",
+                                  "database", "--windows", "1"]) == 0
+    assert _digest(FIXTURES / "herzjesu_p8" / "database.db") == before
+    rows = [line.split(" | ") for line in capsys.readouterr().out.splitlines() if line.startswith("| Herz")]
+    assert len(rows) == 1
+    cells = rows[0]
+    assert cells[2:6] == ["1", "7", "8 / 8", "8"]
+    assert 0.001 < float(cells[6]) < 0.05 and float(cells[7].rstrip(" |")) < 0.02
 
 
 # ============================================================================ probe_wrong_intrinsics

@@ -170,6 +170,12 @@ def test_rigid_views_follow_shared_baselines(monkeypatch, max_dense_keys):
     assert rigid([[0, 1, 2], [1, 2, 3], [3, 4]], 5) == [True, True, True, True, False]
     # two bodies hinged on view 3 alone scale freely about it: the larger one is kept
     assert rigid([[0, 1, 2], [1, 2, 3], [3, 4, 5], [4, 5, 6], [5, 6, 7]], 8) == [False] * 3 + [True] * 5
+    # (0,1,2) and (0,2,3) make one body that holds 1 and 3; (1,3,4) shares that baseline
+    # though no track holds 1, 3 and another of the first body's views
+    assert rigid([[0, 1, 2], [0, 2, 3], [1, 3, 4]], 5) == [True] * 5
+    # ... and merged bodies can make a new shared baseline: (5,6,7) shares 3-6 only with the
+    # union of the first bodies and (3,4,6)
+    assert rigid([[0, 1, 2], [0, 2, 3], [1, 3, 4], [1, 4, 6], [3, 6, 5], [5, 6, 7], [7, 8]], 9) == [True] * 8 + [False]
     # two-view tracks only: their one baseline is the scale of everything; of several pairs,
     # the one with the most tracks (a lone observation counts for nothing)
     assert rigid([[0, 1], [0, 1]], 2) == [True, True]
