@@ -198,6 +198,12 @@ class AveragingOptions:
     #: the free views of ‖Δω_k‖ (rad) below the threshold
     weight_type: RobustWeight = RobustWeight.GEMAN_MCCLURE
     irls_loss_parameter_sigma_deg: float = 5.0  #: GM σ in degrees (COLMAP header "in degrees")
+    #: None: σ is ``irls_loss_parameter_sigma_deg``; else this many robust sigmas (1.4826 x the
+    #: median) of the edge residuals at the L1 solution, within [``irls_min_sigma_deg``,
+    #: ``irls_loss_parameter_sigma_deg``]: 5° suits relative rotations a few degrees off, and
+    #: lets a pair 1-2° off pull the rest when the others are 0.05° off (docs/tuning.md)
+    irls_sigma_residual_factor: float | None = None
+    irls_min_sigma_deg: float = 0.1
     max_num_irls_iterations: int = 100
     irls_step_convergence_threshold: float = 1e-3
     #: residual floor for ℓ½ weights (e^{-3/2} blows up at 0); Chatterjee caps the
@@ -210,8 +216,10 @@ class AveragingOptions:
     def validate(self) -> None:
         if self.max_num_l1_iterations < 0 or self.max_num_irls_iterations < 0:
             raise InputError("iteration counts must be >= 0", field="options")
-        if self.irls_loss_parameter_sigma_deg <= 0 or self.admm_rho <= 0:
+        if self.irls_loss_parameter_sigma_deg <= 0 or self.admm_rho <= 0 or self.irls_min_sigma_deg <= 0:
             raise InputError("sigma and rho must be positive", field="options")
+        if self.irls_sigma_residual_factor is not None and not self.irls_sigma_residual_factor > 0:
+            raise InputError("irls_sigma_residual_factor must be positive", field="options")
 
 
 @dataclass(frozen=True)
@@ -495,7 +503,11 @@ class AverageOptions:
     #: threshold (Geman-McClure σ = 5°, Chatterjee & Govindu ICCV 2013)
     max_residual_deg: float = 5.0
     max_rounds: int = 5
-    averaging: AveragingOptions = AveragingOptions()
+    #: Chatterjee & Govindu's averaging with its Geman-McClure σ measured on the edges (15 robust
+    #: sigmas of the L1 solution's residuals, at most their 5°): TRRM's relative rotations
+    #: are 0.05-0.2° off, and at σ = 5° a repeated-structure pair 1.9° off took a sparse graph's
+    #: GRRM start with it (docs/tuning.md "Rotation averaging")
+    averaging: AveragingOptions = AveragingOptions(irls_sigma_residual_factor=15.0)
 
 
 @dataclass(frozen=True)

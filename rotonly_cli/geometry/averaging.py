@@ -15,7 +15,9 @@ Pure numpy/scipy. Model: ``R_j_from_i ≈ R_j R_iᵀ`` with ``R_k = R_cam_from_w
    and doubles each L1 step up to ``admm_max_iterations`` (COLMAP: 10 → 100).
 4. IRLS (§2.1 step 5) with Geman–McClure ``w = σ²/(e²+σ²)²`` (σ = 5°, ICCV 2013) or ℓ½
    ``w = e^{−3/2}`` (HALF_NORM, TPAMI 2018, the seed/ROBA setting), multiplied by the
-   normalised edge weights; ``(AᵀWA) Δω = AᵀWΔr`` solved with a sparse LU.
+   normalised edge weights; ``(AᵀWA) Δω = AᵀWΔr`` solved with a sparse LU. With
+   ``irls_sigma_residual_factor`` σ is measured instead: that many robust sigmas of the edge
+   residuals at the L1 solution, at most the fixed σ (:func:`irls_sigma_deg`).
 5. Per-edge residual angle after convergence; edges above ``max_inlier_residual_deg`` are
    flagged as outliers (they keep a small IRLS weight but are reported).
 """
@@ -35,7 +37,7 @@ if TYPE_CHECKING:
     import scipy.sparse as sp
 
 __all__ = ["RobustWeight", "AveragingOptions", "AveragingResult", "average_rotations",
-           "spanning_tree_rotations", "edge_residuals"]
+           "spanning_tree_rotations", "edge_residuals", "irls_sigma_deg"]
 
 
 @dataclass
@@ -47,6 +49,7 @@ class AveragingResult:
     l1_iterations: int
     irls_iterations: int
     irls_converged: bool
+    irls_sigma_deg: float = float("nan")  # the Geman-McClure σ the IRLS used (irls_sigma_deg)
 
     @property
     def iterations(self) -> int:
@@ -144,15 +147,25 @@ def _average_step(step: np.ndarray) -> float:
     return float(np.linalg.norm(step, axis=1).mean()) if step.size else 0.0
 
 
-def _irls_weights(residual_norm: np.ndarray, options: AveragingOptions) -> np.ndarray:
+def _irls_weights(residual_norm: np.ndarray, options: AveragingOptions, sigma_deg: float) -> np.ndarray:
     if options.weight_type == RobustWeight.GEMAN_MCCLURE:
-        sigma = np.radians(options.irls_loss_parameter_sigma_deg)
+        sigma = np.radians(sigma_deg)
         # COLMAP's σ²/(e²+σ²)², rescaled by σ² so weights are ~1 for inliers
         return (sigma**2 / (residual_norm**2 + sigma**2)) ** 2
     if options.weight_type == RobustWeight.HALF_NORM:
         e = np.maximum(residual_norm, np.radians(options.half_norm_min_residual_deg))
         return e ** -1.5
     return np.ones_like(residual_norm)
+
+
+def irls_sigma_deg(residual_rad: np.ndarray, options: AveragingOptions) -> float:
+    """The IRLS loss scale (deg): ``irls_loss_parameter_sigma_deg``, or with
+    ``irls_sigma_residual_factor`` that many robust sigmas (1.4826 x the median) of the edge
+    residuals at the L1 solution, within [``irls_min_sigma_deg``, ``irls_loss_parameter_sigma_deg``]."""
+    if options.irls_sigma_residual_factor is None or not residual_rad.size:
+        return options.irls_loss_parameter_sigma_deg
+    scale = options.irls_sigma_residual_factor * 1.4826 * float(np.degrees(np.median(residual_rad)))
+    return float(np.clip(scale, options.irls_min_sigma_deg, options.irls_loss_parameter_sigma_deg))
 
 
 def average_rotations(num_views: int, edges_i: np.ndarray, edges_j: np.ndarray, R_j_from_i: np.ndarray,
@@ -223,11 +236,12 @@ def average_rotations(num_views: int, edges_i: np.ndarray, edges_j: np.ndarray, 
                 break
 
     irls_iterations, converged = 0, options.max_num_irls_iterations == 0
+    sigma_deg = irls_sigma_deg(np.linalg.norm(edge_residuals(R, e_i, e_j, R_ij), axis=1), options)
     ridge = sp.identity(free_views.size, format="csc") * options.ridge_regularization
     for _ in range(options.max_num_irls_iterations):
         irls_iterations += 1
         residual = edge_residuals(R, e_i, e_j, R_ij)
-        w = _irls_weights(np.linalg.norm(residual, axis=1), options) * edge_weight
+        w = _irls_weights(np.linalg.norm(residual, axis=1), options, sigma_deg) * edge_weight
         AtW = A.T.multiply(w[None, :]).tocsr()
         step = splu((AtW @ A).tocsc() + ridge).solve(AtW @ residual)
         apply_step(step)
@@ -240,4 +254,4 @@ def average_rotations(num_views: int, edges_i: np.ndarray, edges_j: np.ndarray, 
     inlier = np.zeros(num_edges, dtype=bool)
     inlier[used] = residual_deg[used] <= options.max_inlier_residual_deg
     R[~registered] = np.nan
-    return AveragingResult(R, registered, residual_deg, inlier, l1_iterations, irls_iterations, converged)
+    return AveragingResult(R, registered, residual_deg, inlier, l1_iterations, irls_iterations, converged, sigma_deg)

@@ -57,7 +57,8 @@ def average_graph(graph: ViewGraph, options: AverageOptions = AverageOptions()) 
         rounds.append({"num_edges": len(edges), "num_outliers": len(outliers),
                        "residual_deg_median": float(np.median(residual)) if residual.size else None,
                        "residual_deg_max": float(residual.max()) if residual.size else None,
-                       "irls_iterations": int(result.irls_iterations), "irls_converged": bool(result.irls_converged)})
+                       "irls_iterations": int(result.irls_iterations), "irls_converged": bool(result.irls_converged),
+                       "irls_sigma_deg": float(result.irls_sigma_deg)})
         if not outliers:
             break
         for k in outliers:
