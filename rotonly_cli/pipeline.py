@@ -284,19 +284,21 @@ def _written(out_dir: Path, write, *args, field: str | None = "-o"):
 
 def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
     """Into ``summary`` (and run.reports): the intrinsics each camera started from and ended
-    with (reports/intrinsics.json), and the run's warnings (the calibration's, the baseline
-    check of the centres, the edges on no cycle, the views a rejection round cut loose), each
-    also logged."""
+    with (reports/intrinsics.json), and the run's warnings (the calibration's, views left out
+    of the outputs, the baseline check of the centres, the edges on no cycle, the views a
+    rejection round cut loose), each also logged."""
     from rotonly_cli.stages.average import unchecked_edges, unchecked_edges_warning
     from rotonly_cli.stages.reject import undone_round_warning
-    from rotonly_cli.stages.translate import baseline_warning
+    from rotonly_cli.stages.translate import baseline_warning, unregistered_warning
 
     if run.calibration is not None:
         run.reports["intrinsics"] = run.calibration.finish(scene)
         summary.update(run.calibration.summary())
     bridges = unchecked_edges(run.graph, set(scene.poses))
     summary["edges_on_no_cycle"] = [list(pair) for pair in bridges]
-    found = [baseline_warning(run.reports.get("translate")), unchecked_edges_warning(bridges),
+    unregistered = [v for v in run.graph.view_ids() if v not in scene.poses]
+    found = [unregistered_warning(len(run.graph.view_ids()), unregistered, run.reports.get("translate")),
+             baseline_warning(run.reports.get("translate")), unchecked_edges_warning(bridges),
              undone_round_warning(run.reports.get("reject"))]
     summary["warnings"] = summary.get("warnings", []) + [warning for warning in found if warning]
     for warning in summary["warnings"]:

@@ -133,6 +133,26 @@ def views_without_centre(report: dict | None) -> set[int]:
     return set((report or {}).get("views_without_centre") or [])
 
 
+def unregistered_warning(num_views: int, unregistered: list[int], report: dict | None) -> str | None:
+    """The run summary's warning when views are left out of the outputs (``unregistered``, by
+    view id; ``report``: the translate report): those with rotations but no centre (outside the
+    rigid set: no track through three or more views ties them to the rest, as on a
+    sequentially matched capture with little overlap) and those the view graph's checks cut
+    off. None when every view is in."""
+    if not unregistered:
+        return None
+    without = views_without_centre(report)
+    no_position = [v for v in unregistered if v in without]
+    apart = [v for v in unregistered if v not in without]
+    parts = ([f"view(s) {listed(map(str, apart))} have no pair left that ties them to the largest part of the view "
+              f"graph (reports/view_graph.json: each dropped edge's reason)"] if apart else []) + \
+        ([f"view(s) {listed(map(str, no_position))} have a rotation but no position: of the tracks LiGT's outlier "
+          f"rounds kept, none through three or more views ties them to the rest (reports/translate.json: "
+          f"views_without_centre)"] if no_position else [])
+    return (f"{len(unregistered)} of {num_views} views are not in the outputs: {'; '.join(parts)}; images "
+            f"overlapping them and the rest would tie them in")
+
+
 def baseline_warning(report: dict | None) -> str | None:
     """The run summary's warning when the translate report's baseline check found views off."""
     off = views_off(report)

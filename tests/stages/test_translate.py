@@ -22,6 +22,7 @@ def test_clean_fixture_passes_the_baseline_check():
     assert baselines["views_off"] == {}
     assert baselines["num_edges"] >= 10 and baselines["angle_deg"]["max"] < 5.0
     assert not any(w.startswith("positions") for w in result.summary["warnings"])
+    assert not any("not in the outputs" in w for w in result.summary["warnings"])
 
 
 def test_a_collapsed_solve_is_reported_and_warned(monkeypatch, tmp_path):
@@ -95,6 +96,26 @@ def test_a_sequential_capture_keeps_every_view_through_its_weak_link():
     plain = rotonly_cli.run(SEQUENTIAL / "database.db", options=replace(
         options, translate=replace(options.translate, outlier_threshold_start_px=None)))
     assert len(plain.rotations) <= 13
+    # ... and that run says so: the views left out and why
+    left_out = [w for w in plain.summary["warnings"] if "not in the outputs" in w]
+    assert len(left_out) == 1 and f"{19 - len(plain.rotations)} of 19 views" in left_out[0]
+    assert "no position" in left_out[0] and "no pair left" not in left_out[0]
+    assert not any("not in the outputs" in w for w in annealed.summary["warnings"])
+
+
+def test_a_view_without_pairs_is_named_in_a_warning():
+    """A view whose pairs are all gone (here removed from the Herz-Jesu fixture) is left out of
+    the outputs, and the run's warnings name it with the reason."""
+    from rotonly_cli.stages.load import read_input
+
+    scene, _ = read_input(DATABASE)
+    lonely = sorted(scene.views)[3]
+    scene.pairs = {key: pair for key, pair in scene.pairs.items() if lonely not in key}
+    result = rotonly_cli.run(scene, progress=False)
+    assert lonely not in result.rotations and len(result.rotations) == 7
+    left_out = [w for w in result.summary["warnings"] if "not in the outputs" in w]
+    assert len(left_out) == 1 and left_out[0].startswith("1 of 8 views")
+    assert f"view(s) {lonely} have no pair left" in left_out[0]
 
 
 def test_annealed_rounds_that_put_views_off_their_baselines_give_way(monkeypatch):
