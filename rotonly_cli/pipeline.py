@@ -284,9 +284,9 @@ def _written(out_dir: Path, write, *args, field: str | None = "-o"):
 
 def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
     """Into ``summary`` (and run.reports): the intrinsics each camera started from and ended
-    with (reports/intrinsics.json), and the run's warnings (the calibration's, views left out
-    of the outputs, the baseline check of the centres, the edges on no cycle, the views a
-    rejection round cut loose), each also logged."""
+    with (reports/intrinsics.json), the views left out of the outputs, and the run's warnings
+    (the calibration's, those views, the baseline check of the centres, the edges on no cycle,
+    the views a rejection round cut loose), each also logged."""
     from rotonly_cli.stages.average import unchecked_edges, unchecked_edges_warning
     from rotonly_cli.stages.reject import undone_round_warning
     from rotonly_cli.stages.translate import baseline_warning, unregistered_warning
@@ -296,7 +296,7 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
         summary.update(run.calibration.summary())
     bridges = unchecked_edges(run.graph, set(scene.poses))
     summary["edges_on_no_cycle"] = [list(pair) for pair in bridges]
-    unregistered = [v for v in run.graph.view_ids() if v not in scene.poses]
+    summary["unregistered_views"] = unregistered = [v for v in run.graph.view_ids() if v not in scene.poses]
     found = [unregistered_warning(len(run.graph.view_ids()), unregistered, run.reports.get("translate")),
              baseline_warning(run.reports.get("translate")), unchecked_edges_warning(bridges),
              undone_round_warning(run.reports.get("reject"))]
@@ -320,8 +320,7 @@ def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: fl
             statistics = structure_statistics(scene, run.graph.view_ids())
             run.reports["export"] = {**statistics.report, "time_s": time.perf_counter() - started}
             summary.update(num_views=len(run.scene.views), num_registered=len(scene.poses),
-                           num_points=0 if scene.structure is None else len(scene.structure.points),
-                           unregistered_views=[v for v in run.graph.view_ids() if v not in scene.poses])
+                           num_points=0 if scene.structure is None else len(scene.structure.points))
             if gt is not None:
                 evaluation = evaluate_against(run.options.gt, gt, scene, directory / "eval",
                                               str(out_dir / "sfm_data.json"))

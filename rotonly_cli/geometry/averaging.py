@@ -236,11 +236,11 @@ def average_rotations(num_views: int, edges_i: np.ndarray, edges_j: np.ndarray, 
                 break
 
     irls_iterations, converged = 0, options.max_num_irls_iterations == 0
-    sigma_deg = irls_sigma_deg(np.linalg.norm(edge_residuals(R, e_i, e_j, R_ij), axis=1), options)
+    residual = edge_residuals(R, e_i, e_j, R_ij)  # at the L1 solution: the IRLS scale is measured on it
+    sigma_deg = irls_sigma_deg(np.linalg.norm(residual, axis=1), options)
     ridge = sp.identity(free_views.size, format="csc") * options.ridge_regularization
     for _ in range(options.max_num_irls_iterations):
         irls_iterations += 1
-        residual = edge_residuals(R, e_i, e_j, R_ij)
         w = _irls_weights(np.linalg.norm(residual, axis=1), options, sigma_deg) * edge_weight
         AtW = A.T.multiply(w[None, :]).tocsr()
         step = splu((AtW @ A).tocsc() + ridge).solve(AtW @ residual)
@@ -248,6 +248,7 @@ def average_rotations(num_views: int, edges_i: np.ndarray, edges_j: np.ndarray, 
         if _average_step(step) < options.irls_step_convergence_threshold:
             converged = True
             break
+        residual = edge_residuals(R, e_i, e_j, R_ij)
 
     residual_deg = np.full(num_edges, np.nan)
     residual_deg[used] = np.degrees(np.linalg.norm(edge_residuals(R, e_i, e_j, R_ij), axis=1))

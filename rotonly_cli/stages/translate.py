@@ -68,12 +68,12 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
         # the annealed rounds kept a weak link that the 1 px rounds would have cut, and its
         # tracks put views off their own pairs' directions: the rounds without annealing are
         # tried, and kept if fewer views are off (castle-P19, a 6-view subset: view 19)
-        plain = solve(replace(options, outlier_threshold_start_px=None))
-        taken = len(plain[2]["views_off"]) < len(baselines["views_off"])
-        annealing = {"views_off": baselines["views_off"], "without_views_off": plain[2]["views_off"],
+        plain_robust, plain_centers, plain_baselines = solve(replace(options, outlier_threshold_start_px=None))
+        taken = len(plain_baselines["views_off"]) < len(baselines["views_off"])
+        annealing = {"views_off": baselines["views_off"], "without_views_off": plain_baselines["views_off"],
                      "kept": "without annealing" if taken else "annealed"}
         if taken:
-            robust, centers, baselines = plain
+            robust, centers, baselines = plain_robust, plain_centers, plain_baselines
     result = robust.result
     ids = graph.view_ids()
     without = [ids[r] for r in np.flatnonzero(registered & ~result.has_translation)]
@@ -142,13 +142,16 @@ def unregistered_warning(num_views: int, unregistered: list[int], report: dict |
     if not unregistered:
         return None
     without = views_without_centre(report)
-    no_position = [v for v in unregistered if v in without]
-    apart = [v for v in unregistered if v not in without]
-    parts = ([f"view(s) {listed(map(str, apart))} have no pair left that ties them to the largest part of the view "
-              f"graph (reports/view_graph.json: each dropped edge's reason)"] if apart else []) + \
-        ([f"view(s) {listed(map(str, no_position))} have a rotation but no position: of the tracks LiGT's outlier "
-          f"rounds kept, none through three or more views ties them to the rest (reports/translate.json: "
-          f"views_without_centre)"] if no_position else [])
+    apart = [str(v) for v in unregistered if v not in without]
+    no_position = [str(v) for v in unregistered if v in without]
+    parts = []
+    if apart:
+        parts.append(f"view(s) {listed(apart)} have no pair left that ties them to the largest part of the view graph "
+                     f"(reports/view_graph.json: each dropped edge's reason)")
+    if no_position:
+        parts.append(f"view(s) {listed(no_position)} have a rotation but no position: of the tracks LiGT's outlier "
+                     f"rounds kept, none through three or more views ties them to the rest (reports/translate.json: "
+                     f"views_without_centre)")
     return (f"{len(unregistered)} of {num_views} views are not in the outputs: {'; '.join(parts)}; images "
             f"overlapping them and the rest would tie them in")
 
