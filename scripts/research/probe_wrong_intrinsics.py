@@ -19,6 +19,11 @@ against the ground truth.
   the principal point at the image centre; nothing marks it as a guess. With
   ``--omvg-intrinsic-per-view`` also ``omvg per view x F``: that intrinsic copied to every
   view, as OpenMVG's image listing writes them without grouping.
+* ``lens k1=K db`` (``--k1``): the keypoints moved as a lens with radial distortion k1 = K
+  would have imaged them (OPENCV around the database's own camera: its focal lengths and
+  principal point, k1 = K on the normalized radius), written with COLMAP's guess as in
+  ``guessed db`` (a phone user's database: the lens is there, the camera says nothing of it);
+  ``lens k1=K known db``: the same keypoints with that OPENCV camera, marked known.
 * ``phone db``: ``database_guessed_focal.db`` where the scene has one (COLMAP's own
   extraction and matching without camera parameters).
 
@@ -57,6 +62,29 @@ def guessed_database(scene, out: Path) -> Path:
              for key, pair in scene.pairs.items()}
     write_database(out, replace(scene, intrinsics=intrinsics, pairs=pairs))
     return out
+
+
+def lens_database(scene, k1: float, out: Path, known: bool = False) -> Path:
+    """``scene`` (a database as read, pinhole cameras) with every keypoint where a lens with
+    radial distortion ``k1`` would have put it (module docstring), written to ``out`` with
+    COLMAP's guess for the camera, or with that OPENCV camera when ``known``."""
+    from rotonly_cli.io.cameras import parameter_groups, project
+    from rotonly_cli.io.colmap import write_database
+    from rotonly_cli.scene.types import Intrinsics
+
+    lenses = {}
+    for camera_id, intrinsic in scene.intrinsics.items():
+        params, groups = np.asarray(intrinsic.params, dtype=np.float64), parameter_groups(intrinsic)
+        focal = np.broadcast_to(params[groups["focal"]], 2)
+        lenses[camera_id] = Intrinsics(camera_id, "OPENCV", intrinsic.width, intrinsic.height,
+                                       np.array([*focal, *params[groups["principal_point"]], k1, 0.0, 0.0, 0.0]),
+                                       prior_focal=True)
+    keypoints = {v: project(lenses[view.intrinsics_id], scene.normalized[v]) for v, view in scene.views.items()}
+    distorted = replace(scene, keypoints=keypoints, intrinsics=lenses)
+    if known:
+        write_database(out, distorted)
+        return out
+    return guessed_database(distorted, out)
 
 
 def wrong_focal_database(scene, factor: float, out: Path) -> Path:
@@ -153,6 +181,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="focal factors of the database's camera, marked known")
     parser.add_argument("--exif-factors", type=float, nargs="*", default=[1.0],
                         help="focal factors of the database written as an EXIF camera (principal point at the centre)")
+    parser.add_argument("--k1", type=float, nargs="*", default=[],
+                        help="radial distortions of a lens the keypoints are moved by (guessed and known camera)")
     parser.add_argument("--exif-camera-per-image", action="store_true",
                         help="the --exif-factors databases with a camera per image too")
     parser.add_argument("--omvg-intrinsic-per-view", action="store_true",
@@ -175,6 +205,10 @@ def main(argv: list[str] | None = None) -> int:
             runs = [(f"{scene} guessed db", guessed_database(database, work / "guessed.db"), None)]
             if (folder / "database_guessed_focal.db").exists():
                 runs.insert(0, (f"{scene} phone db", folder / "database_guessed_focal.db", None))
+            for k1 in args.k1:
+                runs.append((f"{scene} lens k1={k1} db", lens_database(database, k1, work / f"lens{k1}.db"), None))
+                runs.append((f"{scene} lens k1={k1} known db",
+                             lens_database(database, k1, work / f"lens{k1}_known.db", known=True), None))
             for factor in args.db_factors:
                 runs.append((f"{scene} db x{factor}",
                              wrong_focal_database(database, factor, work / f"x{factor}.db"), None))

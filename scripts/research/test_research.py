@@ -417,3 +417,25 @@ def test_probe_wrong_intrinsics_on_fixture(tmp_path, capsys):
     for cells in rows:
         assert cells[3] == "8/8" and float(cells[1]) < 0.1
         assert abs(float(cells[4])) < 0.5 and float(cells[5].rstrip(" |")) < 5.0
+
+
+def test_lens_database_moves_the_keypoints_as_the_lens_and_keeps_their_rays(tmp_path):
+    """``lens_database``: with the lens's camera (known) the written database normalizes
+    back to the fixture's own rays, and its keypoints moved by k1 r³ f at the corners (a
+    lens the camera does not know); with COLMAP's guess the camera says nothing of it."""
+    from rotonly_cli.io.colmap import read_database
+
+    scene = read_database(FIXTURES / "herzjesu_p8" / "database.db")
+    known = read_database(probe_intrinsics.lens_database(scene, -0.1, tmp_path / "known.db", known=True))
+    guessed = read_database(probe_intrinsics.lens_database(scene, -0.1, tmp_path / "guessed.db"))
+    (camera,) = known.intrinsics.values()
+    assert camera.model == "OPENCV" and camera.params[4] == -0.1 and camera.prior_focal
+    (guess,) = guessed.intrinsics.values()
+    assert guess.model == "SIMPLE_RADIAL" and guess.params[3] == 0.0 and not guess.prior_focal
+    for v in scene.views:
+        np.testing.assert_allclose(known.normalized[v], scene.normalized[v], atol=1e-6)  # float32 keypoints
+        np.testing.assert_array_equal(guessed.keypoints[v], known.keypoints[v])
+        radius = np.linalg.norm(scene.normalized[v], axis=1)
+        moved = np.linalg.norm(known.keypoints[v] - scene.keypoints[v], axis=1)
+        np.testing.assert_allclose(moved, 0.1 * radius ** 3 * np.linalg.norm(
+            scene.normalized[v] * camera.params[:2], axis=1) / np.maximum(radius, 1e-12), rtol=1e-3, atol=1e-3)
