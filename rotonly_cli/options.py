@@ -454,6 +454,11 @@ class IntrinsicsOptions:
     #: moves some pixel of the image by more than this fraction of its half diagonal
     #: (0.5 %: 4.6 px on 1536 x 1024; calibrated inputs move by <= 4.2 px)
     min_shift: float = 0.005
+    #: ... for matches whose noise (fundamental-matrix sigma, px) is at most this; above, the
+    #: limit grows in proportion: one adjustment's estimate scatters with the keypoint noise
+    #: (castle-P19's sequential fixture with 0.75 px of it: a right camera's fy came out 1.4 %
+    #: long, 7.4 px of image shift, and was kept; docs/tuning.md "Intrinsics")
+    min_shift_noise_px: float = 0.25
     #: rounds stop when the intrinsics moved by less than this fraction of the half diagonal;
     #: the relative poses of the load stage are re-estimated when they moved by more
     converged_shift: float = 0.02
@@ -468,6 +473,8 @@ class IntrinsicsOptions:
             raise InputError(f"must be one of {', '.join(INTRINSICS_MODES)}", field="intrinsics")
         if self.min_images_principal_point < 1:
             raise InputError("min_images_principal_point >= 1 needed", field="intrinsics")
+        if not self.min_shift_noise_px > 0:
+            raise InputError("min_shift_noise_px > 0 needed", field="intrinsics")
         if self.max_points < 100 or self.max_rounds < 1:
             raise InputError("max_points >= 100 and max_rounds >= 1 needed", field="intrinsics")
         if not 0 <= self.ba_function_tolerance < 1:

@@ -454,14 +454,22 @@ def shift_px(reference: Intrinsics, other: Intrinsics) -> float:
     return float(np.nanmax(distance)) if np.isfinite(distance).any() else float("inf")
 
 
+def shift_limit_px(intrinsics: Intrinsics, options: IntrinsicsOptions, noise_sigma_px: float | None = None) -> float:
+    """The image shift (px) above which a change of ``intrinsics`` is significant:
+    ``min_shift`` of its half diagonal, scaled up by the matches' noise beyond
+    ``min_shift_noise_px`` (None: not measured, not scaled)."""
+    scale = 1.0 if noise_sigma_px is None else max(1.0, noise_sigma_px / options.min_shift_noise_px)
+    return options.min_shift * half_diagonal(intrinsics) * scale
+
+
 def gate(reference: Intrinsics, estimate: Intrinsics, options: IntrinsicsOptions,
-         always: frozenset[str] = frozenset()) -> tuple[Intrinsics, dict]:
+         always: frozenset[str] = frozenset(), noise_sigma_px: float | None = None) -> tuple[Intrinsics, dict]:
     """``reference`` with the parameter groups (focal, principal point, distortion) of
-    ``estimate`` whose change alone moves the image by more than ``min_shift`` of its half
-    diagonal, and the groups in ``always`` whatever their change; both in refinement-model
-    terms. Returns (camera, {group: shift in px})."""
+    ``estimate`` whose change alone moves the image by more than :func:`shift_limit_px`
+    (``min_shift`` of its half diagonal at low noise), and the groups in ``always`` whatever
+    their change; both in refinement-model terms. Returns (camera, {group: shift in px})."""
     groups = cameras.parameter_groups(reference)
-    limit = options.min_shift * half_diagonal(reference)
+    limit = shift_limit_px(reference, options, noise_sigma_px)
     params = np.array(reference.params, dtype=np.float64)
     shifts = {}
     for group in GROUPS:
@@ -544,6 +552,10 @@ class Calibration:
     #: rounds; not the pass whose result is written)
     time_s: float = 0.0
 
+    def shift_limit_px(self, camera_id: int) -> float:
+        """:func:`shift_limit_px` of a given camera at the matches' measured noise."""
+        return shift_limit_px(self.given[camera_id], self.options, self.noise_sigma_px)
+
     def _calibrate_focals(self, cameras_: dict[int, str]) -> None:
         focals, report = view_graph_focals(self.scene, set(cameras_), self.options, self.jobs)
         self.view_graph.append(report)
@@ -558,8 +570,7 @@ class Calibration:
             if self.reference[camera_id] is None and not guess and camera_id in focals:
                 # no refinement of this model: the view-graph focal is the only estimate, kept
                 # if significant
-                if shift_px(self.given[camera_id], focals[camera_id]) <= self.options.min_shift * half_diagonal(
-                        self.given[camera_id]):
+                if shift_px(self.given[camera_id], focals[camera_id]) <= self.shift_limit_px(camera_id):
                     self.scene = with_intrinsics(self.scene, {camera_id: self.given[camera_id]})
 
     def add_suspects(self, sigma_by_camera: dict[str, float], scene: SfMScene,
@@ -592,8 +603,7 @@ class Calibration:
                 if not confirmed:
                     logger.info("intrinsics: camera(s) %s reproject with sigma %s px (> %.2f px), but one adjustment "
                                 "moves them by less than %.1f px: kept as given", sorted(suspects), sigmas,
-                                self.suspect_threshold_px, self.options.min_shift * min(
-                                    half_diagonal(self.given[c]) for c in suspects))
+                                self.suspect_threshold_px, min(self.shift_limit_px(c) for c in suspects))
                     return False
             logger.info("intrinsics: camera(s) %s reproject with sigma %s px (> %.2f px): calibrating them",
                         sorted(suspects), sigmas, self.suspect_threshold_px)
@@ -613,7 +623,8 @@ class Calibration:
             # is a start, and the estimate is better on average (algorithms.md §8 "Significant
             # changes only"); the other groups change when significant
             always = frozenset({"focal"}) if camera_id in guesses else frozenset()
-            camera, shifts[camera_id] = gate(reference[camera_id], estimate, self.options, always)
+            camera, shifts[camera_id] = gate(reference[camera_id], estimate, self.options, always,
+                                             self.noise_sigma_px)
             gated[camera_id] = cameras.from_refinement_model(self.given[camera_id], camera)
         report["shifts_px"] = {str(c): v for c, v in shifts.items()}
         return gated, report
@@ -661,7 +672,7 @@ class Calibration:
         logger.info("intrinsics: camera(s) %s have their principal point at the image centre (a default); "
                     "one adjustment moves them by %s px (limit %s): %s", sorted(checked),
                     ", ".join(f"{max(shifts.get(str(c), {}).values(), default=0.0):.1f}" for c in sorted(checked)),
-                    ", ".join(f"{self.options.min_shift * half_diagonal(self.given[c]):.1f}" for c in sorted(checked)),
+                    ", ".join(f"{self.shift_limit_px(c):.1f}" for c in sorted(checked)),
                     f"calibrating {sorted(changed)}" if changed else "kept as given")
         if changed:
             self.scene = with_intrinsics(self.scene, changed)

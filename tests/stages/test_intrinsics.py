@@ -85,6 +85,20 @@ def test_gate_keeps_only_significant_groups():
         [1380.0 * 1.002, 760.0, 511.0, 0.0]
 
 
+def test_significance_grows_with_the_keypoint_noise():
+    """An estimate from noisier matches scatters more: above ``min_shift_noise_px`` the limit
+    grows in proportion (0.75 px: 3 x 4.6 px here), below it and unmeasured it is as given."""
+    options = IntrinsicsOptions()
+    limit = options.min_shift * stage.half_diagonal(CAMERA)
+    assert stage.shift_limit_px(CAMERA, options) == stage.shift_limit_px(CAMERA, options, 0.2) == limit
+    assert stage.shift_limit_px(CAMERA, options, 0.75) == pytest.approx(3 * limit)
+    estimate = Intrinsics(1, "SIMPLE_RADIAL", 1536, 1024, np.array([1380.0, 776.0, 512.0, 0.0]))  # 8 px
+    assert stage.gate(CAMERA, estimate, options, noise_sigma_px=0.2)[0].params[1] == 776.0
+    assert stage.gate(CAMERA, estimate, options, noise_sigma_px=0.75)[0].params[1] == 768.0
+    with pytest.raises(InputError):
+        IntrinsicsOptions(min_shift_noise_px=0.0).validate()
+
+
 def test_suspect_threshold_follows_the_noise():
     options = IntrinsicsOptions()
     assert stage.suspect_threshold_px(None, options) == options.suspect_reprojection_px
@@ -497,3 +511,25 @@ def test_a_wrong_focal_is_calibrated_despite_repeated_structure(tmp_path):
     assert abs(end[0] / CASTLE_TRUE[0] - 1.0) < 0.002
     assert np.hypot(*(end[1:3] - CASTLE_TRUE[1:3])) < 5.0
     assert _rotation_error(tmp_path / "out", CASTLE / "gt_dense_cameras") < 0.116
+
+
+def test_a_right_camera_is_kept_when_the_matches_are_noisy(tmp_path):
+    """castle-P19 matched sequentially (the bundled fixture) with 0.7 px of detector noise added
+    to every keypoint, its camera given and right. The matches fit essential matrices at
+    0.75 px, so a quick estimation pass checks the camera; one adjustment on that rough
+    reconstruction put fy 1.4 % long (7.4 px of image shift), and with the fixed 4.6 px limit
+    the run calibrated it: fy 1401.8 px, 0.345 deg in 15 s. At that noise the limit is 13.9 px:
+    the camera stays as given (0.232 deg, 6.4 s)."""
+    from rotonly_cli.io.colmap import read_database, write_database
+
+    sequential = DATA_FIXTURES / "castle_p19_sequential"
+    scene = read_database(sequential / "database.db")
+    rng = np.random.default_rng(0)
+    noisy = {v: keypoints + rng.normal(scale=0.7, size=keypoints.shape) for v, keypoints in scene.keypoints.items()}
+    write_database(tmp_path / "noisy.db", replace(scene, keypoints=noisy))
+    summary = run_pipeline(tmp_path / "noisy.db", tmp_path / "out", _options())
+    (camera,) = summary["intrinsics"].values()
+    assert camera["end"] == camera["start"]
+    log = (tmp_path / "out" / "run.log").read_text()
+    assert "quick estimation pass checks the cameras" in log and "calibrating" not in log
+    assert _rotation_error(tmp_path / "out", sequential / "ground_truth") < 0.3
