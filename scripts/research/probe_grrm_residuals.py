@@ -78,6 +78,8 @@ def main(argv: list[str] | None = None) -> int:
             a = point_of[index[edge.i]][edge.matches[:, 0]]
             b = point_of[index[edge.j]][edge.matches[:, 1]]
             edge.matches = edge.matches[(a == b) & (a >= 0)]
+            if edge.num_inliers < options.load.min_inliers:  # e.g. a wrong-model pair's few matches
+                edge.filter("too few matches inside the tracks")
 
     focal = np.array([focal_length(scene.intrinsics[scene.views[v].intrinsics_id]) for v in view_ids])[obs_view]
     residual = obs_xy - clean  # normalized units
