@@ -276,6 +276,27 @@ class GRRMOptions:
         return self
 
 
+@dataclass(frozen=True)
+class ResectionOptions:
+    """Centres of the views LiGT left out, by resection with known rotations
+    (geometry/resection.py)."""
+
+    #: a centre is kept when at least this many points agree with it ...
+    min_inliers: int = 20
+    #: ... and at least this fraction of the view's points that have a position
+    min_inlier_fraction: float = 0.5
+    #: a point agrees within the robust rounds' last threshold, and never within less than
+    #: this (px): each resected centre carries its own error into the points the next is
+    #: resected from (castle-P19's OpenMVG matches, sequential: 1 px stopped after two views)
+    min_threshold_px: float = 2.0
+    #: RANSAC samples of two points (seeded): at a 30 % inlier ratio 200 miss with
+    #: probability 1e-8
+    trials: int = 200
+    #: least-squares refinements on the inliers (each re-selects them)
+    refinements: int = 5
+    seed: int = 0
+
+
 @dataclass(frozen=True, kw_only=True)
 class LiGTOptions:
     """LiGT camera centres (geometry/ligt.py)."""
@@ -315,6 +336,10 @@ class LiGTOptions:
     #: the run warns): LiGT's null vector put it somewhere its pairs do not (docs/tuning.md
     #: "Baseline check"; clean Strecha runs: every edge within 3.4 deg)
     max_baseline_disagreement_deg: float = 10.0
+    #: registered views the robust rounds left without a centre are resected, their rotations
+    #: known, from the points of the positioned views (None: not; docs/tuning.md "Resection of
+    #: the views LiGT left out")
+    resection: ResectionOptions | None = ResectionOptions()
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -1,8 +1,9 @@
 """Stage `translate`: camera centres by LiGT from the global rotations and the tracks of the
 active REGULAR edges (PURE_ROTATION edges carry no translation information, paper
-§"Scene Identification"). Views LiGT cannot constrain get NaN centres (not registered): views
-without a constraint, and views outside the largest rigid set (geometry.ligt.rigid_views), whose
-distance to the others no track through three or more views ties down."""
+§"Scene Identification"). Views LiGT cannot constrain (without a constraint, or outside the largest
+rigid set, geometry.ligt.rigid_views, whose distance to the others no track through three or more
+views ties down) are resected from the points of the others, their rotations known
+(geometry.resection, algorithms.md §1.5); those that cannot be get NaN centres (not registered)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from rotonly_cli.geometry.ligt import (
     robust_ligt_translations,
     views_off_their_baselines,
 )
+from rotonly_cli.geometry.resection import resect_left_out_views
 from rotonly_cli.scene.tracks import TrackCache, graph_tracks
 from rotonly_cli.scene.view_graph import ViewGraph, regular_edges, view_index
 from rotonly_cli.stages import listed
@@ -76,27 +78,52 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
             robust, centers, baselines = plain_robust, plain_centers, plain_baselines
     result = robust.result
     ids = graph.view_ids()
-    without = [ids[r] for r in np.flatnonzero(registered & ~result.has_translation)]
+    resected = []
+    left_out = np.flatnonzero(registered & ~np.all(np.isfinite(centers), axis=1))
+    if options.resection is not None and left_out.size:
+        # the robust rounds cut a weak link (wrong tracks bent their first solve): the views
+        # beyond it, rotations known, are resected from the points of the others
+        threshold_px = max(robust.threshold_px if np.isfinite(robust.threshold_px) else 0.0,
+                           options.resection.min_threshold_px)
+        centers, resected = resect_left_out_views(R, centers, tracks.track_id, tracks.view, obs_xy,
+                                                  threshold_px / focal, left_out, options.resection)
+        if resected:
+            baselines = baseline_report(graph, edges, index, R, centers, options)
+            # a resected centre its own pairs' directions disagree with is no position
+            for entry in resected:
+                entry["view_id"] = ids[entry.pop("view")]
+                entry["kept"] = str(entry["view_id"]) not in baselines["views_off"]
+                if not entry["kept"]:
+                    centers[index[entry["view_id"]]] = np.nan
+            if not all(entry["kept"] for entry in resected):
+                baselines = baseline_report(graph, edges, index, R, centers, options)
+    has_centre = np.all(np.isfinite(centers), axis=1)
+    without = [ids[r] for r in np.flatnonzero(registered & ~has_centre)]
     report = {"num_edges": len(edges), "num_tracks": tracks.num_tracks, "num_observations": tracks.num_observations,
               "num_inconsistent_tracks": tracks.num_inconsistent,
-              "num_views_with_centre": int(result.has_translation.sum()),
+              "num_views_with_centre": int(has_centre.sum()),
               "views_without_centre": without, "smallest_eigenvalues": result.smallest_eigenvalues.tolist(),
               "sign_votes": list(result.sign_votes), "robust_rounds": robust.rounds,
               "num_observations_used": int(robust.keep.sum()),
               "num_observations_dropped": int(tracks.num_observations - robust.keep.sum()),
               "outlier_threshold_px": robust.threshold_px, "baselines": baselines,
               **({"annealing_checked": annealing} if annealing else {}),
+              **({"resected": resected} if resected else {}),
               "processes": 1 if peer_class is None else 2,
               "time_s": time.perf_counter() - start}
     for number, round_ in enumerate(robust.rounds, 1):
         logger.debug("translate round %d: %d observations, sigma %.3f px, threshold %.2f px, %d dropped, "
                      "%d re-admitted", number, round_["observations"], round_["sigma_px"], round_["threshold_px"],
                      round_["dropped"], round_["readmitted"])
+    kept = [str(entry["view_id"]) for entry in resected if entry["kept"]]
+    if kept:
+        logger.info("translate: view(s) %s resected from the points of the others (their rotations known): LiGT's "
+                    "outlier rounds had left no track through three or more views tying them in", listed(kept))
     shown = listed(map(str, without))
     logger.info("translate (LiGT): %d tracks, %d REGULAR edges, %d views with a centre%s; %d of %d "
                 "observations kept", tracks.num_tracks, len(edges), report["num_views_with_centre"],
                 f", {len(without)} without (views {shown}: outside the largest set of views whose distances "
-                f"tracks of three or more views tie together; not registered)" if without else "",
+                f"tracks of three or more views tie together, and not resected; not registered)" if without else "",
                 report["num_observations_used"], tracks.num_observations)
     return centers, report
 
@@ -150,7 +177,8 @@ def unregistered_warning(num_views: int, unregistered: list[int], report: dict |
                      f"(reports/view_graph.json: each dropped edge's reason)")
     if no_position:
         parts.append(f"view(s) {listed(no_position)} have a rotation but no position: of the tracks LiGT's outlier "
-                     f"rounds kept, none through three or more views ties them to the rest (reports/translate.json: "
+                     f"rounds kept, none through three or more views ties them to the rest, and too few of their "
+                     f"points agree with a centre resected from the others (reports/translate.json: "
                      f"views_without_centre)")
     return (f"{len(unregistered)} of {num_views} views are not in the outputs: {'; '.join(parts)}; images "
             f"overlapping them and the rest would tie them in")
