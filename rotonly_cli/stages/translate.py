@@ -160,6 +160,24 @@ def views_without_centre(report: dict | None) -> set[int]:
     return set((report or {}).get("views_without_centre") or [])
 
 
+def views_ligt_left_out(report: dict | None) -> set[int]:
+    """The registered views a translate report's LiGT solve left without a centre, whether
+    resected afterwards or not (empty for no report)."""
+    resected = {entry["view_id"] for entry in (report or {}).get("resected") or []}
+    return views_without_centre(report) | resected
+
+
+def ligt_centres(centers: np.ndarray, report: dict | None, index: dict[int, int]) -> np.ndarray:
+    """``centers`` with the views the translate ``report`` resected set to NaN: LiGT's own
+    centres (``index``: view id -> row)."""
+    resected = [index[entry["view_id"]] for entry in (report or {}).get("resected") or [] if entry["kept"]]
+    if not resected:
+        return centers
+    own = np.array(centers, dtype=float)
+    own[resected] = np.nan
+    return own
+
+
 def unregistered_warning(num_views: int, unregistered: list[int], report: dict | None) -> str | None:
     """The run summary's warning when views are left out of the outputs (``unregistered``, by
     view id; ``report``: the translate report): those with rotations but no centre (outside the
