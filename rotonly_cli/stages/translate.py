@@ -182,8 +182,8 @@ def unregistered_warning(num_views: int, unregistered: list[int], report: dict |
     """The run summary's warning when views are left out of the outputs (``unregistered``, by
     view id; ``report``: the translate report): those with rotations but no centre (outside the
     rigid set: no track through three or more views ties them to the rest, as on a
-    sequentially matched capture with little overlap) and those the view graph's checks cut
-    off. None when every view is in."""
+    sequentially matched capture with little overlap, and too few points to resect them from)
+    and those the view graph's checks cut off. None when every view is in."""
     if not unregistered:
         return None
     without = views_without_centre(report)
