@@ -71,9 +71,9 @@ def resect_centre(R_cam_from_world: np.ndarray, points: np.ndarray, xy: np.ndarr
     weights = np.zeros((options.trials, k))
     weights[np.arange(options.trials), first] = weights[np.arange(options.trials), second] = 1.0
     candidates = _weighted_centres(P, PX, weights)
-    counts = (reprojection_errors(R_cam_from_world, candidates, points, xy) <= threshold).sum(axis=1)
-    centre = candidates[int(np.argmax(counts))]
-    inliers = reprojection_errors(R_cam_from_world, centre[None], points, xy)[0] <= threshold
+    agree = reprojection_errors(R_cam_from_world, candidates, points, xy) <= threshold
+    best = int(np.argmax(agree.sum(axis=1)))
+    centre, inliers = candidates[best], agree[best]
     for _ in range(options.refinements):
         if inliers.sum() < 2:
             break
@@ -99,6 +99,7 @@ def resect_left_out_views(R_cam_from_world: np.ndarray, centres: np.ndarray, obs
     triangulation = triangulation or TriangulationOptions()
     centres = np.array(centres, dtype=float)
     left = [int(v) for v in candidates if not np.all(np.isfinite(centres[v]))]
+    observations_of = {view: np.flatnonzero(obs_view == view) for view in left}
     added: list[dict] = []
     num_tracks = int(obs_track.max()) + 1 if obs_track.size else 0
     while left:
@@ -114,7 +115,7 @@ def resect_left_out_views(R_cam_from_world: np.ndarray, centres: np.ndarray, obs
         has_point = np.all(np.isfinite(point[obs_track]), axis=1)
         best = None
         for view in left:
-            mine = np.flatnonzero((obs_view == view) & has_point)
+            mine = observations_of[view][has_point[observations_of[view]]]
             if mine.size < options.min_inliers:
                 continue
             centre, inliers = resect_centre(R_cam_from_world[view], point[obs_track[mine]], obs_xy[mine],
