@@ -289,7 +289,7 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
     the views a rejection round cut loose), each also logged."""
     from rotonly_cli.stages.average import unchecked_edges, unchecked_edges_warning
     from rotonly_cli.stages.reject import undone_round_warning
-    from rotonly_cli.stages.translate import baseline_warning, unregistered_warning
+    from rotonly_cli.stages.translate import baseline_warning, pure_rotation_warning, unregistered_warning
 
     if run.calibration is not None:
         run.reports["intrinsics"] = run.calibration.finish(scene)
@@ -298,7 +298,8 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
     summary["edges_on_no_cycle"] = [list(pair) for pair in bridges]
     summary["unregistered_views"] = unregistered = [v for v in run.graph.view_ids() if v not in scene.poses]
     found = [unregistered_warning(len(run.graph.view_ids()), unregistered, run.reports.get("translate")),
-             baseline_warning(run.reports.get("translate")), unchecked_edges_warning(bridges),
+             baseline_warning(run.reports.get("translate")), pure_rotation_warning(run.reports.get("translate")),
+             unchecked_edges_warning(bridges),
              undone_round_warning(run.reports.get("reject"))]
     summary["warnings"] = summary.get("warnings", []) + [warning for warning in found if warning]
     for warning in summary["warnings"]:

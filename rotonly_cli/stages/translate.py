@@ -3,7 +3,10 @@ active REGULAR edges (PURE_ROTATION edges carry no translation information, pape
 §"Scene Identification"). Views LiGT cannot constrain (without a constraint, or outside the largest
 rigid set, geometry.ligt.rigid_views, whose distance to the others no track through three or more
 views ties down) are resected from the points of the others, their rotations known
-(geometry.resection, algorithms.md §1.5); those that cannot be get NaN centres (not registered)."""
+(geometry.resection, algorithms.md §1.5). A view still without a centre whose pair with a
+positioned view is a pure rotation (PURE_ROTATION: PR/B/I, its translation unobservable) is
+given that view's centre, and a capture of pure rotations only (a panorama) one shared centre
+(algorithms.md §1.6). The rest get NaN centres (not registered)."""
 
 from __future__ import annotations
 
@@ -14,6 +17,7 @@ from dataclasses import replace
 import numpy as np
 
 from rotonly_cli.errors import AlgorithmError
+from rotonly_cli.geometry.identification import SceneKind
 from rotonly_cli.geometry.ligt import (
     LiGTOptions,
     baseline_disagreement_deg,
@@ -48,7 +52,7 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
     edges = [k for k in regular_edges(graph) if registered[index[graph.edges[k].i]]
              and registered[index[graph.edges[k].j]]]
     if not edges:
-        raise AlgorithmError("translation: no REGULAR edge between registered views (all pure rotation?)")
+        return _pure_rotation_capture(graph, index, registered, start)
     R = np.where(registered[:, None, None], R_cam_from_world, np.eye(3))
     tracks, obs_xy = graph_tracks(graph, normalized, edges, R, cache=track_cache)
     focal = np.full(len(index), 1000.0) if focal_px is None else np.where(np.isfinite(focal_px), focal_px, 1000.0)
@@ -97,6 +101,7 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
                     centers[index[entry["view_id"]]] = np.nan
             if not all(entry["kept"] for entry in resected):
                 baselines = baseline_report(graph, edges, index, R, centers, options)
+    centers, shared = share_pure_rotation_centres(graph, index, centers, registered)
     has_centre = np.all(np.isfinite(centers), axis=1)
     without = [ids[r] for r in np.flatnonzero(registered & ~has_centre)]
     report = {"num_edges": len(edges), "num_tracks": tracks.num_tracks, "num_observations": tracks.num_observations,
@@ -109,12 +114,14 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
               "outlier_threshold_px": robust.threshold_px, "baselines": baselines,
               **({"annealing_checked": annealing} if annealing else {}),
               **({"resected": resected} if resected else {}),
+              **({"shared_centres": shared} if shared else {}),
               "processes": 1 if peer_class is None else 2,
               "time_s": time.perf_counter() - start}
     for number, round_ in enumerate(robust.rounds, 1):
         logger.debug("translate round %d: %d observations, sigma %.3f px, threshold %.2f px, %d dropped, "
                      "%d re-admitted", number, round_["observations"], round_["sigma_px"], round_["threshold_px"],
                      round_["dropped"], round_["readmitted"])
+    _log_shared(shared)
     kept = [str(entry["view_id"]) for entry in resected if entry["kept"]]
     if kept:
         logger.info("translate: view(s) %s resected from the points of the others (their rotations known): LiGT's "
@@ -126,6 +133,86 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
                 f"tracks of three or more views tie together, and not resected; not registered)" if without else "",
                 report["num_observations_used"], tracks.num_observations)
     return centers, report
+
+
+def share_pure_rotation_centres(graph: ViewGraph, index: dict[int, int], centers: np.ndarray,
+                                registered: np.ndarray) -> tuple[np.ndarray, list[dict]]:
+    """(centres, entries): every registered view without a centre that an active
+    PURE_ROTATION edge joins to a view with one takes that view's centre, breadth first (the
+    fewest pure-rotation pairs away; among a view's neighbours the pair with the most
+    matches). A pure rotation (PR) has one centre for both views; under B/I (points on the
+    baseline or at infinity) the translation is unobservable and the shared centre is the
+    estimate the matches cannot tell from the truth (paper §"Scene Identification",
+    Corollary 1 case 1). Entries: view_id, from_view_id (the view whose centre it took)."""
+    centers = np.array(centers, dtype=float)
+    has_centre = np.all(np.isfinite(centers), axis=1)
+    pure = [graph.edges[k] for k in graph.active_edges()
+            if graph.edges[k].scene_kind == SceneKind.PURE_ROTATION.value
+            and registered[index[graph.edges[k].i]] and registered[index[graph.edges[k].j]]]
+    # strongest pairs first, so that a view reached in the same sweep from several takes the best
+    pure.sort(key=lambda edge: -edge.num_inliers)
+    ids = graph.view_ids()
+    shared = []
+    frontier = has_centre.copy()
+    while True:
+        reached = {}
+        for edge in pure:
+            a, b = index[edge.i], index[edge.j]
+            for source, target in ((a, b), (b, a)):
+                if frontier[source] and not has_centre[target] and target not in reached:
+                    reached[target] = source
+        if not reached:
+            return centers, shared
+        frontier = np.zeros_like(has_centre)
+        for target, source in sorted(reached.items()):
+            centers[target] = centers[source]
+            has_centre[target] = frontier[target] = True
+            shared.append({"view_id": ids[target], "from_view_id": ids[source]})
+
+
+def _pure_rotation_capture(graph: ViewGraph, index: dict[int, int], registered: np.ndarray, start: float):
+    """translate_graph without a REGULAR edge: every pair a pure rotation (a panorama from a
+    tripod, or a distant scene). The best-connected view of the largest set joined by
+    PURE_ROTATION edges is put at the origin and the views it rotates about share its centre;
+    nothing fixes a scale (no points can be triangulated)."""
+    centers = np.full((len(index), 3), np.nan)
+    degree = np.zeros(len(index), dtype=np.int64)
+    for k in graph.active_edges():
+        edge = graph.edges[k]
+        if edge.scene_kind == SceneKind.PURE_ROTATION.value and registered[index[edge.i]] and registered[index[edge.j]]:
+            degree[index[edge.i]] += 1
+            degree[index[edge.j]] += 1
+    if not degree.any():
+        raise AlgorithmError("translation: no REGULAR or PURE_ROTATION edge between registered views")
+    candidates = np.flatnonzero(degree == degree.max())
+    best = None
+    for seed in candidates:  # the largest set; among its views the first of the best connected
+        trial = np.full((len(index), 3), np.nan)
+        trial[seed] = 0.0
+        trial, entries = share_pure_rotation_centres(graph, index, trial, registered)
+        if best is None or len(entries) > len(best[1]):
+            best = (trial, entries, seed)
+        if len(entries) + 1 == int(registered.sum()):
+            break
+    centers, shared, seed = best
+    has_centre = np.all(np.isfinite(centers), axis=1)
+    ids = graph.view_ids()
+    without = [ids[r] for r in np.flatnonzero(registered & ~has_centre)]
+    report = {"num_edges": 0, "num_tracks": 0, "num_observations": 0, "num_inconsistent_tracks": 0,
+              "num_views_with_centre": int(has_centre.sum()), "views_without_centre": without,
+              "pure_rotation_capture": {"origin_view_id": ids[seed]}, "shared_centres": shared,
+              "time_s": time.perf_counter() - start}
+    logger.info("translate: no REGULAR edge, every pair a pure rotation: %d view(s) share the centre of view %s",
+                len(shared) + 1, ids[seed])
+    _log_shared(shared)
+    return centers, report
+
+
+def _log_shared(shared: list[dict]) -> None:
+    if shared:
+        views = sorted(entry["view_id"] for entry in shared)
+        logger.info("translate: view(s) %s given the centre of a view they are a pure rotation from (PURE_ROTATION "
+                    "pairs: the translation is unobservable)", listed(map(str, views)))
 
 
 def baseline_report(graph: ViewGraph, edges: list[int], index: dict[int, int], R_cam_from_world: np.ndarray,
@@ -160,21 +247,29 @@ def views_without_centre(report: dict | None) -> set[int]:
     return set((report or {}).get("views_without_centre") or [])
 
 
+def views_not_ligt(report: dict | None) -> set[int]:
+    """The views a translate report positioned other than by LiGT: resected (and kept) or
+    given the centre of a view they are a pure rotation from."""
+    report = report or {}
+    return ({entry["view_id"] for entry in report.get("resected") or [] if entry["kept"]}
+            | {entry["view_id"] for entry in report.get("shared_centres") or []})
+
+
 def views_ligt_left_out(report: dict | None) -> set[int]:
     """The registered views a translate report's LiGT solve left without a centre, whether
-    resected afterwards or not (empty for no report)."""
+    positioned afterwards or not (empty for no report)."""
     resected = {entry["view_id"] for entry in (report or {}).get("resected") or []}
-    return views_without_centre(report) | resected
+    return views_without_centre(report) | resected | views_not_ligt(report)
 
 
 def ligt_centres(centers: np.ndarray, report: dict | None, index: dict[int, int]) -> np.ndarray:
-    """``centers`` with the views the translate ``report`` resected set to NaN: LiGT's own
-    centres (``index``: view id -> row)."""
-    resected = [index[entry["view_id"]] for entry in (report or {}).get("resected") or [] if entry["kept"]]
-    if not resected:
+    """``centers`` with the views the translate ``report`` positioned other than by LiGT set
+    to NaN: LiGT's own centres (``index``: view id -> row)."""
+    others = [index[view_id] for view_id in views_not_ligt(report)]
+    if not others:
         return centers
     own = np.array(centers, dtype=float)
-    own[resected] = np.nan
+    own[others] = np.nan
     return own
 
 
@@ -200,6 +295,17 @@ def unregistered_warning(num_views: int, unregistered: list[int], report: dict |
                      f"views_without_centre)")
     return (f"{len(unregistered)} of {num_views} views are not in the outputs: {'; '.join(parts)}; images "
             f"overlapping them and the rest would tie them in")
+
+
+def pure_rotation_warning(report: dict | None) -> str | None:
+    """The run summary's warning for a capture whose every pair is a pure rotation (a
+    panorama): the views share one centre, so the outputs hold no points."""
+    capture = (report or {}).get("pure_rotation_capture")
+    if not capture:
+        return None
+    return (f"every pair is a pure rotation (PR/B/I: a panorama, or a scene too distant for the baselines): "
+            f"the {report['num_views_with_centre']} views share the centre of view {capture['origin_view_id']}, "
+            f"their rotations are the result, and no point can be triangulated (reports/translate.json)")
 
 
 def baseline_warning(report: dict | None) -> str | None:

@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 
 import rotonly_cli
+from rotonly_cli.geometry import so3
 from rotonly_cli.options import RunOptions
 from rotonly_cli.stages import translate
 
@@ -156,3 +157,56 @@ def test_annealed_rounds_that_put_views_off_their_baselines_give_way(monkeypatch
     assert checked["kept"] == "without annealing" and len(checked["views_off"]) == 1
     assert checked["without_views_off"] == {}
     assert not any(w.startswith("positions") for w in result.summary["warnings"])
+
+
+def _graph_of(pairs: dict[tuple[int, int], tuple[str, int]], num_views: int):
+    """A view graph of views 1..num_views whose edges have the given (kind, number of matches)."""
+    from rotonly_cli.scene.types import View
+    from rotonly_cli.scene.view_graph import Edge, ViewGraph
+
+    graph = ViewGraph(views={v: View(v, f"{v}.jpg", 1) for v in range(1, num_views + 1)})
+    for (i, j), (kind, count) in pairs.items():
+        graph.edges.append(Edge(i, j, np.eye(3), np.zeros(3), np.zeros((count, 2), dtype=np.int64), scene_kind=kind))
+    return graph
+
+
+def test_views_a_pure_rotation_joins_to_a_positioned_view_share_its_centre():
+    # 1-2 positioned by LiGT; 3 a pure rotation from 2 (and, weaker, from 1); 4 one more pure
+    # rotation away; 5 joined to 3 by a REGULAR pair only; 6 by a filtered pure rotation
+    graph = _graph_of({(1, 2): ("REGULAR", 100), (1, 3): ("PURE_ROTATION", 40), (2, 3): ("PURE_ROTATION", 90),
+                       (3, 4): ("PURE_ROTATION", 50), (3, 5): ("REGULAR", 80), (4, 6): ("PURE_ROTATION", 60)}, 6)
+    graph.edges[-1].filter("a reason")
+    index = {v: v - 1 for v in range(1, 7)}
+    centers = np.full((6, 3), np.nan)
+    centers[0], centers[1] = [0.0, 0.0, 0.0], [1.0, 2.0, 3.0]
+    shared_centers, shared = translate.share_pure_rotation_centres(graph, index, centers, np.ones(6, bool))
+    assert shared == [{"view_id": 3, "from_view_id": 2}, {"view_id": 4, "from_view_id": 3}]
+    np.testing.assert_array_equal(shared_centers[2], [1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(shared_centers[3], [1.0, 2.0, 3.0])
+    assert np.isnan(shared_centers[4]).all() and np.isnan(shared_centers[5]).all()
+    assert np.isnan(centers[2]).all()  # the input is not changed
+    # LiGT's own centres leave the shared ones out, and the rejection counts them as LiGT's losses
+    report = {"views_without_centre": [5, 6], "shared_centres": shared}
+    assert translate.views_ligt_left_out(report) == {3, 4, 5, 6}
+    assert np.isnan(translate.ligt_centres(shared_centers, report, index)[[2, 3]]).all()
+
+
+def test_a_still_frame_matched_only_to_its_twin_takes_the_twins_centre():
+    """A frame whose one pair is a pure rotation (taken again from the same place, and matched
+    to nothing else): LiGT has no track to place it by, and before it was left out."""
+    from test_user_captures import HERZJESU, _with_a_still_frame
+
+    from rotonly_cli.stages.load import read_input
+
+    scene, _ = read_input(HERZJESU / "database.db")
+    still, new = _with_a_still_frame(scene, view=3, noise_px=0.3)
+    still.pairs = {key: pair for key, pair in still.pairs.items() if new not in key or key == (3, new)}
+    result = rotonly_cli.run(still, gt=HERZJESU, progress=False)
+    assert not result.unregistered_views and sorted(result.centers) == sorted(still.views)
+    np.testing.assert_array_equal(result.centers[new], result.centers[3])
+    assert result.reports["translate"]["shared_centres"] == [{"view_id": new, "from_view_id": 3}]
+    assert np.degrees(so3.geodesic_angle(result.rotations[new], result.rotations[3])) < 0.05
+    assert result.evaluation["rotation_error_deg"]["mean"] < 0.021  # as without the frame (0.0193)
+    # one pair is its only tie: the rotation across it is unchecked, and said so; nothing else
+    [warning] = result.summary["warnings"]
+    assert f"lie on no cycle (edges 3-{new})" in warning
