@@ -98,15 +98,17 @@ class IdentificationOptions:
     #: v_rs below this -> ROTATION_SINGULAR: paper §"Scene Identification" / §7.2.1 (1e-4), on
     #: z = 1 normalized coordinates
     rotation_singular_threshold: float = 1e-4
-    #: ρ = f_pure / f_TRRM below this -> PURE_ROTATION: between the PR/B/I (ρ < 1) and regular
-    #: (ρ ≫ 1) populations (geometry/identification.py)
-    pure_rotation_ratio_threshold: float = 3.0
+    #: ρ = f_pure / f_TRRM of an edge with m matches up to this many standard deviations of
+    #: log ρ (2.74 / √m) above the PR/B/I population's upper mode (3.05) -> PURE_ROTATION:
+    #: the threshold is 3.05 exp(z 2.74 / √m), 3.95 at 1000 matches, 6.9 at 100
+    #: (geometry/identification.py; docs/tuning.md "Scene identification")
+    pure_rotation_ratio_sigmas: float = 3.0
 
     def validate(self) -> IdentificationOptions:
         if not self.rotation_singular_threshold >= 0:
             raise ValueError("rotation_singular_threshold: must be >= 0")
-        if not self.pure_rotation_ratio_threshold > 0:
-            raise ValueError("pure_rotation_ratio_threshold: must be > 0")
+        if not self.pure_rotation_ratio_sigmas >= 0:
+            raise ValueError("pure_rotation_ratio_sigmas: must be >= 0")
         return self
 
 

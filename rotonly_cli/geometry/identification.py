@@ -15,15 +15,23 @@ Procrustes) against the TRRM cost (eq:ROMerr) at the given rotation:
 
     ρ = f_pure(R*) / f_TRRM(R_ij).
 
-Under PR/B/I both models explain the data to the noise level (the TRRM model with a
-noise-fitted unit t is slightly worse), so ρ stays O(1) whatever the noise level; with a
-real baseline f_pure grows with the parallax while f_TRRM stays at the noise level, so
-ρ ≈ (parallax / noise)² ≫ 1. The test is scale-free: it needs neither the focal length nor
-the noise level. Both costs are per-match *medians* (robust to wrong matches), R* is a
-Cauchy-reweighted Procrustes and t comes from unit-length θ. Threshold:
-``pure_rotation_ratio_threshold`` = 3, between the pure-rotation (ρ < 1) and regular
-populations of the OpenGV set-up (docs/tuning.md; tests/geometry/test_pairwise.py pins the
-bands).
+Under PR/B/I both models explain the data to the noise level, so ρ stays O(1) whatever the
+noise level; with a real baseline f_pure grows with the parallax while f_TRRM stays at the
+noise level, so ρ ≈ (parallax / noise)² ≫ 1. The test is scale-free: it needs neither the
+focal length nor the noise level. Both costs are per-match *medians* (robust to wrong
+matches), R* is a Cauchy-reweighted Procrustes and t comes from unit-length θ.
+
+Under PR/B/I, ρ has two modes, set by where TRRM's fit puts the unobservable t: near the
+optical axis ρ ≈ 0.7-1 (the OpenGV set-up); in the image plane the TRRM residual is the one
+noise component across near-parallel epipolar lines against the pure model's two, and ρ
+nears the ratio of the medians of χ²₂ and χ²₁, 1.386 / 0.455 = 3.05 (a tripod panorama:
+2.8-3.5 on a third of its pairs with 400-1500 matches, up to 10.6 with 35). ρ of m matches
+is a ratio of two sample medians: the standard deviation of log ρ is 2.74 / √m (the
+asymptotic variance of a sample median, 1 / (4 m f(median)²), of χ²₁ and of χ²₂, added).
+An edge is PURE_ROTATION while ρ < 3.05 exp(z 2.74 / √m), z =
+``pure_rotation_ratio_sigmas`` = 3: 3.9 at 1000 matches, 6.9 at 100, 13.7 at 30, below the
+regular populations (docs/tuning.md; tests/geometry/test_pairwise.py pins the bands,
+tests/test_user_captures.py the panorama).
 """
 
 from __future__ import annotations
@@ -95,8 +103,22 @@ def ratios_and_ps(R_j_from_i: np.ndarray, batch: pg.EdgeBatch,
     return rho, out["ps"], out["t_plain"]
 
 
-def classify(v_rs: np.ndarray, rho: np.ndarray, options: IdentificationOptions) -> np.ndarray:
-    """Scene kinds from the two detection values.
+#: the PR/B/I population's upper mode of ρ: median χ²₂ / median χ²₁ = 2 ln 2 / 0.45494
+PURE_ROTATION_RATIO_MODE = 3.0472
+#: m · variance of log ρ over one edge's m matches: 1 / (2 f m̃)² of χ²₁ (f(m̃) = 0.47113,
+#: m̃ = 0.45494) plus that of χ²₂ (0.25, 1.38629), square-rooted: 2.3328² + 1.4427² -> 2.7428²
+PURE_ROTATION_LOG_RATIO_SPREAD = 2.7428
+
+
+def pure_rotation_ratio_thresholds(counts: np.ndarray, options: IdentificationOptions) -> np.ndarray:
+    """Per edge of ``counts`` matches: the ρ below which it is PURE_ROTATION (module docstring)."""
+    m = np.maximum(np.asarray(counts, dtype=float), 1.0)
+    return PURE_ROTATION_RATIO_MODE * np.exp(options.pure_rotation_ratio_sigmas * PURE_ROTATION_LOG_RATIO_SPREAD
+                                             / np.sqrt(m))
+
+
+def classify(v_rs: np.ndarray, rho: np.ndarray, counts: np.ndarray, options: IdentificationOptions) -> np.ndarray:
+    """Scene kinds from the two detection values (``counts``: each edge's matches).
 
     RotationSingular is decided first, from v_rs alone (it does not depend on the rotation).
     The paper tests PR/B/I first; rotonly cannot, because its noise-aware PR/B/I test uses
@@ -106,7 +128,7 @@ def classify(v_rs: np.ndarray, rho: np.ndarray, options: IdentificationOptions) 
     kinds are kept out of TRRM and GRRM, so nothing downstream changes.
     """
     singular = v_rs < options.rotation_singular_threshold
-    pure = ~singular & (rho < options.pure_rotation_ratio_threshold)
+    pure = ~singular & (rho < pure_rotation_ratio_thresholds(counts, options))
     codes = np.where(singular, 1, np.where(pure, 2, 0))
     table = (SceneKind.REGULAR, SceneKind.ROTATION_SINGULAR, SceneKind.PURE_ROTATION)
     kinds = np.empty(len(codes), dtype=object)
@@ -121,5 +143,5 @@ def identify(R_j_from_i: np.ndarray, batch: pg.EdgeBatch,
     v_rs = detection_values(batch)
     rho, P, _ = ratios_and_ps(R_j_from_i, batch)
     eig = pg.symmetric_eigenvalues3(P)
-    kinds = classify(v_rs, rho, options)
+    kinds = classify(v_rs, rho, batch.counts, options)
     return Identification(kinds=kinds, detection_value=v_rs, pure_rotation_ratio=rho, ps_eigenvalues=eig)

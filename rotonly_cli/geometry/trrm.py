@@ -374,7 +374,7 @@ def refine(R_init: np.ndarray, batch: pg.EdgeBatch, options: TRRMOptions = TRRMO
     # ρ of every edge at its rotation (singular edges keep R_init) and, from the same pass,
     # the plain Pˢ at the returned rotations for the identification eigenvalues
     rho, P_plain, t_plain = ratios_and_ps(R, batch, table)
-    kinds = classify(v_rs, rho, identification_options)
+    kinds = classify(v_rs, rho, batch.counts, identification_options)
     regular = np.flatnonzero(kind_mask(kinds, SceneKind.REGULAR))
     pure = np.flatnonzero(kind_mask(kinds, SceneKind.PURE_ROTATION))
     t = np.zeros((E, 3))

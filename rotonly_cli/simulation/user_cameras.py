@@ -71,15 +71,28 @@ def simulate_user_cameras(seed: int, focal_error: float, k1: float, *, num_views
     image centre and no distortion. Keypoints: projections through the
     true camera plus Gaussian noise (``noise_px`` per coordinate); ``outlier_fraction`` of
     each pair's matches point at a random keypoint."""
-    from rotonly_cli.io.colmap.cameras import pycolmap_camera
-
     rng = np.random.default_rng(seed)
     rotations, centers, points = arc_scene(rng, num_views, num_points)
     true = Intrinsics(1, "SIMPLE_RADIAL", width, height,
                       np.array([focal, width / 2 + principal_offset[0], height / 2 + principal_offset[1], k1]))
     guessed = Intrinsics(1, "SIMPLE_RADIAL", width, height,
                          np.array([focal * (1 + focal_error), width / 2, height / 2, 0.0]), prior_focal=False)
+    keypoints, matches = _observe(true, rotations, centers, points, rng, noise_px, outlier_fraction, min_shared)
+    gt_poses = {v + 1: Pose(rotations[v].copy(), centers[v].copy()) for v in range(num_views)}
+    return UserCameraProblem(true, guessed, gt_poses, points, keypoints, matches, seed, focal_error, k1)
+
+
+def _observe(true: Intrinsics, rotations: np.ndarray, centers: np.ndarray, points: np.ndarray,
+             rng: np.random.Generator, noise_px: float, outlier_fraction: float,
+             min_shared: int) -> tuple[dict[int, np.ndarray], dict[tuple[int, int], np.ndarray]]:
+    """Keypoints (view ids from 1): the points in front of each camera projected through
+    ``true``, inside the image, plus Gaussian noise (``noise_px`` per coordinate); matches of
+    every pair sharing ``min_shared`` points, ``outlier_fraction`` of them pointing at a
+    random keypoint."""
+    from rotonly_cli.io.colmap.cameras import pycolmap_camera
+
     camera = pycolmap_camera(true)
+    num_views = len(rotations)
     visible = np.zeros((num_views, len(points)), dtype=bool)
     keypoints = {}
     for v in range(num_views):
@@ -87,7 +100,7 @@ def simulate_user_cameras(seed: int, focal_error: float, k1: float, *, num_views
         front = in_camera[:, 2] > 1e-6
         pixels = np.full((len(points), 2), np.nan)
         pixels[front] = np.asarray(camera.img_from_cam(in_camera[front]), dtype=np.float64)
-        inside = front & np.all((pixels > 0) & (pixels < [width, height]), axis=1)
+        inside = front & np.all((pixels > 0) & (pixels < [true.width, true.height]), axis=1)
         visible[v] = inside
         keypoints[v + 1] = pixels[inside] + rng.normal(0.0, noise_px, (int(inside.sum()), 2))
     index = np.cumsum(visible, axis=1) - 1
@@ -101,8 +114,30 @@ def simulate_user_cameras(seed: int, focal_error: float, k1: float, *, num_views
             wrong = rng.choice(len(pair), int(outlier_fraction * len(pair)), replace=False)
             pair[wrong, 1] = rng.integers(0, len(keypoints[j + 1]), len(wrong))
             matches[(i + 1, j + 1)] = pair
+    return keypoints, matches
+
+
+def simulate_panorama(seed: int, *, num_views: int = 12, step_deg: float = 20.0, num_points: int = 8000,
+                      noise_px: float = 0.3, outlier_fraction: float = 0.05, width: int = 1536,
+                      height: int = 1024, focal: float = 1380.0, min_shared: int = 50) -> UserCameraProblem:
+    """A panorama from a tripod: ``num_views`` cameras at one centre (the origin), turned
+    about the vertical by ``step_deg`` each (a 58° wide field of view: each image overlaps the
+    next two), points 5-40 m away all round. Every pair is a pure rotation (PR). The camera
+    is known (``guessed`` = ``true``, a prior focal), without distortion."""
+    rng = np.random.default_rng(seed)
+    yaw = np.deg2rad(step_deg * np.arange(num_views))
+    c, s = np.cos(yaw), np.sin(yaw)
+    rotations = np.zeros((num_views, 3, 3))
+    rotations[:, 0, 0], rotations[:, 0, 2], rotations[:, 1, 1] = c, -s, 1.0
+    rotations[:, 2, 0], rotations[:, 2, 2] = s, c
+    centers = np.zeros((num_views, 3))
+    directions = rng.normal(size=(num_points, 3)) * [1.0, 0.4, 1.0]
+    points = directions / np.linalg.norm(directions, axis=1, keepdims=True) * rng.uniform(5, 40, (num_points, 1))
+    true = Intrinsics(1, "SIMPLE_RADIAL", width, height, np.array([focal, width / 2, height / 2, 0.0]),
+                      prior_focal=True)
+    keypoints, matches = _observe(true, rotations, centers, points, rng, noise_px, outlier_fraction, min_shared)
     gt_poses = {v + 1: Pose(rotations[v].copy(), centers[v].copy()) for v in range(num_views)}
-    return UserCameraProblem(true, guessed, gt_poses, points, keypoints, matches, seed, focal_error, k1)
+    return UserCameraProblem(true, true, gt_poses, points, keypoints, matches, seed, 0.0, 0.0)
 
 
 def verified_pairs(problem: UserCameraProblem) -> dict[tuple[int, int], PairMatches]:

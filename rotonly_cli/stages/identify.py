@@ -45,5 +45,5 @@ def identify_edges(graph: ViewGraph, normalized: dict[int, np.ndarray],
     return {"num_edges": len(edges), "kinds": counts, "num_filtered_rotation_singular": num_singular,
             "num_active_edges": len(graph.active_edges()), "unregistered_views": list(graph.unregistered_views),
             "rotation_singular_threshold": options.rotation_singular_threshold,
-            "pure_rotation_ratio_threshold": options.pure_rotation_ratio_threshold,
+            "pure_rotation_ratio_sigmas": options.pure_rotation_ratio_sigmas,
             "processes": processes, "time_s": time.perf_counter() - start}

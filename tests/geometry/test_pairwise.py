@@ -417,3 +417,23 @@ def test_ransac_trials_needed_reaches_the_confidence():
     assert pg.ransac_trials_needed(0.5, 5, 0.99) == 146  # log(0.01) / log(31/32) = 145.05
     assert pg.ransac_trials_needed(1.0, 5, 0.9999) == 1
     assert pg.ransac_trials_needed(0.0, 5, 0.9999) == float("inf")
+
+
+def test_pure_rotation_threshold_constants_are_the_chi_square_medians():
+    """The PR/B/I upper mode of ρ is median χ²₂ / median χ²₁, and the spread of log ρ over m
+    matches that of a ratio of two sample medians (asymptotic variance 1 / (4 m f(median)²))."""
+    from scipy.stats import chi2
+
+    from rotonly_cli.geometry import identification
+    from rotonly_cli.options import IdentificationOptions
+
+    m1, m2 = chi2.median(1), chi2.median(2)
+    assert identification.PURE_ROTATION_RATIO_MODE == pytest.approx(m2 / m1, rel=1e-4)
+    spread = np.hypot(1 / (2 * chi2.pdf(m1, 1) * m1), 1 / (2 * chi2.pdf(m2, 2) * m2))
+    assert identification.PURE_ROTATION_LOG_RATIO_SPREAD == pytest.approx(spread, rel=1e-4)
+    # z = 3: 3.9 at 1000 matches, 6.9 at 100, 13.7 at 30; z = 0 is the mode itself
+    thresholds = identification.pure_rotation_ratio_thresholds(np.array([1000, 100, 30]), IdentificationOptions())
+    np.testing.assert_allclose(thresholds, [3.95, 6.94, 13.69], atol=0.01)
+    mode = identification.pure_rotation_ratio_thresholds(np.array([50]),
+                                                         IdentificationOptions(pure_rotation_ratio_sigmas=0))
+    assert mode[0] == pytest.approx(3.0472)
