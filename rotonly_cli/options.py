@@ -461,6 +461,10 @@ class IntrinsicsOptions:
     #: F re-fit on each pair's verified matches before the view-graph calibration (pixels)
     fundamental_max_error_px: float = 2.0
     fundamental_min_trials: int = 20
+    #: a rotating camera's focal length (a panorama: pairs a homography explains, no F) is kept
+    #: when its pairs' median pure-rotation residual at it is within this (pixels): a tripod
+    #: panorama fits at its noise (0.45 px at 0.3 px), a plane seen from two places at none
+    rotation_fit_max_px: float = 2.0
     #: the bundle adjustment that estimates the intrinsics uses the longest tracks only
     max_points: int = 5000
     #: that bundle adjustment stops when an iteration lowers the cost by less than this
@@ -510,6 +514,8 @@ class IntrinsicsOptions:
             raise InputError("ba_huber_px must be > 0", field="intrinsics")
         if self.centred_principal_point_px is not None and not self.centred_principal_point_px >= 0:
             raise InputError("centred_principal_point_px must be >= 0", field="intrinsics")
+        if not self.rotation_fit_max_px > 0:
+            raise InputError("rotation_fit_max_px must be > 0", field="intrinsics")
         return self
 
 
