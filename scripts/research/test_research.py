@@ -459,3 +459,19 @@ def test_probe_keypoint_noise_on_fixture(tmp_path, capsys):
     assert _digest(FIXTURES / "herzjesu_p8" / "database.db") == before
     (row,) = [line.split(" | ") for line in capsys.readouterr().out.splitlines() if line.startswith("| Herz")]
     assert row[2] == "8 / 8" and 0.0193 < float(row[3]) < 0.04 and 0.0 < float(row[5]) < 0.04
+
+
+def test_probe_panorama_on_a_small_panorama(capsys):
+    """Ten views turned 20° apart, the true focal and a guess x1.2: every view at one centre,
+    every edge PURE_ROTATION, the guess calibrated back, and the threshold counts line."""
+    probe_panorama = _load_script("probe_panorama")
+    assert probe_panorama.main(["--seeds", "1", "--views", "10", "--step-deg", "20", "--points", "3000",
+                                "--focal-factors", "1.2"]) == 0
+    out = capsys.readouterr().out
+    rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| 3000")]
+    assert len(rows) == 2
+    for row in rows:
+        assert row[3] == "10/10" and float(row[4]) < 0.02 and float(row[5]) == 0.0
+        assert row[6].startswith("PURE_ROTATION")
+        assert abs(float(row[7].split()[0]) / 1380.0 - 1) < 2e-3
+    assert "z = 3: 0" in out
