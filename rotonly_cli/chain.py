@@ -87,8 +87,11 @@ def load_scene(scene: SfMScene, kind: InputKind, input_label: str, options: RunO
     the focal lengths the input marks as guesses calibrated (--intrinsics), the view graph built."""
     from rotonly_cli.options import Intrinsics
     from rotonly_cli.stages.intrinsics import start_calibration
-    from rotonly_cli.stages.load import measure_noise
+    from rotonly_cli.stages.load import measure_noise, without_unprojectable_keypoints
 
+    started = time.perf_counter()
+    scene, unprojectable = without_unprojectable_keypoints(scene)
+    read_time += time.perf_counter() - started
     started = time.perf_counter()
     calibration = start_calibration(scene, options.intrinsics, jobs=options.jobs)
     calibration.time_s += time.perf_counter() - started
@@ -109,7 +112,7 @@ def load_scene(scene: SfMScene, kind: InputKind, input_label: str, options: RunO
     run.calibration = calibration
     run.input_intrinsics = copy.deepcopy(scene.intrinsics)
     run.reports["load"].update(read_time_s=read_time, input=input_label, input_kind=kind,
-                               **(sources or {"input_files": []}))
+                               **(sources or {"input_files": []}), **unprojectable)
     return run
 
 

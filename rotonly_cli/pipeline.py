@@ -288,6 +288,7 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
     (the calibration's, those views, the baseline check of the centres, the edges on no cycle,
     the views a rejection round cut loose), each also logged."""
     from rotonly_cli.stages.average import unchecked_edges, unchecked_edges_warning
+    from rotonly_cli.stages.load import unprojectable_warning
     from rotonly_cli.stages.reject import undone_round_warning
     from rotonly_cli.stages.translate import baseline_warning, pure_rotation_warning, unregistered_warning
 
@@ -297,7 +298,8 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
     bridges = unchecked_edges(run.graph, set(scene.poses))
     summary["edges_on_no_cycle"] = [list(pair) for pair in bridges]
     summary["unregistered_views"] = unregistered = [v for v in run.graph.view_ids() if v not in scene.poses]
-    found = [unregistered_warning(len(run.graph.view_ids()), unregistered, run.reports.get("translate")),
+    found = [unprojectable_warning(run.reports.get("load")),
+             unregistered_warning(len(run.graph.view_ids()), unregistered, run.reports.get("translate")),
              baseline_warning(run.reports.get("translate")), pure_rotation_warning(run.reports.get("translate")),
              unchecked_edges_warning(bridges),
              undone_round_warning(run.reports.get("reject"))]

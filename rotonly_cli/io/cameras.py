@@ -47,6 +47,26 @@ def project(intrinsics: Intrinsics, normalized: np.ndarray) -> np.ndarray:
     return np.asarray(camera.img_from_cam(rays), dtype=np.float64).reshape(-1, 2)
 
 
+#: a keypoint whose normalized coordinates map back through the camera model farther than this
+#: (pixels) from where it was found was not undistorted: the model's inverse failed there
+UNDISTORTION_TOLERANCE_PX = 0.5
+
+
+def undistortion_failures(intrinsics: Intrinsics, pixels: np.ndarray, normalized: np.ndarray) -> np.ndarray:
+    """(n,) bool: the keypoints whose ``normalized`` coordinates are not the model's inverse of
+    ``pixels`` (non-finite, or projecting back more than UNDISTORTION_TOLERANCE_PX away). A ray
+    90° or more off the optical axis (a fisheye wider than 180°) has no z = 1 coordinates at
+    all; pycolmap then returns the distorted coordinates unchanged."""
+    pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    normalized = np.asarray(normalized, dtype=np.float64).reshape(-1, 2)
+    finite = np.all(np.isfinite(normalized), axis=1)
+    failed = ~finite
+    if finite.any():
+        back = project(intrinsics, normalized[finite])
+        failed[finite] = ~(np.linalg.norm(back - pixels[finite], axis=1) <= UNDISTORTION_TOLERANCE_PX)
+    return failed
+
+
 def undistorted_pixels(intrinsics: Intrinsics, normalized: np.ndarray) -> np.ndarray:
     """(n, 2) undistorted normalized coordinates -> (n, 2) pixels of the same camera without its
     distortion (focal length(s) and principal point only)."""

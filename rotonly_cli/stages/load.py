@@ -18,8 +18,10 @@ per edge and reason. It is per-edge C++ work, so a loop over edges is fine here.
 
 from __future__ import annotations
 
+import copy
 import logging
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +29,7 @@ import numpy as np
 from rotonly_cli.errors import InputError
 from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry import so3
+from rotonly_cli.io import cameras
 from rotonly_cli.io.detect import InputKind, detect_input
 from rotonly_cli.options import LoadOptions, Reestimate
 from rotonly_cli.scene.types import Intrinsics, SfMScene
@@ -61,6 +64,53 @@ def read_input(input_path: str | Path, matches_dir: str | Path | None = None,
         return scene, kind
     raise InputError("a COLMAP model holds no matches; give the COLMAP database or an OpenMVG sfm_data.json",
                      path=str(input_path))
+
+
+def without_unprojectable_keypoints(scene: SfMScene) -> tuple[SfMScene, dict]:
+    """``scene`` (not changed) with the matches of keypoints its cameras cannot undistort
+    left out (io.cameras.undistortion_failures: a fisheye's rays 90° or more off its axis,
+    which normalized z = 1 coordinates cannot hold), and a report: those keypoints per view,
+    the matches left out. The same scene when there are none."""
+    failed = {}
+    for view_id, view in scene.views.items():
+        if view_id in scene.normalized and view_id in scene.keypoints:
+            bad = cameras.undistortion_failures(scene.intrinsics[view.intrinsics_id], scene.keypoints[view_id],
+                                                scene.normalized[view_id])
+            if bad.any():
+                failed[view_id] = bad
+    if not failed:
+        return scene, {}
+    out = copy.copy(scene)
+    out.normalized, out.pairs = dict(scene.normalized), dict(scene.pairs)
+    for view_id, bad in failed.items():
+        out.normalized[view_id] = np.where(bad[:, None], np.nan, scene.normalized[view_id])
+    dropped = 0
+    for key, pair in scene.pairs.items():
+        matches = np.asarray(pair.matches, dtype=np.int64).reshape(-1, 2)
+        keep = np.ones(len(matches), dtype=bool)
+        for column, view_id in ((0, pair.i), (1, pair.j)):
+            if view_id in failed:
+                keep &= ~failed[view_id][matches[:, column]]
+        if not keep.all():
+            out.pairs[key] = replace(pair, matches=matches[keep])
+            dropped += int((~keep).sum())
+    report = {"keypoints_not_undistorted": {str(v): int(bad.sum()) for v, bad in sorted(failed.items())},
+              "matches_of_them_left_out": dropped}
+    logger.info("load: %d keypoints in %d view(s) lie where the camera model cannot be inverted (a fisheye's rays "
+                "90 deg or more off its axis): their %d matches are left out",
+                sum(int(b.sum()) for b in failed.values()), len(failed), dropped)
+    return out, report
+
+
+def unprojectable_warning(report: dict | None) -> str | None:
+    """The run summary's warning for keypoints the cameras cannot undistort (load report)."""
+    counts = (report or {}).get("keypoints_not_undistorted")
+    if not counts:
+        return None
+    return (f"{sum(counts.values())} keypoints in {len(counts)} view(s) lie where the camera model cannot be "
+            f"inverted (rays 90 deg or more off the axis: a fisheye wider than 180 deg, or a distortion model "
+            f"beyond its range): their {report['matches_of_them_left_out']} matches are left out "
+            f"(reports/load.json)")
 
 
 def input_files(input_path: str | Path, kind: str, scene: SfMScene, matches_dir: str | Path | None = None,

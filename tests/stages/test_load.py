@@ -82,3 +82,51 @@ def test_ransac_stops_at_the_trials_min_inliers_needs(monkeypatch):
 
     assert given[0] == pg.ransac_trials_needed(30 / 40, 5, options.ransac_confidence) == 34
     assert given[1] == options.ransac_max_trials
+
+
+def _fisheye_scene():
+    """Two views of an OPENCV_FISHEYE camera (f = 420 px on 1536 x 1024: wider than 180°),
+    keypoints along the image's horizontal axis at 30°, 80°, 100° and 120° off the optical axis
+    (equidistant: r = f θ), matched to each other."""
+    from rotonly_cli.io.cameras import normalize
+    from rotonly_cli.scene.types import Intrinsics, PairMatches, SfMScene, View
+
+    camera = Intrinsics(1, "OPENCV_FISHEYE", 1536, 1024, np.array([420.0, 420.0, 768.0, 512.0, 0.0, 0.0, 0.0, 0.0]))
+    angles = np.deg2rad([30.0, 80.0, 100.0, 120.0])
+    pixels = np.column_stack([768.0 + 420.0 * angles, np.full(4, 512.0)])
+    scene = SfMScene(source="test")
+    scene.intrinsics[1] = camera
+    for v in (1, 2):
+        scene.views[v] = View(v, f"{v}.jpg", 1, width=1536, height=1024)
+        scene.keypoints[v] = pixels.copy()
+        scene.normalized[v] = normalize(camera, pixels)
+    scene.pairs[(1, 2)] = PairMatches(1, 2, np.array([[0, 0], [1, 1], [2, 2], [3, 1], [1, 3]]))
+    return scene
+
+
+def test_keypoints_a_fisheye_cannot_undistort_are_found():
+    from rotonly_cli.io.cameras import undistortion_failures
+
+    scene = _fisheye_scene()
+    failed = undistortion_failures(scene.intrinsics[1], scene.keypoints[1], scene.normalized[1])
+    np.testing.assert_array_equal(failed, [False, False, True, True])  # 90° or more off the axis
+    np.testing.assert_allclose(scene.normalized[1][:2, 0], np.tan(np.deg2rad([30.0, 80.0])), rtol=1e-6)
+
+
+def test_the_matches_of_keypoints_the_camera_cannot_undistort_are_left_out_and_warned():
+    from rotonly_cli.stages.load import unprojectable_warning, without_unprojectable_keypoints
+
+    scene = _fisheye_scene()
+    before = scene.pairs[(1, 2)].matches.copy()
+    cleaned, report = without_unprojectable_keypoints(scene)
+    np.testing.assert_array_equal(cleaned.pairs[(1, 2)].matches, [[0, 0], [1, 1]])
+    assert np.isnan(cleaned.normalized[1][2:]).all() and np.isfinite(cleaned.normalized[1][:2]).all()
+    assert report == {"keypoints_not_undistorted": {"1": 2, "2": 2}, "matches_of_them_left_out": 3}
+    assert "4 keypoints in 2 view(s)" in unprojectable_warning(report)
+    # the input scene is not changed
+    np.testing.assert_array_equal(scene.pairs[(1, 2)].matches, before)
+    assert np.isfinite(scene.normalized[1]).all()
+    # a camera that can undistort every keypoint: the same scene, no report, no warning
+    herzjesu = read_database(DATA_FIXTURES / "herzjesu_p8" / "database.db")
+    same, nothing = without_unprojectable_keypoints(herzjesu)
+    assert same is herzjesu and nothing == {} and unprojectable_warning(nothing) is None
