@@ -326,7 +326,11 @@ def _restart_suspicious(R_init: np.ndarray, batch: pg.EdgeBatch, result: TRRMRes
                         identification_options: IdentificationOptions) -> TRRMResult:
     """TRRMOptions.restart_change_deg: edges that ended PURE_ROTATION or far from their start
     are refined again from the 8-point rotations; the lowest median squared residual wins if
-    it is below half of the first result's."""
+    it is below half of the first result's. A start whose median squared residual is already
+    above the first result's is not refined: LM from a worse start reaches a better minimum
+    only by leaving its basin. On noisy edges started 1° off, half of which moved by more than
+    1°, the linear 8-point rotations are all worse than TRRM's own optimum and the restarts
+    made refine_rotations 5x slower for the same rotations (docs/tuning.md)."""
     change = np.degrees(so3.geodesic_angle(result.rotations, R_init))
     suspicious = ~kind_mask(result.kinds, SceneKind.ROTATION_SINGULAR) & (
         kind_mask(result.kinds, SceneKind.PURE_ROTATION) | (change > options.restart_change_deg))
@@ -339,15 +343,19 @@ def _restart_suspicious(R_init: np.ndarray, batch: pg.EdgeBatch, result: TRRMRes
     # of a batch are refined independently, and a restart from a far start runs ~100 LM
     # iterations, whose cost is per-iteration overhead for a handful of edges
     starts = eight_point_rotations(sub)
-    num = rows.size
-    candidate = refine(np.concatenate([starts[:, 0], starts[:, 1]]), batch.subset(np.concatenate([rows, rows])),
-                       replace(options, restart_change_deg=None), identification_options)
-    for first in (0, num):
-        own = np.arange(first, first + num)
-        median = _median_sq_residual(candidate.rotations[own], sub)
-        better = np.flatnonzero(median < 0.5 * best)
-        _take(result, rows[better], candidate, own[better])
-        best[better] = median[better]
+    # (start, edge) pairs worth a refinement: the start is already below the first result
+    tried = [(k, e) for k in (0, 1) for e in np.flatnonzero(_median_sq_residual(starts[:, k], sub) < best)]
+    if not tried:
+        return result
+    which, edges = np.array([k for k, _ in tried]), np.array([e for _, e in tried])
+    candidate = refine(starts[edges, which], batch.subset(rows[edges]), replace(options, restart_change_deg=None),
+                       identification_options)
+    median = _median_sq_residual(candidate.rotations, batch.subset(rows[edges]))
+    for n in range(len(tried)):  # in the order of the starts, as before: the lower median wins
+        e = edges[n]
+        if median[n] < 0.5 * best[e]:
+            _take(result, rows[[e]], candidate, np.array([n]))
+            best[e] = median[n]
     return result
 
 
