@@ -257,21 +257,22 @@ _ROTATION_CONFIGS = ("PANORAMIC", "PLANAR_OR_PANORAMIC")
 def rotating_camera_focals(scene: SfMScene, calibrate: set[int],
                            options: IntrinsicsOptions) -> tuple[dict[int, Intrinsics], dict]:
     """New intrinsics (the focal length changed) of the cameras in ``calibrate`` whose pairs
-    (both views on that camera) the input verified by a homography: the focal length at which
-    those pairs' bearings are best explained by pure rotations (geometry.rotating_camera). Kept
-    when the search ends inside its range and the median of the pairs' median residuals is
-    within ``options.rotation_fit_max_px``: a plane seen from two places fits no rotation at
-    any focal length. For a capture of pure rotations, where the view-graph calibration has no
-    fundamental matrix to work with (algorithms.md §8)."""
+    the input verified by a homography: the focal length at which those pairs' bearings are
+    best explained by pure rotations (geometry.rotating_camera). Cameras with identical given
+    intrinsics (:func:`twin_cameras`: COLMAP's camera per image) share one focal length and
+    the pairs between their views. Kept when the search ends inside its range and the median
+    of the pairs' median residuals is within ``options.rotation_fit_max_px``: a plane seen
+    from two places fits no rotation at any focal length. For a capture of pure rotations,
+    where the view-graph calibration has no fundamental matrix to work with (algorithms.md §8)."""
     from rotonly_cli.geometry.rotating_camera import rotating_camera_focal
 
     start = time.perf_counter()
     calibrated, fits = {}, {}
-    for camera_id in sorted(calibrate):
-        given = scene.intrinsics[camera_id]
-        on_camera = {v for v, view in scene.views.items() if view.intrinsics_id == camera_id and v in scene.normalized}
+    for group in twin_cameras(scene.intrinsics, calibrate):
+        given = scene.intrinsics[group[0]]
+        on_group = {v for v, view in scene.views.items() if view.intrinsics_id in group and v in scene.normalized}
         keys = [key for key, pair in sorted(scene.pairs.items()) if pair.config in _ROTATION_CONFIGS
-                and key[0] in on_camera and key[1] in on_camera and len(pair.matches) >= 8]
+                and key[0] in on_group and key[1] in on_group and len(pair.matches) >= 8]
         if not keys:
             continue
         # undistorted pixel offsets from the principal point at the given focal length
@@ -281,19 +282,20 @@ def rotating_camera_focals(scene: SfMScene, calibrate: set[int],
         fit = rotating_camera_focal(u_i, u_j, given.focal_px)
         residual = float(np.median(fit.residual_px))
         kept = fit.interior and residual <= options.rotation_fit_max_px
-        fits[str(camera_id)] = {"num_pairs": len(keys), "focal_px": fit.focal_px, "residual_px": residual,
-                                "kept": kept}
+        fits[",".join(map(str, group))] = {"cameras": group, "num_pairs": len(keys), "focal_px": fit.focal_px,
+                                           "residual_px": residual, "kept": kept}
         if kept:
             params = np.array(given.params, dtype=np.float64)
-            groups = cameras.parameter_groups(given)["focal"]
-            params[groups] = params[groups] * (fit.focal_px / given.focal_px)
-            calibrated[camera_id] = replace(given, params=params)
+            focal = cameras.parameter_groups(given)["focal"]
+            params[focal] = params[focal] * (fit.focal_px / given.focal_px)
+            for camera_id in group:
+                calibrated[camera_id] = replace(scene.intrinsics[camera_id], params=params.copy())
     report = {"method": "rotating camera", "cameras": fits, "time_s": time.perf_counter() - start}
     if fits:
         logger.info("intrinsics: focal length of a rotating camera: %s (%.2f s)", ", ".join(
-            f"camera {c} f {scene.intrinsics[int(c)].focal_px:.1f} -> {fit['focal_px']:.1f} px over {fit['num_pairs']} "
-            f"pure-rotation pairs, residual {fit['residual_px']:.2f} px" + ("" if fit["kept"] else " (not kept)")
-            for c, fit in fits.items()), report["time_s"])
+            f"camera(s) {c} f {scene.intrinsics[fit['cameras'][0]].focal_px:.1f} -> {fit['focal_px']:.1f} px over "
+            f"{fit['num_pairs']} pure-rotation pairs, residual {fit['residual_px']:.2f} px"
+            + ("" if fit["kept"] else " (not kept)") for c, fit in fits.items()), report["time_s"])
     return calibrated, report
 
 
