@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rotonly_cli.geometry import kernels
 from rotonly_cli.geometry import pairwise as pg
 
 
@@ -29,11 +30,9 @@ def pure_rotation_residuals_px(u_i: Sequence[np.ndarray], u_j: Sequence[np.ndarr
     ``focal_px`` against the best pure rotation R* (robust orthogonal Procrustes)."""
     batch = pg.pack_edges([np.asarray(u, dtype=float) / focal_px for u in u_i],
                           [np.asarray(u, dtype=float) / focal_px for u in u_j])
-    R = pg.best_pure_rotation(batch, robust_iterations=2)
-    xi = batch.x_i / np.linalg.norm(batch.x_i, axis=1, keepdims=True)  # (M, 3) z = 1 points -> bearings
-    xj = batch.x_j / np.linalg.norm(batch.x_j, axis=1, keepdims=True)
-    d = xj - np.einsum("mab,mb->ma", np.repeat(R, batch.counts, axis=0), xi)
-    return np.sqrt(pg.segment_median(np.einsum("ma,ma->m", d, d), batch)) * focal_px
+    table = kernels.MatchTable.from_batch(batch)
+    R = kernels.best_pure_rotation(table, robust_iterations=2)  # as the PR/B/I test fits it
+    return np.sqrt(kernels.segment_median(kernels.rotated_bearing_sq(R, table), table.offsets)) * focal_px
 
 
 def rotating_camera_focal(u_i: Sequence[np.ndarray], u_j: Sequence[np.ndarray], focal_guess_px: float,

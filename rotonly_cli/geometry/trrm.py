@@ -351,11 +351,11 @@ def _restart_suspicious(R_init: np.ndarray, batch: pg.EdgeBatch, result: TRRMRes
     candidate = refine(starts[edges, which], batch.subset(rows[edges]), replace(options, restart_change_deg=None),
                        identification_options)
     median = _median_sq_residual(candidate.rotations, batch.subset(rows[edges]))
-    for n in range(len(tried)):  # in the order of the starts, as before: the lower median wins
-        e = edges[n]
-        if median[n] < 0.5 * best[e]:
-            _take(result, rows[[e]], candidate, np.array([n]))
-            best[e] = median[n]
+    for k in (0, 1):  # the starts in order, as before: the lower median wins
+        own = np.flatnonzero(which == k)  # one row per edge within a start
+        better = own[median[own] < 0.5 * best[edges[own]]]
+        _take(result, rows[edges[better]], candidate, better)
+        best[edges[better]] = median[better]
     return result
 
 

@@ -276,9 +276,9 @@ def rotating_camera_focals(scene: SfMScene, calibrate: set[int],
         if not keys:
             continue
         # undistorted pixel offsets from the principal point at the given focal length
-        offsets = {v: scene.normalized[v] * given.focal_px for v in {v for key in keys for v in key}}
-        u_i = [offsets[i][np.asarray(scene.pairs[(i, j)].matches)[:, 0]] for i, j in keys]
-        u_j = [offsets[j][np.asarray(scene.pairs[(i, j)].matches)[:, 1]] for i, j in keys]
+        matches = [np.asarray(scene.pairs[key].matches).reshape(-1, 2) for key in keys]
+        u_i = [scene.normalized[i][m[:, 0]] * given.focal_px for (i, _), m in zip(keys, matches)]
+        u_j = [scene.normalized[j][m[:, 1]] * given.focal_px for (_, j), m in zip(keys, matches)]
         fit = rotating_camera_focal(u_i, u_j, given.focal_px)
         residual = float(np.median(fit.residual_px))
         kept = fit.interior and residual <= options.rotation_fit_max_px

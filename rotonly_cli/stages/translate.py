@@ -26,7 +26,7 @@ from rotonly_cli.geometry.ligt import (
 )
 from rotonly_cli.geometry.resection import resect_left_out_views
 from rotonly_cli.scene.tracks import TrackCache, graph_tracks
-from rotonly_cli.scene.view_graph import ViewGraph, regular_edges, view_index
+from rotonly_cli.scene.view_graph import ViewGraph, largest_component_of, regular_edges, view_index
 from rotonly_cli.stages import listed
 
 logger = logging.getLogger(__name__)
@@ -135,6 +135,13 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
     return centers, report
 
 
+def _pure_rotation_edges(graph: ViewGraph, index: dict[int, int], registered: np.ndarray) -> list:
+    """The active PURE_ROTATION edges between registered views."""
+    return [graph.edges[k] for k in graph.active_edges()
+            if graph.edges[k].scene_kind == SceneKind.PURE_ROTATION.value
+            and registered[index[graph.edges[k].i]] and registered[index[graph.edges[k].j]]]
+
+
 def share_pure_rotation_centres(graph: ViewGraph, index: dict[int, int], centers: np.ndarray,
                                 registered: np.ndarray) -> tuple[np.ndarray, list[dict]]:
     """(centres, entries): every registered view without a centre that an active
@@ -146,11 +153,8 @@ def share_pure_rotation_centres(graph: ViewGraph, index: dict[int, int], centers
     Corollary 1 case 1). Entries: view_id, from_view_id (the view whose centre it took)."""
     centers = np.array(centers, dtype=float)
     has_centre = np.all(np.isfinite(centers), axis=1)
-    pure = [graph.edges[k] for k in graph.active_edges()
-            if graph.edges[k].scene_kind == SceneKind.PURE_ROTATION.value
-            and registered[index[graph.edges[k].i]] and registered[index[graph.edges[k].j]]]
     # strongest pairs first, so that a view reached in the same sweep from several takes the best
-    pure.sort(key=lambda edge: -edge.num_inliers)
+    pure = sorted(_pure_rotation_edges(graph, index, registered), key=lambda edge: -edge.num_inliers)
     ids = graph.view_ids()
     shared = []
     frontier = has_centre.copy()
@@ -175,26 +179,19 @@ def _pure_rotation_capture(graph: ViewGraph, index: dict[int, int], registered: 
     tripod, or a distant scene). The best-connected view of the largest set joined by
     PURE_ROTATION edges is put at the origin and the views it rotates about share its centre;
     nothing fixes a scale (no points can be triangulated)."""
-    centers = np.full((len(index), 3), np.nan)
-    degree = np.zeros(len(index), dtype=np.int64)
-    for k in graph.active_edges():
-        edge = graph.edges[k]
-        if edge.scene_kind == SceneKind.PURE_ROTATION.value and registered[index[edge.i]] and registered[index[edge.j]]:
-            degree[index[edge.i]] += 1
-            degree[index[edge.j]] += 1
-    if not degree.any():
+    pairs = [(edge.i, edge.j) for edge in _pure_rotation_edges(graph, index, registered)]
+    largest = largest_component_of(graph.view_ids(), pairs)
+    if not largest:
         raise AlgorithmError("translation: no REGULAR or PURE_ROTATION edge between registered views")
-    candidates = np.flatnonzero(degree == degree.max())
-    best = None
-    for seed in candidates:  # the largest set; among its views the first of the best connected
-        trial = np.full((len(index), 3), np.nan)
-        trial[seed] = 0.0
-        trial, entries = share_pure_rotation_centres(graph, index, trial, registered)
-        if best is None or len(entries) > len(best[1]):
-            best = (trial, entries, seed)
-        if len(entries) + 1 == int(registered.sum()):
-            break
-    centers, shared, seed = best
+    degree = {v: 0 for v in largest}
+    for i, j in pairs:
+        if i in degree:
+            degree[i] += 1
+            degree[j] += 1
+    seed = index[max(largest, key=lambda v: degree[v])]  # the first of the best connected
+    centers = np.full((len(index), 3), np.nan)
+    centers[seed] = 0.0
+    centers, shared = share_pure_rotation_centres(graph, index, centers, registered)
     has_centre = np.all(np.isfinite(centers), axis=1)
     ids = graph.view_ids()
     without = [ids[r] for r in np.flatnonzero(registered & ~has_centre)]
@@ -258,8 +255,9 @@ def views_not_ligt(report: dict | None) -> set[int]:
 def views_ligt_left_out(report: dict | None) -> set[int]:
     """The registered views a translate report's LiGT solve left without a centre, whether
     positioned afterwards or not (empty for no report)."""
-    resected = {entry["view_id"] for entry in (report or {}).get("resected") or []}
-    return views_without_centre(report) | resected | views_not_ligt(report)
+    report = report or {}
+    return views_without_centre(report) | {entry["view_id"] for entry in (report.get("resected") or [])
+                                           + (report.get("shared_centres") or [])}
 
 
 def ligt_centres(centers: np.ndarray, report: dict | None, index: dict[int, int]) -> np.ndarray:
