@@ -465,6 +465,10 @@ class IntrinsicsOptions:
     #: when its pairs' median pure-rotation residual at it is within this (pixels): a tripod
     #: panorama fits at its noise (0.45 px at 0.3 px), a plane seen from two places at none
     rotation_fit_max_px: float = 2.0
+    #: that fit reads at most this many matches of a pair (a seeded subset): the median
+    #: residuals it compares hardly move, and a flat ground seen from above (every pair
+    #: PLANAR_OR_PANORAMIC, refused) costs 4.8 s with all 1400 of each of its 201 pairs
+    rotation_fit_max_matches: int = 300
     #: the bundle adjustment that estimates the intrinsics uses the longest tracks only
     max_points: int = 5000
     #: that bundle adjustment stops when an iteration lowers the cost by less than this
@@ -490,6 +494,12 @@ class IntrinsicsOptions:
     #: (castle-P19's sequential fixture with 0.75 px of it: a right camera's fy came out 1.4 %
     #: long, 7.4 px of image shift, and was kept; docs/tuning.md "Intrinsics")
     min_shift_noise_px: float = 0.25
+    #: ... and only when some parameter of the group moved by more than this many of its
+    #: standard deviations in that adjustment (its covariance at the residuals' noise): where
+    #: the data do not fix a parameter its estimate wanders. A flat field seen from above
+    #: trades the focal for the flying height (one adjustment put a right camera's focal
+    #: 2.7 % short there, 2.4x the rotation error); fountain-P11's phone database: 0.15 px
+    min_change_sigmas: float = 3.0
     #: rounds stop when the intrinsics moved by less than this fraction of the half diagonal;
     #: the relative poses of the load stage are re-estimated when they moved by more
     converged_shift: float = 0.02
@@ -504,6 +514,8 @@ class IntrinsicsOptions:
             raise InputError(f"must be one of {', '.join(INTRINSICS_MODES)}", field="intrinsics")
         if self.min_images_principal_point < 1:
             raise InputError("min_images_principal_point >= 1 needed", field="intrinsics")
+        if not self.min_change_sigmas >= 0:
+            raise InputError("min_change_sigmas must be >= 0", field="intrinsics")
         if not self.min_shift_noise_px > 0:
             raise InputError("min_shift_noise_px > 0 needed", field="intrinsics")
         if self.max_points < 100 or self.max_rounds < 1:
@@ -516,6 +528,8 @@ class IntrinsicsOptions:
             raise InputError("centred_principal_point_px must be >= 0", field="intrinsics")
         if not self.rotation_fit_max_px > 0:
             raise InputError("rotation_fit_max_px must be > 0", field="intrinsics")
+        if not self.rotation_fit_max_matches >= 8:
+            raise InputError("rotation_fit_max_matches must be >= 8", field="intrinsics")
         return self
 
 

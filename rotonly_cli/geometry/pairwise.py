@@ -474,6 +474,24 @@ def epipolar_sampson_errors(M: np.ndarray, x_i: np.ndarray, x_j: np.ndarray) -> 
     return np.abs(algebraic) / np.sqrt(np.maximum(gradient, 1e-300))
 
 
+def homography_transfer_errors(H: np.ndarray, x_i: np.ndarray, x_j: np.ndarray) -> np.ndarray:
+    """First-order geometric distance of each match to the homography x_j ~ H x_i, with the
+    same noise in both views: the transfer error r = x_j - π(H x_i) whitened by its
+    covariance I + A Aᵀ (A = ∂π(H x_i)/∂x_i). Under isotropic Gaussian noise σ per coordinate
+    its square is σ² χ²₂, so σ = median / √(2 ln 2). Units of ``x_i``, ``x_j``: (m,)."""
+    a = _as_points(x_i, "x_i")
+    b = _as_points(x_j, "x_j")
+    H = np.asarray(H, dtype=float)
+    mapped = a @ H.T
+    w = mapped[:, 2:3]
+    projected = mapped[:, :2] / w
+    r = b[:, :2] - projected
+    A = (H[None, :2, :2] - projected[:, :, None] * H[None, 2:3, :2]) / w[:, :, None]  # (m, 2, 2)
+    covariance = np.eye(2) + A @ np.swapaxes(A, 1, 2)
+    whitened = np.linalg.solve(covariance, r[:, :, None])[:, :, 0]
+    return np.sqrt(np.maximum(np.einsum("ma,ma->m", r, whitened), 0.0))
+
+
 def pure_rotation_residuals(R_j_from_i: np.ndarray, batch: EdgeBatch) -> np.ndarray:
     """eq:PureRotationReprojBearingError for both views: per-edge cost Σ ‖x̂_j - R x̂_i‖² · 2."""
     xi_hat, _ = _unit(batch.x_i)

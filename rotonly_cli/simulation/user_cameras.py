@@ -10,6 +10,9 @@ Scene (``arc``): ``num_views`` cameras on a ~70° arc of radius 12 around a box 
 f = 1380 px, the principal point at the image centre. Parallel optical axes (the paper's
 ``circular`` set-up, rotonly_cli.simulation.layout_scenes) are a critical configuration of
 focal self-calibration, so they are not used here.
+
+Two captures with a known camera beside it: a tripod panorama (:func:`simulate_panorama`, every
+pair a pure rotation) and a drone survey over flat or hilly ground (:func:`simulate_survey`).
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rotonly_cli.geometry import so3
 from rotonly_cli.scene.types import Intrinsics, PairMatches, Pose, SfMScene, View
 
 PathLike = str | os.PathLike
@@ -138,6 +142,46 @@ def simulate_panorama(seed: int, *, num_views: int = 12, step_deg: float = 20.0,
     keypoints, matches = _observe(true, rotations, centers, points, rng, noise_px, outlier_fraction, min_shared)
     gt_poses = {v + 1: Pose(rotations[v].copy(), centers[v].copy()) for v in range(num_views)}
     return UserCameraProblem(true, true, gt_poses, points, keypoints, matches, seed, 0.0, 0.0)
+
+
+def simulate_survey(seed: int, *, strips: int = 2, per_strip: int = 5, relief: float = 0.0, altitude: float = 60.0,
+                    num_points: int = 10000, noise_px: float = 0.5, outlier_fraction: float = 0.05,
+                    max_tilt_deg: float = 3.0, width: int = 1536, height: int = 1024,
+                    focal: float = 1380.0, min_shared: int = 50) -> UserCameraProblem:
+    """A drone survey: ``strips`` x ``per_strip`` nadir views at ``altitude`` flown back and
+    forth (75 % forward, 60 % side overlap, 1 m of position and 3° of heading jitter, up to
+    ``max_tilt_deg`` off nadir) over ground of height ``relief`` · (smooth hills of 9-23 m
+    wavelength); ``relief = 0`` is a flat field, where every pair sees one plane (COLMAP's
+    verifier says PLANAR_OR_PANORAMIC and no fundamental matrix holds). The camera is known
+    (``guessed`` = ``true``, a prior focal), without distortion."""
+    rng = np.random.default_rng(seed)
+    footprint = np.array([width, height]) / focal * altitude
+    along, across = 0.25 * footprint[1], 0.4 * footprint[0]
+    nadir = np.diag([1.0, -1.0, -1.0])  # x along world x, looking down
+    rotations, centers = [], []
+    for strip in range(strips):
+        for k in range(per_strip):
+            step = k if strip % 2 == 0 else per_strip - 1 - k
+            centers.append(np.array([strip * across, step * along, altitude]) + rng.normal(scale=1.0, size=3))
+            yaw = (0.0 if strip % 2 == 0 else np.pi) + np.deg2rad(rng.normal(scale=3.0))
+            tilt = so3.exp(_random_unit(rng) * np.deg2rad(max_tilt_deg) * rng.uniform())
+            rotations.append(tilt @ nadir @ so3.exp(np.array([0.0, 0.0, yaw])).T)
+    rotations, centers = np.stack(rotations), np.stack(centers)
+    low = centers[:, :2].min(axis=0) - footprint / 2
+    high = centers[:, :2].max(axis=0) + footprint / 2
+    xy = rng.uniform(low, high, (num_points, 2))
+    ground = relief * (np.sin(xy[:, 0] / 17.0) * np.cos(xy[:, 1] / 23.0) + 0.5 * np.sin(xy.sum(axis=1) / 9.0)) / 1.5
+    points = np.column_stack([xy, ground])
+    true = Intrinsics(1, "SIMPLE_RADIAL", width, height, np.array([focal, width / 2, height / 2, 0.0]),
+                      prior_focal=True)
+    keypoints, matches = _observe(true, rotations, centers, points, rng, noise_px, outlier_fraction, min_shared)
+    gt_poses = {v + 1: Pose(rotations[v].copy(), centers[v].copy()) for v in range(len(rotations))}
+    return UserCameraProblem(true, true, gt_poses, points, keypoints, matches, seed, 0.0, 0.0)
+
+
+def _random_unit(rng: np.random.Generator) -> np.ndarray:
+    axis = rng.normal(size=3)
+    return axis / np.linalg.norm(axis)
 
 
 def verified_pairs(problem: UserCameraProblem) -> dict[tuple[int, int], PairMatches]:

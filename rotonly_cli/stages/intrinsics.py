@@ -113,7 +113,7 @@ def mean_reprojection_errors(scene: SfMScene) -> tuple[dict[int, float], float |
 
 def suspect_threshold_px(noise_sigma_px: float | None, options: IntrinsicsOptions) -> float:
     """The reprojection error sigma above which a camera's intrinsics are wrong: well above
-    the matches' noise (:func:`fundamental_noise_sigma_px`), and never below
+    the matches' noise (:func:`projective_noise_sigma_px`), and never below
     ``suspect_reprojection_px``."""
     floor = options.suspect_reprojection_px
     return floor if noise_sigma_px is None else max(floor, options.suspect_noise_sigmas * noise_sigma_px)
@@ -123,32 +123,87 @@ def suspect_threshold_px(noise_sigma_px: float | None, options: IntrinsicsOption
 MIN_NOISE_SAMPLES = 50
 
 
-def fundamental_noise_sigma_px(scene: SfMScene, options: IntrinsicsOptions) -> float | None:
+def projective_noise_sigma_px(scene: SfMScene, options: IntrinsicsOptions) -> float | None:
     """Noise sigma (px) of the matches whatever the focal lengths: 1.4826 x the median Sampson
     distance to a fundamental matrix fitted (LO-RANSAC, ``fundamental_max_error_px``) on each
     of the ``noise_sample_pairs`` largest verified pairs. The load stage's sigma comes from
     essential matrices, which wrong intrinsics inflate as much as the reprojection errors
-    (a focal 10 % off with k1 = -0.3: 1.1 px against 0.5 px). None with too few inliers."""
+    (a focal 10 % off with k1 = -0.3: 1.1 px against 0.5 px). Where too few pairs hold a
+    fundamental matrix (a flat ground seen from above, a panorama: their pairs are PLANAR or
+    PANORAMIC), the homographies of those pairs give it instead, as free of the intrinsics
+    (:func:`homography_noise_sigma_px`). None with too few inliers."""
     import pycolmap
 
     from rotonly_cli.geometry.pairwise import epipolar_sampson_errors
 
     ransac = pycolmap.RANSACOptions(max_error=options.fundamental_max_error_px, random_seed=options.seed,
                                     min_num_trials=options.fundamental_min_trials)
-    usable = [pair for pair in scene.pairs.values() if pair.verified and pair.config not in _NO_FUNDAMENTAL
-              and pair.i in scene.normalized and pair.j in scene.normalized and len(pair.matches) >= 8]
     errors = [np.zeros(0)]
-    for pair in sorted(usable, key=lambda p: (-len(p.matches), p.i, p.j))[:options.noise_sample_pairs]:
-        matches = np.asarray(pair.matches, dtype=np.int64)
-        x_i, x_j = (np.ascontiguousarray(cameras.undistorted_pixels(
-            scene.intrinsics[scene.views[v].intrinsics_id], scene.normalized[v][matches[:, column]]))
-            for v, column in ((pair.i, 0), (pair.j, 1)))
+    for pair in _noise_sample(scene, lambda config: config not in _NO_FUNDAMENTAL, options):
+        x_i, x_j = _undistorted_pair_pixels(scene, pair)
         result = pycolmap.estimate_fundamental_matrix(x_i, x_j, ransac)
         if result is not None:
             inliers = np.asarray(result["inlier_mask"], dtype=bool).ravel()
             errors.append(epipolar_sampson_errors(result["F"], x_i[inliers], x_j[inliers]))
     errors = np.concatenate(errors)
-    return 1.4826 * float(np.median(errors)) if errors.size >= MIN_NOISE_SAMPLES else None
+    if errors.size >= MIN_NOISE_SAMPLES:
+        return 1.4826 * float(np.median(errors))
+    return homography_noise_sigma_px(scene, options)
+
+
+#: two-view configurations a homography explains (COLMAP's names; "H": OpenMVG's matches.h)
+_HOMOGRAPHY_CONFIGS = ("PLANAR", "PLANAR_OR_PANORAMIC", "PANORAMIC", "H")
+
+
+def homography_noise_sigma_px(scene: SfMScene, options: IntrinsicsOptions) -> float | None:
+    """Noise sigma (px) of the matches from homographies fitted on the ``noise_sample_pairs``
+    largest verified pairs a homography explains (LO-RANSAC, then least squares on its
+    inliers; inliers: transfer error within ``fundamental_max_error_px``): median / √(2 ln 2)
+    of the inliers' first-order distances (two constraints per match,
+    geometry.pairwise.homography_transfer_errors). None with too few inliers."""
+    import cv2
+    import pycolmap
+
+    from rotonly_cli.geometry.pairwise import homography_transfer_errors
+
+    ransac = pycolmap.RANSACOptions(max_error=options.fundamental_max_error_px, random_seed=options.seed,
+                                    min_num_trials=options.fundamental_min_trials)
+    errors = [np.zeros(0)]
+    for pair in _noise_sample(scene, lambda config: config in _HOMOGRAPHY_CONFIGS, options):
+        x_i, x_j = _undistorted_pair_pixels(scene, pair)
+        result = pycolmap.estimate_homography_matrix(x_i, x_j, ransac)
+        if result is None:
+            continue
+        # LO-RANSAC stops early on these verified matches, and its H can sit far enough from
+        # the inliers' optimum to inflate sigma by a third (flat ground seen from above): the
+        # least-squares H of its inliers, and the matches within the threshold of that
+        inliers = np.asarray(result["inlier_mask"], dtype=bool).ravel()
+        H = result["H"]
+        if inliers.sum() >= 8:
+            H, _ = cv2.findHomography(x_i[inliers], x_j[inliers], 0)
+        if H is None:
+            continue
+        mapped = np.column_stack([x_i, np.ones(len(x_i))]) @ H.T
+        inliers = np.linalg.norm(x_j - mapped[:, :2] / mapped[:, 2:3], axis=1) <= options.fundamental_max_error_px
+        errors.append(homography_transfer_errors(H, x_i[inliers], x_j[inliers]))
+    errors = np.concatenate(errors)
+    return float(np.median(errors)) / np.sqrt(2.0 * np.log(2.0)) if errors.size >= MIN_NOISE_SAMPLES else None
+
+
+def _noise_sample(scene: SfMScene, takes_config: Callable[[str | None], bool], options: IntrinsicsOptions) -> list:
+    """The ``noise_sample_pairs`` largest verified pairs (8 matches or more) whose
+    configuration ``takes_config`` accepts."""
+    usable = [pair for pair in scene.pairs.values() if pair.verified and takes_config(pair.config)
+              and pair.i in scene.normalized and pair.j in scene.normalized and len(pair.matches) >= 8]
+    return sorted(usable, key=lambda p: (-len(p.matches), p.i, p.j))[:options.noise_sample_pairs]
+
+
+def _undistorted_pair_pixels(scene: SfMScene, pair) -> tuple[np.ndarray, np.ndarray]:
+    """A pair's matched keypoints as undistorted pixels of their cameras."""
+    matches = np.asarray(pair.matches, dtype=np.int64)
+    return tuple(np.ascontiguousarray(cameras.undistorted_pixels(
+        scene.intrinsics[scene.views[v].intrinsics_id], scene.normalized[v][matches[:, column]]))
+        for v, column in ((pair.i, 0), (pair.j, 1)))
 
 
 def centred_principal_point(intrinsics: Intrinsics, tolerance_px: float) -> bool:
@@ -254,6 +309,11 @@ def view_graph_focals(scene: SfMScene, calibrate: set[int], options: IntrinsicsO
 _ROTATION_CONFIGS = ("PANORAMIC", "PLANAR_OR_PANORAMIC")
 
 
+def _at_most(rows: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    """``rows``, or a random subset of ``count`` of them in their order."""
+    return rows if len(rows) <= count else rows[np.sort(rng.choice(len(rows), count, replace=False))]
+
+
 def rotating_camera_focals(scene: SfMScene, calibrate: set[int],
                            options: IntrinsicsOptions) -> tuple[dict[int, Intrinsics], dict]:
     """New intrinsics (the focal length changed) of the cameras in ``calibrate`` whose pairs
@@ -276,7 +336,9 @@ def rotating_camera_focals(scene: SfMScene, calibrate: set[int],
         if not keys:
             continue
         # undistorted pixel offsets from the principal point at the given focal length
-        matches = [np.asarray(scene.pairs[key].matches).reshape(-1, 2) for key in keys]
+        rng = np.random.default_rng(options.seed)
+        matches = [_at_most(np.asarray(scene.pairs[key].matches).reshape(-1, 2), options.rotation_fit_max_matches, rng)
+                   for key in keys]
         u_i = [scene.normalized[i][m[:, 0]] * given.focal_px for (i, _), m in zip(keys, matches)]
         u_j = [scene.normalized[j][m[:, 1]] * given.focal_px for (_, j), m in zip(keys, matches)]
         fit = rotating_camera_focal(u_i, u_j, given.focal_px)
@@ -343,7 +405,7 @@ def _adjust(subset: SfMScene, refine: set[int], offset: int, options: Intrinsics
     """pycolmap's bundle adjuster on the posed ``subset``: every pose and point free, and the
     parameters of the cameras in ``refine`` (the principal point only if
     ``principal_point``); two cameras fix the gauge; a Huber loss at ``options.ba_huber_px``.
-    Returns (reconstruction, summary, mean reprojection error before)."""
+    Returns (reconstruction, summary, mean reprojection error before, the adjuster)."""
     import pycolmap
 
     reconstruction = model_reconstruction(subset)
@@ -366,8 +428,29 @@ def _adjust(subset: SfMScene, refine: set[int], offset: int, options: Intrinsics
             config.set_constant_cam_intrinsics(camera_id)
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
     error_before = reconstruction.compute_mean_reprojection_error()
-    summary = pycolmap.create_default_bundle_adjuster(ba, config, reconstruction).solve()
-    return reconstruction, summary, error_before
+    adjuster = pycolmap.create_default_ceres_bundle_adjuster(ba, config, reconstruction)
+    summary = adjuster.solve()
+    return reconstruction, summary, error_before, adjuster
+
+
+def _parameter_std(reconstruction, adjuster, camera_ids, offset: int) -> dict[int, np.ndarray]:
+    """{camera (reconstruction id - ``offset``): standard deviation of each parameter} of the
+    cameras ``camera_ids`` after the adjustment ``adjuster`` made: pycolmap's covariance of the
+    problem ((JᵀJ)⁻¹ at unit noise) times the residuals' per-coordinate sigma (mean error /
+    √(π/2), the Rayleigh mean). Cameras whose covariance is not available are left out."""
+    import pycolmap
+
+    covariance = pycolmap.estimate_ba_covariance(pycolmap.BACovarianceOptions(), reconstruction, adjuster)
+    if covariance is None:
+        return {}
+    sigma = reconstruction.compute_mean_reprojection_error() / np.sqrt(np.pi / 2.0)
+    std = {}
+    for camera_id in camera_ids:
+        params = reconstruction.cameras[camera_id + offset].params
+        block = covariance.get_other_params_cov(params)
+        if block is not None and np.shape(block) == (len(params), len(params)):
+            std[camera_id] = sigma * np.sqrt(np.maximum(np.diag(block), 0.0))
+    return std
 
 
 def _merged(subset: SfMScene, groups: list[list[int]]) -> SfMScene:
@@ -432,13 +515,14 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int], options: IntrinsicsOp
     kept = [c for group in groups if group not in shared for c in group]
     merged = [group for group in shared if len(group) > 1]
     passes, whole = 1, set()
+    std: dict[int, np.ndarray] = {}
     if not merged and not kept:
-        reconstruction, summary, error_before = _adjust(subset, refine, offset, options, True)
+        reconstruction, summary, error_before, adjuster = _adjust(subset, refine, offset, options, True)
     elif not shared:
-        reconstruction, summary, error_before = _adjust(subset, refine, offset, options, False)
+        reconstruction, summary, error_before, adjuster = _adjust(subset, refine, offset, options, False)
     else:
         passes = 2
-        first, summary, error_before = _adjust(_merged(subset, merged), refine, offset, options, True)
+        first, summary, error_before, adjuster = _adjust(_merged(subset, merged), refine, offset, options, True)
         params = {c: np.array(first.cameras[c + offset].params, dtype=np.float64) for c in refine
                   if c + offset in first.cameras}
         # a group whose focal the input does not call a guess (an EXIF focal: the same value,
@@ -449,6 +533,9 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int], options: IntrinsicsOp
         # a camera per image, EXIF-like, moved view 16's by 1.9 %; its OpenMVG project with an
         # intrinsic per view moved view 3's by 3.9 % (0.170 deg; shared, 0.083 deg).
         whole = {c for group in merged if scene.intrinsics[group[0]].prior_focal is not False for c in group}
+        # a group's cameras carry the uncertainty of the group's camera they take
+        first_std = _parameter_std(first, adjuster, [group[0] for group in merged if group[0] in whole], offset)
+        std = {c: first_std[group[0]] for group in merged if group[0] in first_std for c in group}
         for group in groups:
             pp = cameras.parameter_groups(subset.intrinsics[group[0]])["principal_point"]
             for camera_id in group:
@@ -463,9 +550,12 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int], options: IntrinsicsOp
                               else params[group[0]][pp])
                 params[camera_id] = values
         if refine - whole:
-            reconstruction, summary, _ = _adjust(_with_params(subset, params), refine - whole, offset, options, False)
+            reconstruction, summary, _, adjuster = _adjust(_with_params(subset, params), refine - whole, offset,
+                                                           options, False)
         else:
-            passes, reconstruction = 1, first
+            passes, reconstruction, adjuster = 1, first, None
+    if adjuster is not None:
+        std.update(_parameter_std(reconstruction, adjuster, sorted(refine - whole), offset))
     reconstruction.update_point_3d_errors()
     error_after = reconstruction.compute_mean_reprojection_error()
     estimated, rejected = {}, []
@@ -484,6 +574,7 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int], options: IntrinsicsOp
               "mean_reprojection_error_px": [float(error_before), float(error_after)],
               "termination": getattr(summary.termination_type, "name", str(summary.termination_type)),
               "estimate": {str(c): describe(k) for c, k in estimated.items()},
+              "parameter_std": {str(c): std[c].tolist() for c in sorted(estimated) if c in std},
               "time_s": time.perf_counter() - start}
     return estimated, report
 
@@ -513,14 +604,18 @@ def shift_limit_px(intrinsics: Intrinsics, options: IntrinsicsOptions, noise_sig
 
 
 def gate(reference: Intrinsics, estimate: Intrinsics, options: IntrinsicsOptions,
-         always: frozenset[str] = frozenset(), noise_sigma_px: float | None = None) -> tuple[Intrinsics, dict]:
+         always: frozenset[str] = frozenset(), noise_sigma_px: float | None = None,
+         parameter_std: np.ndarray | None = None) -> tuple[Intrinsics, dict]:
     """``reference`` with the parameter groups (focal, principal point, distortion) of
     ``estimate`` whose change alone moves the image by more than :func:`shift_limit_px`
-    (``min_shift`` of its half diagonal at low noise), and the groups in ``always`` whatever
-    their change; both in refinement-model terms. Returns (camera, {group: shift in px})."""
+    (``min_shift`` of its half diagonal at low noise) and, given the estimate's
+    ``parameter_std``, moves some parameter of the group by more than ``min_change_sigmas`` of
+    them; and the groups in ``always`` whatever their change; all in refinement-model terms.
+    Returns (camera, {group: shift in px})."""
     groups = cameras.parameter_groups(reference)
     limit = shift_limit_px(reference, options, noise_sigma_px)
     params = np.array(reference.params, dtype=np.float64)
+    sigmas = change_sigmas(reference, estimate, parameter_std)
     shifts = {}
     for group in GROUPS:
         index = groups[group]
@@ -529,9 +624,24 @@ def gate(reference: Intrinsics, estimate: Intrinsics, options: IntrinsicsOptions
         candidate = np.array(reference.params, dtype=np.float64)
         candidate[index] = np.asarray(estimate.params)[index]
         shifts[group] = shift_px(reference, replace(reference, params=candidate))
-        if shifts[group] > limit or group in always:
+        determined = sigmas is None or sigmas[group] > options.min_change_sigmas
+        if (shifts[group] > limit and determined) or group in always:
             params[index] = np.asarray(estimate.params)[index]
     return replace(reference, params=params), shifts
+
+
+def change_sigmas(reference: Intrinsics, estimate: Intrinsics, parameter_std: np.ndarray | None) -> dict | None:
+    """{group: the largest change of a parameter of the group from ``reference`` to
+    ``estimate`` in the estimate's standard deviations} (a held parameter, std 0, counts as
+    determined: inf if it changed); None without ``parameter_std``."""
+    if parameter_std is None:
+        return None
+    change = np.abs(np.asarray(estimate.params, dtype=np.float64) - np.asarray(reference.params, dtype=np.float64))
+    std = np.asarray(parameter_std, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = np.where(std > 0, change / np.where(std > 0, std, 1.0), np.where(change > 0, np.inf, 0.0))
+    return {group: float(z[index].max()) for group, index in cameras.parameter_groups(reference).items()
+            if group in GROUPS and index.size}
 
 
 def warnings_for(given: dict[int, Intrinsics], final: dict[int, Intrinsics], calibrated: set[int],
@@ -643,7 +753,7 @@ class Calibration:
         self.first_reprojection_px = self.first_reprojection_px or per_camera  # a probe's came first
         noise = None
         if any(v > self.options.suspect_reprojection_px for v in per_camera.values()):
-            noise = self.noise_sigma_px = fundamental_noise_sigma_px(scene, self.options)
+            noise = self.noise_sigma_px = projective_noise_sigma_px(scene, self.options)
         self.suspect_threshold_px = suspect_threshold_px(noise, self.options)
         suspects = suspect_cameras(per_camera, self.suspect_threshold_px)
         # twins are one device as the front end left it: what shows one of them wrong shows
@@ -657,8 +767,9 @@ class Calibration:
                 confirmed, self.suspect_check = self._one_adjustment(posed(), suspects)
                 if not confirmed:
                     logger.info("intrinsics: camera(s) %s reproject with sigma %s px (> %.2f px), but one adjustment "
-                                "moves them by less than %.1f px: kept as given", sorted(suspects), sigmas,
-                                self.suspect_threshold_px, min(self.shift_limit_px(c) for c in suspects))
+                                "moves them by less than %.1f px or within %g standard deviations of its estimate: "
+                                "kept as given", sorted(suspects), sigmas, self.suspect_threshold_px,
+                                min(self.shift_limit_px(c) for c in suspects), self.options.min_change_sigmas)
                     return False
             logger.info("intrinsics: camera(s) %s reproject with sigma %s px (> %.2f px): calibrating them",
                         sorted(suspects), sigmas, self.suspect_threshold_px)
@@ -672,16 +783,20 @@ class Calibration:
         the focal of a camera in ``guesses`` always taken): {camera: intrinsics as the input's
         model}, and the report with the shifts."""
         estimated, report = estimate_intrinsics(posed, camera_ids, self.options, twin_cameras(self.given, camera_ids))
-        gated, shifts = {}, {}
+        gated, shifts, sigmas = {}, {}, {}
         for camera_id, estimate in estimated.items():
             # a focal the input marks as a guess has no value to protect: the view-graph focal
             # is a start, and the estimate is better on average (algorithms.md §8 "Significant
             # changes only"); the other groups change when significant
             always = frozenset({"focal"}) if camera_id in guesses else frozenset()
+            std = report["parameter_std"].get(str(camera_id))
+            std = None if std is None else np.array(std)
             camera, shifts[camera_id] = gate(reference[camera_id], estimate, self.options, always,
-                                             self.noise_sigma_px)
+                                             self.noise_sigma_px, std)
             gated[camera_id] = cameras.from_refinement_model(self.given[camera_id], camera)
+            sigmas[camera_id] = change_sigmas(reference[camera_id], estimate, std)
         report["shifts_px"] = {str(c): v for c, v in shifts.items()}
+        report["change_sigmas"] = {str(c): v for c, v in sigmas.items() if v is not None}
         return gated, report
 
     def _changes(self, before: dict[int, Intrinsics], after: dict[int, Intrinsics]) -> tuple[dict, float]:
@@ -723,12 +838,15 @@ class Calibration:
             self.calibrate[camera_id] = "centred principal point"
             self.reference[camera_id] = cameras.refinement_model(self.given[camera_id])
         self.centred_check = report
-        shifts = report["shifts_px"]
+        shifts, sigmas = report["shifts_px"], report["change_sigmas"]
         logger.info("intrinsics: camera(s) %s have their principal point at the image centre (a default); "
-                    "one adjustment moves them by %s px (limit %s): %s", sorted(checked),
+                    "one adjustment moves them by %s px (limit %s), %s standard deviations of its estimate "
+                    "(limit %g): %s", sorted(checked),
                     ", ".join(f"{max(shifts.get(str(c), {}).values(), default=0.0):.1f}" for c in sorted(checked)),
                     ", ".join(f"{self.shift_limit_px(c):.1f}" for c in sorted(checked)),
-                    f"calibrating {sorted(changed)}" if changed else "kept as given")
+                    ", ".join(f"{max(sigmas[str(c)].values(), default=0.0):.1f}" if str(c) in sigmas else "?"
+                              for c in sorted(checked)),
+                    self.options.min_change_sigmas, f"calibrating {sorted(changed)}" if changed else "kept as given")
         if changed:
             self.scene = with_intrinsics(self.scene, changed)
         return bool(changed)

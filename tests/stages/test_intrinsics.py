@@ -85,6 +85,42 @@ def test_gate_keeps_only_significant_groups():
         [1380.0 * 1.002, 760.0, 511.0, 0.0]
 
 
+def test_a_change_within_its_uncertainty_is_not_significant():
+    """Beyond the shift limit, a group changes only if some parameter moved by more than
+    ``min_change_sigmas`` of its standard deviation in the adjustment: a focal 16 px off (14 px
+    of image shift, limit 4.6 px) is taken at std 2 px, not at std 16 px (flat ground seen
+    from above: the focal trades for the flying height)."""
+    options = IntrinsicsOptions()
+    estimate = Intrinsics(1, "SIMPLE_RADIAL", 1536, 1024, np.array([1364.0, 768.0, 512.0, 0.0]))
+    assert stage.gate(CAMERA, estimate, options)[0].params[0] == 1364.0
+    assert stage.gate(CAMERA, estimate, options, parameter_std=np.array([2.0, 1.0, 1.0, 1e-3]))[0].params[0] == 1364.0
+    assert stage.gate(CAMERA, estimate, options, parameter_std=np.array([16.0, 1.0, 1.0, 1e-3]))[0].params[0] == 1380.0
+    # a guess is taken whatever its uncertainty
+    assert stage.gate(CAMERA, estimate, options, frozenset({"focal"}),
+                      parameter_std=np.array([16.0, 1.0, 1.0, 1e-3]))[0].params[0] == 1364.0
+    assert stage.change_sigmas(CAMERA, estimate, np.array([16.0, 1.0, 0.0, 1e-3])) == {
+        "focal": 1.0, "principal_point": 0.0, "distortion": 0.0}
+    with pytest.raises(InputError):
+        IntrinsicsOptions(min_change_sigmas=-1.0).validate()
+
+
+def test_the_noise_of_a_flat_field_comes_from_its_homographies():
+    """A survey of flat ground: every pair is PLANAR_OR_PANORAMIC (or WATERMARK), none holds a
+    fundamental matrix, so the noise sigma the suspect threshold needs was not measured and the
+    threshold fell to its 0.3 px floor: a right camera reprojecting at 0.71 px (0.5 px of noise)
+    was calibrated, 12 s for nothing (3 x 8 views). The homographies give it."""
+    from rotonly_cli.simulation.user_cameras import simulate_survey, user_scene, verified_pairs
+
+    problem = simulate_survey(0, num_points=5000)
+    pairs = verified_pairs(problem)
+    assert {pair.config for pair in pairs.values()} <= {"PLANAR_OR_PANORAMIC", "WATERMARK"}
+    scene = user_scene(problem, problem.true, pairs)
+    options = IntrinsicsOptions()
+    assert stage.homography_noise_sigma_px(scene, options) == pytest.approx(0.5, rel=0.05)
+    assert stage.projective_noise_sigma_px(scene, options) == stage.homography_noise_sigma_px(scene, options)
+    assert stage.suspect_threshold_px(stage.projective_noise_sigma_px(scene, options), options) > 0.7
+
+
 def test_significance_grows_with_the_keypoint_noise():
     """An estimate from noisier matches scatters more: above ``min_shift_noise_px`` the limit
     grows in proportion (0.75 px: 3 x 4.6 px here), below it and unmeasured it is as given."""
