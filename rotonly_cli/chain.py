@@ -258,6 +258,9 @@ def reject_stage(run: Run) -> None:
         report = reject_round(run.graph, run.scene.normalized, run.rotations, judged, focal_px,
                               run.options.reject, run.options.load.min_inliers, run.options.average.max_residual_deg)
         rounds.append(report)
+        if report["num_matches"] == 0:  # a capture of pure rotations: no baseline to judge a match by
+            logger.info("reject: no match on a REGULAR edge between views with a centre: nothing to judge")
+            break
         logger.info("reject: %d of %d matches inconsistent with the global poses (threshold %.2f px), edges "
                     "filtered %s", report["num_dropped"], report["num_matches"], report["threshold_px"] or 0.0,
                     report["edges_filtered"] or "none")

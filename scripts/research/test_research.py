@@ -475,3 +475,14 @@ def test_probe_panorama_on_a_small_panorama(capsys):
         assert row[6].startswith("PURE_ROTATION")
         assert abs(float(row[7].split()[0]) / 1380.0 - 1) < 2e-3
     assert "z = 3: 0" in out
+
+
+def test_probe_survey_on_a_small_flat_field(capsys):
+    """Ten nadir views over flat ground, the camera known: every view, the camera kept as given
+    (the focal the flat field cannot fix is not taken), a rotation error of a known camera."""
+    probe_survey = _load_script("probe_survey")
+    assert probe_survey.main(["--seeds", "1", "--strips", "2", "--per-strip", "5", "--relief", "0",
+                              "--points", "8000", "--focal-factors"]) == 0
+    (row,) = [line.split(" | ") for line in capsys.readouterr().out.splitlines() if line.startswith("| 0 ")]
+    assert row[3:5] == ["rotonly", "10/10"] and float(row[5]) < 0.03 and float(row[6]) < 0.05
+    assert row[7].startswith("1380.0") and row[8] == "kept"
