@@ -433,13 +433,17 @@ def _adjust(subset: SfMScene, refine: set[int], offset: int, options: Intrinsics
     return reconstruction, summary, error_before, adjuster
 
 
-def _parameter_std(reconstruction, adjuster, camera_ids, offset: int) -> dict[int, np.ndarray]:
+def _parameter_std(reconstruction, adjuster, camera_ids, offset: int,
+                   options: IntrinsicsOptions) -> dict[int, np.ndarray]:
     """{camera (reconstruction id - ``offset``): standard deviation of each parameter} of the
     cameras ``camera_ids`` after the adjustment ``adjuster`` made: pycolmap's covariance of the
     problem ((JᵀJ)⁻¹ at unit noise) times the residuals' per-coordinate sigma (mean error /
-    √(π/2), the Rayleigh mean). Cameras whose covariance is not available are left out."""
+    √(π/2), the Rayleigh mean). Cameras whose covariance is not available are left out, and
+    all of them beyond ``options.covariance_max_images`` images (its cost grows as their cube)."""
     import pycolmap
 
+    if len(reconstruction.reg_image_ids()) > options.covariance_max_images:
+        return {}
     covariance = pycolmap.estimate_ba_covariance(pycolmap.BACovarianceOptions(), reconstruction, adjuster)
     if covariance is None:
         return {}
@@ -534,7 +538,8 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int], options: IntrinsicsOp
         # intrinsic per view moved view 3's by 3.9 % (0.170 deg; shared, 0.083 deg).
         whole = {c for group in merged if scene.intrinsics[group[0]].prior_focal is not False for c in group}
         # a group's cameras carry the uncertainty of the group's camera they take
-        first_std = _parameter_std(first, adjuster, [group[0] for group in merged if group[0] in whole], offset)
+        first_std = _parameter_std(first, adjuster, [group[0] for group in merged if group[0] in whole], offset,
+                                   options)
         std = {c: first_std[group[0]] for group in merged if group[0] in first_std for c in group}
         for group in groups:
             pp = cameras.parameter_groups(subset.intrinsics[group[0]])["principal_point"]
@@ -555,7 +560,7 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int], options: IntrinsicsOp
         else:
             passes, reconstruction, adjuster = 1, first, None
     if adjuster is not None:
-        std.update(_parameter_std(reconstruction, adjuster, sorted(refine - whole), offset))
+        std.update(_parameter_std(reconstruction, adjuster, sorted(refine - whole), offset, options))
     reconstruction.update_point_3d_errors()
     error_after = reconstruction.compute_mean_reprojection_error()
     estimated, rejected = {}, []

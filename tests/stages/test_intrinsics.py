@@ -569,3 +569,28 @@ def test_a_right_camera_is_kept_when_the_matches_are_noisy(tmp_path):
     log = (tmp_path / "out" / "run.log").read_text()
     assert "quick estimation pass checks the cameras" in log and "calibrating" not in log
     assert _rotation_error(tmp_path / "out", sequential / "ground_truth") < 0.4
+
+
+def test_parameter_std_from_the_adjustment_covariance_and_its_image_cap():
+    """The standard deviations come from pycolmap's covariance of the adjustment (one per camera
+    parameter, positive); beyond ``covariance_max_images`` (its cost grows as the cube of the
+    images: 85 s at 1000) none is computed and the image-shift limit alone decides."""
+    import pycolmap
+
+    synthetic = pycolmap.SyntheticDatasetOptions()
+    synthetic.num_rigs, synthetic.num_cameras_per_rig, synthetic.num_frames_per_rig = 1, 1, 6
+    synthetic.num_points3D = 300
+    reconstruction = pycolmap.synthesize_dataset(synthetic)
+    adjustment = pycolmap.BundleAdjustmentOptions()
+    adjustment.refine_focal_length = adjustment.refine_principal_point = adjustment.refine_extra_params = True
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in reconstruction.reg_image_ids():
+        config.add_image(image_id)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    adjuster = pycolmap.create_default_ceres_bundle_adjuster(adjustment, config, reconstruction)
+    adjuster.solve()
+    [camera_id] = list(reconstruction.cameras)
+    std = stage._parameter_std(reconstruction, adjuster, [camera_id], 0, IntrinsicsOptions())
+    assert std[camera_id].shape == (len(reconstruction.cameras[camera_id].params),)
+    assert np.all(std[camera_id] > 0) and np.all(np.isfinite(std[camera_id]))
+    assert stage._parameter_std(reconstruction, adjuster, [camera_id], 0, IntrinsicsOptions(covariance_max_images=5)) == {}
