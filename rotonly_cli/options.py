@@ -461,6 +461,11 @@ class IntrinsicsOptions:
     #: F re-fit on each pair's verified matches before the view-graph calibration (pixels)
     fundamental_max_error_px: float = 2.0
     fundamental_min_trials: int = 20
+    #: the view-graph calibration runs on at least this many fundamental matrices: a flat
+    #: field seen from tilted views left one pair with F (the other 205 PLANAR_OR_PANORAMIC),
+    #: and from it the focal went 1656 -> 9885 px (true 1380; the rounds then settled at
+    #: 8002 px, 34 deg off). Below, the rotating-camera fit and the rounds calibrate
+    min_fundamental_pairs: int = 5
     #: a rotating camera's focal length (a panorama: pairs a homography explains, no F) is kept
     #: when its pairs' median pure-rotation residual at it is within this (pixels): a tripod
     #: panorama fits at its noise (0.45 px at 0.3 px), a plane seen from two places at none
@@ -533,6 +538,8 @@ class IntrinsicsOptions:
             raise InputError("ba_huber_px must be > 0", field="intrinsics")
         if self.centred_principal_point_px is not None and not self.centred_principal_point_px >= 0:
             raise InputError("centred_principal_point_px must be >= 0", field="intrinsics")
+        if self.min_fundamental_pairs < 1:
+            raise InputError("min_fundamental_pairs must be >= 1", field="intrinsics")
         if not self.rotation_fit_max_px > 0:
             raise InputError("rotation_fit_max_px must be > 0", field="intrinsics")
         if not self.rotation_fit_max_matches >= 8:

@@ -142,3 +142,29 @@ def test_a_drone_survey_over_flat_ground_keeps_its_known_camera():
     check = report["centred_principal_point_check"]
     assert check["calibrated"] == [] and check["change_sigmas"]["1"]["focal"] < 3.0
     assert not result.summary.get("warnings")
+
+
+def test_a_guessed_camera_over_flat_ground_is_not_calibrated_from_one_fundamental_matrix():
+    """Flat ground seen from views tilted up to 25° with COLMAP's guess (f x 1.2, no EXIF): of
+    87 pairs the verifier left one UNCALIBRATED, and the view-graph calibration on its one
+    fundamental matrix put the focal at 9976 px (true 1380); the rounds could not come back
+    and the run ended 42.5° off. With at least ``min_fundamental_pairs`` (5) required, the
+    rounds calibrate it from the reconstruction."""
+    from rotonly_cli.geometry import alignment
+    from rotonly_cli.simulation import user_cameras
+
+    problem = user_cameras.simulate_survey(3, strips=3, per_strip=5, num_points=15000, max_tilt_deg=25.0)
+    guess = replace(problem.true, params=np.array([problem.true.params[0] * 1.2, *problem.true.params[1:]]),
+                    prior_focal=False)
+    pairs = user_cameras.verified_pairs(problem)
+    assert sum(pair.config == "UNCALIBRATED" for pair in pairs.values()) == 1
+    scene = user_cameras.user_scene(replace(problem, guessed=guess), guess, pairs)
+    result = rotonly_cli.run(scene, progress=False)
+    ids = sorted(result.rotations)
+    assert ids == sorted(scene.views)
+    errors = alignment.rotation_errors_after_alignment(np.array([result.rotations[v] for v in ids]),
+                                                       np.array([problem.gt_poses[v].R_cam_from_world for v in ids]))[0]
+    assert errors.mean() < 0.05  # measured 0.0259
+    report = result.reports["intrinsics"]
+    assert report["cameras"]["1"]["end"]["focal_px"] == pytest.approx(1380.0, rel=0.005)  # measured 1379.3
+    assert report["view_graph_calibration"][0]["num_pairs"] == 1

@@ -274,8 +274,11 @@ def view_graph_focals(scene: SfMScene, calibrate: set[int], options: IntrinsicsO
     start = time.perf_counter()
     fundamentals = refit_fundamentals(scene, options, jobs)
     report = {"cameras": sorted(calibrate), "num_pairs": len(fundamentals), "refit_time_s": time.perf_counter() - start}
-    if not fundamentals:
+    if len(fundamentals) < options.min_fundamental_pairs:
         report.update(success=False, time_s=time.perf_counter() - start)
+        if fundamentals:
+            logger.info("intrinsics: view-graph calibration skipped: %d pair(s) with a fundamental matrix (< %d)",
+                        len(fundamentals), options.min_fundamental_pairs)
         return {}, report
     with tempfile.TemporaryDirectory(prefix="rotonly-vgc-") as scratch:
         path = Path(scratch) / "database.db"

@@ -593,4 +593,12 @@ def test_parameter_std_from_the_adjustment_covariance_and_its_image_cap():
     std = stage._parameter_std(reconstruction, adjuster, [camera_id], 0, IntrinsicsOptions())
     assert std[camera_id].shape == (len(reconstruction.cameras[camera_id].params),)
     assert np.all(std[camera_id] > 0) and np.all(np.isfinite(std[camera_id]))
-    assert stage._parameter_std(reconstruction, adjuster, [camera_id], 0, IntrinsicsOptions(covariance_max_images=5)) == {}
+    capped = IntrinsicsOptions(covariance_max_images=5)
+    assert stage._parameter_std(reconstruction, adjuster, [camera_id], 0, capped) == {}
+
+
+def test_bad_intrinsics_options_of_the_flat_ground_checks():
+    for bad in (dict(min_fundamental_pairs=0), dict(covariance_max_images=-1), dict(rotation_fit_max_matches=7),
+                dict(min_change_sigmas=-0.5)):
+        with pytest.raises(InputError):
+            IntrinsicsOptions(**bad).validate()
