@@ -28,22 +28,15 @@ from pathlib import Path
 import numpy as np
 
 
-def _errors(rotations: dict, centers: dict, problem) -> tuple[float, float]:
-    """(mean rotation error after the best rotation, mean position error after the best
-    similarity) of the registered views."""
-    from rotonly_cli.geometry import alignment
+def _errors(estimate, problem) -> tuple[float, float]:
+    """(mean rotation error, mean position error) of a posed SfMScene against the survey's
+    ground truth, by the project's one evaluator (evaluation.quality.evaluate)."""
+    from rotonly_cli.evaluation.quality import evaluate
+    from rotonly_cli.simulation import user_cameras
 
-    ids = sorted(rotations)
-    R_gt = np.array([problem.gt_poses[v].R_cam_from_world for v in ids])
-    rotation = alignment.rotation_errors_after_alignment(np.array([rotations[v] for v in ids]), R_gt)[0]
-    posed = [v for v in ids if v in centers and np.all(np.isfinite(centers[v]))]
-    position = float("nan")
-    if len(posed) >= 3:
-        estimate = np.array([centers[v] for v in posed])
-        truth = np.array([problem.gt_poses[v].center for v in posed])
-        s, R, t = alignment.umeyama(estimate, truth)
-        position = float(np.linalg.norm(alignment.apply_similarity(estimate, s, R, t) - truth, axis=1).mean())
-    return float(rotation.mean()), position
+    report = evaluate(user_cameras.gt_scene(problem), estimate)
+    position = float("nan") if report.position_error is None else report.position_error.mean
+    return report.rotation_error_deg.mean, position
 
 
 def run_rotonly(problem, camera) -> dict:
@@ -55,7 +48,7 @@ def run_rotonly(problem, camera) -> dict:
     start = time.perf_counter()
     result = rotonly_cli.run(scene, progress=False)
     seconds = time.perf_counter() - start
-    rotation, position = _errors(result.rotations, result.centers, problem)
+    rotation, position = _errors(result.scene, problem)
     report = result.reports["intrinsics"]["cameras"][str(camera.id)]
     return {"registered": len(result.rotations), "rotation_deg": rotation, "position": position,
             "focal_px": report["end"]["focal_px"], "calibrated": report.get("calibrated") or "kept",
@@ -67,6 +60,7 @@ def run_mapper(problem, true_intrinsics: bool) -> dict:
     the camera known and held fixed; else the guess, refined)."""
     import pycolmap
 
+    from rotonly_cli.io.colmap.model import scene_from_reconstruction
     from rotonly_cli.simulation import user_cameras
 
     with tempfile.TemporaryDirectory() as folder:
@@ -88,15 +82,9 @@ def run_mapper(problem, true_intrinsics: bool) -> dict:
         return {"registered": 0, "rotation_deg": float("nan"), "position": float("nan"), "focal_px": float("nan"),
                 "calibrated": "-", "seconds": seconds}
     reconstruction = max(models.values(), key=lambda r: r.num_reg_images())
-    rotations, centers = {}, {}
-    for image_id in reconstruction.reg_image_ids():
-        image = reconstruction.images[image_id]
-        pose = image.cam_from_world()
-        rotations[image_id] = np.array(pose.rotation.matrix())
-        centers[image_id] = np.array(image.projection_center())
-    rotation, position = _errors(rotations, centers, problem)
+    rotation, position = _errors(scene_from_reconstruction(reconstruction), problem)
     [camera] = reconstruction.cameras.values()
-    return {"registered": len(rotations), "rotation_deg": rotation, "position": position,
+    return {"registered": reconstruction.num_reg_images(), "rotation_deg": rotation, "position": position,
             "focal_px": float(camera.params[0]), "calibrated": "BA", "seconds": seconds}
 
 
