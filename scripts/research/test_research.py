@@ -444,8 +444,8 @@ def test_lens_database_moves_the_keypoints_as_the_lens_and_keeps_their_rays(tmp_
 
 def test_probe_keypoint_noise_on_fixture(tmp_path, capsys):
     """The Herz-Jesu fixture's database with 0.5 px of noise added to every keypoint: a row
-    with every view, the rotation error a little above the clean run's 0.0193 deg and the
-    bundle adjustment's reference beside it; the fixture is untouched."""
+    with every view, the rotation error a little above the clean run's 0.0193 deg, the
+    bundle adjustment's reference and the global mapper's beside it; the fixture is untouched."""
     from rotonly_cli.io.colmap import read_database
 
     scene = read_database(FIXTURES / "herzjesu_p8" / "database.db")
@@ -455,10 +455,13 @@ def test_probe_keypoint_noise_on_fixture(tmp_path, capsys):
     (tmp_path / "root").mkdir()
     (tmp_path / "root" / "Herz-Jesus-P8").symlink_to(FIXTURES / "herzjesu_p8")
     before = _digest(FIXTURES / "herzjesu_p8" / "database.db")
-    assert probe_noise.main(["--root", str(tmp_path / "root"), "--scenes", "Herz-Jesus-P8", "--noise-px", "0.5"]) == 0
+    assert probe_noise.main(["--root", str(tmp_path / "root"), "--scenes", "Herz-Jesus-P8", "--noise-px", "0.5",
+                             "--mapper"]) == 0
     assert _digest(FIXTURES / "herzjesu_p8" / "database.db") == before
     (row,) = [line.split(" | ") for line in capsys.readouterr().out.splitlines() if line.startswith("| Herz")]
     assert row[2] == "8 / 8" and 0.0193 < float(row[3]) < 0.04 and 0.0 < float(row[5]) < 0.04
+    mapper_error, mapper_registered = row[6].split(" (")
+    assert 0.0 < float(mapper_error) < 0.04 and mapper_registered == "8 / 8)"
 
 
 def test_probe_panorama_on_a_small_panorama(capsys):
