@@ -133,7 +133,11 @@ def gather_observations(tracks: Tracks, per_view_points: Sequence[np.ndarray]) -
     np.cumsum(sizes, out=start[1:])
     if np.any(tracks.view >= len(sizes)) or np.any(tracks.feature >= sizes[tracks.view]):
         raise InputError("track observation refers to a keypoint that does not exist", field="per_view_points")
-    stacked = np.concatenate([np.asarray(p, dtype=float).reshape(len(p), -1) for p in per_view_points])
+    arrays = [np.asarray(p, dtype=float) for p in per_view_points]
+    # a view without points (no calibration: no normalized keypoints) may come as a flat
+    # empty array; it takes the others' width
+    width = next((a.reshape(len(a), -1).shape[1] for a in arrays if a.size), 0)
+    stacked = np.concatenate([a.reshape(len(a), width) for a in arrays])
     return stacked[start[tracks.view] + tracks.feature]
 
 

@@ -90,6 +90,10 @@ def test_empty_and_gather():
     points = [np.array([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]]), np.array([[5.0, 5.0], [6.0, 6.0]])]
     # track 0 = node (0, 0) + (1, 1); track 1 = (0, 2) + (1, 0)
     assert gather_observations(tracks, points)[:, 0].tolist() == [0.0, 6.0, 2.0, 5.0]
+    # a view without points (no calibration) in between, as a flat empty array
+    tracks = build_tracks([(0, 2)], [np.array([[2, 0], [0, 1]])])
+    gathered = gather_observations(tracks, [points[0], np.zeros(0), points[1]])
+    assert gathered.shape == (4, 2) and gathered[:, 0].tolist() == [0.0, 6.0, 2.0, 5.0]
 
 
 def test_pairs_within_tracks():
