@@ -298,8 +298,10 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
     bridges = unchecked_edges(run.graph, set(scene.poses))
     summary["edges_on_no_cycle"] = [list(pair) for pair in bridges]
     summary["unregistered_views"] = unregistered = [v for v in run.graph.view_ids() if v not in scene.poses]
+    without_camera = {v for v in unregistered if run.scene.views[v].intrinsics_id not in run.scene.intrinsics}
     found = [unprojectable_warning(run.reports.get("load")),
-             unregistered_warning(len(run.graph.view_ids()), unregistered, run.reports.get("translate")),
+             unregistered_warning(len(run.graph.view_ids()), unregistered, run.reports.get("translate"),
+                                  without_camera),
              baseline_warning(run.reports.get("translate")), pure_rotation_warning(run.reports.get("translate")),
              unchecked_edges_warning(bridges),
              undone_round_warning(run.reports.get("reject"))]

@@ -12,6 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from rotonly_cli.errors import InputError
 from rotonly_cli.io.colmap.cameras import normalize_keypoints, pycolmap_camera, to_colmap_intrinsics
 from rotonly_cli.io.openmvg.cameras import distort_project, undistort_normalize
 from rotonly_cli.scene.types import Intrinsics, SfMScene
@@ -21,6 +22,23 @@ from rotonly_cli.scene.types import Intrinsics, SfMScene
 _SAME_PARAMETERS = {"pinhole": "SIMPLE_PINHOLE", "pinhole_radial_k1": "SIMPLE_RADIAL"}
 #: models without a radial term -> the model that adds one (k1 = 0 reproduces the original)
 _WITH_RADIAL = {"SIMPLE_PINHOLE": "SIMPLE_RADIAL", "pinhole": "pinhole_radial_k1"}
+
+
+#: COLMAP's focal for an image without EXIF focal: this x the larger image side
+#: (ImageReaderOptions.default_focal_length_factor; formats.md §4.4)
+GUESS_FOCAL_FACTOR = 1.2
+
+
+def guessed_intrinsics(camera_id: int, width: int, height: int, openmvg: bool) -> Intrinsics:
+    """The camera COLMAP's front end gives an image without EXIF focal: SIMPLE_RADIAL with
+    f = GUESS_FOCAL_FACTOR x the larger side, the principal point at the centre and k = 0,
+    marked as a guess (``prior_focal`` False); ``openmvg``: as OpenMVG's
+    ``pinhole_radial_k1``, the same parameters in the same order."""
+    if width <= 0 or height <= 0:
+        raise InputError("a camera to guess needs the image size", field=f"camera {camera_id}")
+    return Intrinsics(camera_id, "pinhole_radial_k1" if openmvg else "SIMPLE_RADIAL", int(width), int(height),
+                      np.array([GUESS_FOCAL_FACTOR * max(width, height), width / 2, height / 2, 0.0]),
+                      prior_focal=False)
 
 
 def is_openmvg_model(intrinsics: Intrinsics) -> bool:

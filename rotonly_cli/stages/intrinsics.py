@@ -31,6 +31,7 @@ the other stages (``--intrinsics auto|refine``; docs/algorithms.md §8):
 
 from __future__ import annotations
 
+import copy
 import logging
 import tempfile
 import time
@@ -70,6 +71,43 @@ def describe(intrinsics: Intrinsics) -> dict:
 
 
 # ============================================================================ 1. which cameras
+
+def guess_missing_cameras(scene: SfMScene, mode: Mode, openmvg: bool) -> tuple[SfMScene, list[int]]:
+    """``scene`` (not changed) with a camera for the views that have keypoints but no camera in
+    the input, and those view ids. OpenMVG's image listing leaves a view's intrinsic undefined
+    when the image has no EXIF focal, or one from a camera its sensor database does not know,
+    and neither ``-f`` nor ``-k`` was given; OpenMVG's SfM cannot use such a view. Here the
+    views of one image size share a camera with COLMAP's guess (io.cameras.guessed_intrinsics:
+    f = 1.2 x the larger side, marked as a guess), which ``auto`` and ``refine`` calibrate: what
+    the listing's ``-f`` would have made of them (it groups views of one size and focal into
+    one intrinsic). One camera per view, as COLMAP's front end makes them, measured worse on
+    Strecha's OpenMVG projects with every intrinsic removed (castle-P19 0.30 against 0.10 deg;
+    docs/tuning.md "Intrinsics"). ``fixed`` calibrates nothing: there the views stay without a
+    camera and out of the outputs (the run warns)."""
+    missing = [v for v, view in sorted(scene.views.items())
+               if view.intrinsics_id not in scene.intrinsics and v in scene.keypoints]
+    if mode == Mode.FIXED or not missing:
+        return scene, []
+    out = copy.copy(scene)
+    out.views, out.intrinsics, out.normalized = dict(scene.views), dict(scene.intrinsics), dict(scene.normalized)
+    camera_of_size: dict[tuple[int, int], int] = {}
+    for view_id in missing:
+        view = scene.views[view_id]
+        if not view.width or not view.height:
+            raise InputError("a view without intrinsic needs its image size (width, height) for a guessed camera",
+                             field=f"views[{view_id}]")
+        size = (int(view.width), int(view.height))
+        if size not in camera_of_size:
+            camera_of_size[size] = camera_id = max(out.intrinsics, default=-1) + 1
+            out.intrinsics[camera_id] = cameras.guessed_intrinsics(camera_id, *size, openmvg)
+        camera_id = camera_of_size[size]
+        out.views[view_id] = replace(view, intrinsics_id=camera_id)
+        out.normalized[view_id] = cameras.normalize(out.intrinsics[camera_id], scene.keypoints[view_id])
+    logger.info("intrinsics: %d view(s) without a camera in the input (no EXIF focal): %d camera(s), one per image "
+                "size, with COLMAP's guess f = %.1f x the larger side, to calibrate", len(missing), len(camera_of_size),
+                cameras.GUESS_FOCAL_FACTOR)
+    return out, missing
+
 
 def cameras_to_calibrate(scene: SfMScene, mode: Mode) -> set[int]:
     """Cameras whose intrinsics are calibrated from the start: every camera (refine), the

@@ -271,18 +271,26 @@ def ligt_centres(centers: np.ndarray, report: dict | None, index: dict[int, int]
     return own
 
 
-def unregistered_warning(num_views: int, unregistered: list[int], report: dict | None) -> str | None:
+def unregistered_warning(num_views: int, unregistered: list[int], report: dict | None,
+                         without_camera: frozenset[int] | set[int] = frozenset()) -> str | None:
     """The run summary's warning when views are left out of the outputs (``unregistered``, by
-    view id; ``report``: the translate report): those with rotations but no centre (outside the
-    rigid set: no track through three or more views ties them to the rest, as on a
-    sequentially matched capture with little overlap, and too few points to resect them from)
-    and those the view graph's checks cut off. None when every view is in."""
+    view id; ``report``: the translate report): those the input gives no camera
+    (``without_camera``: an OpenMVG view whose intrinsic is undefined, under ``--intrinsics
+    fixed``), those with rotations but no centre (outside the rigid set: no track through
+    three or more views ties them to the rest, as on a sequentially matched capture with
+    little overlap, and too few points to resect them from) and those the view graph's checks
+    cut off. None when every view is in."""
     if not unregistered:
         return None
     without = views_without_centre(report)
-    apart = [str(v) for v in unregistered if v not in without]
-    no_position = [str(v) for v in unregistered if v in without]
+    uncalibrated = [str(v) for v in unregistered if v in without_camera]
+    apart = [str(v) for v in unregistered if v not in without and v not in without_camera]
+    no_position = [str(v) for v in unregistered if v in without and v not in without_camera]
     parts = []
+    if uncalibrated:
+        parts.append(f"view(s) {listed(uncalibrated)} have no camera in the input (an undefined intrinsic: no EXIF "
+                     f"focal when the images were listed), which --intrinsics fixed cannot use (auto guesses and "
+                     f"calibrates one)")
     if apart:
         parts.append(f"view(s) {listed(apart)} have no pair left that ties them to the largest part of the view graph "
                      f"(reports/view_graph.json: each dropped edge's reason)")
@@ -291,8 +299,8 @@ def unregistered_warning(num_views: int, unregistered: list[int], report: dict |
                      f"rounds kept, none through three or more views ties them to the rest, and too few of their "
                      f"points agree with a centre resected from the others (reports/translate.json: "
                      f"views_without_centre)")
-    return (f"{len(unregistered)} of {num_views} views are not in the outputs: {'; '.join(parts)}; images "
-            f"overlapping them and the rest would tie them in")
+    tie = "; images overlapping them and the rest would tie them in" if apart or no_position else ""
+    return f"{len(unregistered)} of {num_views} views are not in the outputs: {'; '.join(parts)}{tie}"
 
 
 def pure_rotation_warning(report: dict | None) -> str | None:

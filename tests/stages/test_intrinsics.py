@@ -602,3 +602,89 @@ def test_bad_intrinsics_options_of_the_flat_ground_checks():
                 dict(min_change_sigmas=-0.5)):
         with pytest.raises(InputError):
             IntrinsicsOptions(**bad).validate()
+
+
+# ============================================================================ views without a camera
+
+HERZ = DATA_FIXTURES / "herzjesu_p8"
+HERZ_FOCAL = 0.5 * (1379.74 + 1382.08)  # the GT camera's fx, fy
+
+
+def test_views_without_a_camera_share_a_guess_per_image_size():
+    """OpenMVG's listing leaves the intrinsic of an image without EXIF focal undefined: the
+    views of one size share one camera with COLMAP's guess, marked as one, normalized with it;
+    views with a camera keep theirs; ``fixed`` guesses none; a view without its size cannot
+    be guessed."""
+    from rotonly_cli.io.openmvg import UNDEFINED_INDEX
+
+    given = replace(CAMERA, id=3, prior_focal=True)
+    scene = SfMScene(intrinsics={3: given})
+    sizes = {0: (1536, 1024), 1: (1536, 1024), 2: (800, 600), 3: (1536, 1024)}
+    for view_id, (width, height) in sizes.items():
+        scene.views[view_id] = View(view_id, f"{view_id}.jpg", 3 if view_id == 3 else UNDEFINED_INDEX,
+                                    width=width, height=height)
+        scene.keypoints[view_id] = np.array([[width / 2, height / 2], [width / 2 + 100.0, height / 2]])
+    scene.normalized[3] = np.zeros((2, 2))
+    out, guessed = stage.guess_missing_cameras(scene, Mode.AUTO, openmvg=True)
+    assert guessed == [0, 1, 2] and scene.views[0].intrinsics_id == UNDEFINED_INDEX  # the input is untouched
+    assert out.views[0].intrinsics_id == out.views[1].intrinsics_id == 4 and out.views[2].intrinsics_id == 5
+    assert out.views[3].intrinsics_id == 3 and out.intrinsics[3] is given
+    wide, small = out.intrinsics[4], out.intrinsics[5]
+    assert wide.model == "pinhole_radial_k1" and wide.prior_focal is False
+    np.testing.assert_allclose(wide.params, [1.2 * 1536, 768.0, 512.0, 0.0])
+    np.testing.assert_allclose(small.params, [1.2 * 800, 400.0, 300.0, 0.0])
+    np.testing.assert_allclose(out.normalized[2], [[0.0, 0.0], [100.0 / 960.0, 0.0]], atol=1e-12)
+    assert stage.cameras_to_calibrate(out, Mode.AUTO) == {4, 5}
+    assert stage.guess_missing_cameras(scene, Mode.FIXED, openmvg=True) == (scene, [])
+    colmap = stage.guess_missing_cameras(scene, Mode.REFINE, openmvg=False)[0]
+    assert colmap.intrinsics[4].model == "SIMPLE_RADIAL"
+    scene.views[1] = replace(scene.views[1], width=None)
+    with pytest.raises(InputError, match="image size"):
+        stage.guess_missing_cameras(scene, Mode.AUTO, openmvg=True)
+
+
+def _without_intrinsics(tmp_path, views=None):
+    """The Herz-Jesu fixture's OpenMVG project with the intrinsic of ``views`` (list
+    positions; None: all, and no intrinsic left) undefined, as the image listing writes
+    images without EXIF focal."""
+    sfm_data = json.loads((HERZ / "openmvg" / "sfm_data.json").read_text())
+    for k, view in enumerate(sfm_data["views"]):
+        if views is None or k in views:
+            view["value"]["ptr_wrapper"]["data"]["id_intrinsic"] = 4294967295
+    if views is None:
+        sfm_data["intrinsics"] = []
+    (tmp_path / "sfm_data.json").write_text(json.dumps(sfm_data))
+    return tmp_path / "sfm_data.json"
+
+
+def test_an_openmvg_project_without_exif_is_calibrated(tmp_path):
+    """Every view's intrinsic undefined (OpenMVG's own global SfM stops there: "Rotation
+    Averaging failure"): one guessed camera, calibrated to within 0.3 % of the GT focal, every
+    view registered at 0.0275 deg (OpenMVG's project with its focal given: 0.0404 deg), and an
+    sfm_data.json that holds the calibrated camera."""
+    input_path = _without_intrinsics(tmp_path)
+    summary = run_pipeline(input_path, tmp_path / "out", replace(_options(), matches_dir=str(HERZ / "openmvg")))
+    assert summary["num_registered"] == 8
+    (camera,) = read_scene(tmp_path / "out" / "sfm_data.json").intrinsics.values()
+    assert camera.model == "pinhole_radial_k1" and abs(camera.focal_px / HERZ_FOCAL - 1) < 3e-3
+    assert _rotation_error(tmp_path / "out", HERZ / "gt_dense_cameras") < 0.035
+    load = json.loads((tmp_path / "out" / "reports" / "load.json").read_text())
+    assert load["views_given_a_guessed_camera"] == list(range(8))
+
+
+def test_fixed_cannot_use_views_without_a_camera(tmp_path):
+    """--intrinsics fixed guesses no camera: with none left a one-line input error, nothing
+    written; with one view's undefined the other seven are reconstructed and the warning names
+    the view and why (it crashed in the tracks before); auto registers all eight."""
+    options = replace(_options("fixed"), matches_dir=str(HERZ / "openmvg"))
+    (tmp_path / "all").mkdir()
+    with pytest.raises(InputError, match="8 of 8 views have no camera"):
+        run_pipeline(_without_intrinsics(tmp_path / "all"), tmp_path / "all" / "out", options)
+    assert not (tmp_path / "all" / "out").exists()
+    (tmp_path / "one").mkdir()
+    input_path = _without_intrinsics(tmp_path / "one", views=[5])
+    summary = run_pipeline(input_path, tmp_path / "one" / "fixed", options)
+    assert summary["num_registered"] == 7 and summary["unregistered_views"] == [5]
+    assert any("view(s) 5 have no camera in the input" in warning for warning in summary["warnings"])
+    summary = run_pipeline(input_path, tmp_path / "one" / "auto", replace(options, intrinsics=IntrinsicsOptions()))
+    assert summary["num_registered"] == 8

@@ -248,16 +248,6 @@ def to_colmap38_layout(path: PathLike) -> None:
         rebuilt.unlink(missing_ok=True)
 
 
-def _default_camera(pycolmap, view: View, camera_id: int):
-    """A camera for a view whose intrinsic is unknown: COLMAP's no-EXIF default (§4.4)."""
-    width, height = int(view.width or 0), int(view.height or 0)
-    if width <= 0 or height <= 0:
-        raise InputError("view without intrinsic nor image size", field=f"views[{view.id}]")
-    camera = pycolmap.Camera.create_from_model_name(camera_id, "SIMPLE_RADIAL",
-                                                    1.2 * max(width, height), width, height)
-    return camera
-
-
 def _fill_database(pycolmap, database, scene: SfMScene, view_offset: int,
                    camera_offset: int) -> None:
     camera_ids: dict[int, int] = {}
@@ -267,21 +257,32 @@ def _fill_database(pycolmap, database, scene: SfMScene, view_offset: int,
         # calibrated unless the scene says the focal is a guess: COLMAP then keeps E-based geometry
         camera.has_prior_focal_length = intrinsic.prior_focal is not False
         camera_ids[intrinsic_id] = database.write_camera(camera, use_camera_id=True)
-    next_camera_id = max(camera_ids.values(), default=0) + 1
+    # a view without intrinsic (OpenMVG's listing found no EXIF focal): COLMAP's no-EXIF
+    # default, one camera per image size (§4.4; stages.intrinsics.guess_missing_cameras)
+    from rotonly_cli.io.cameras import guessed_intrinsics
+
+    camera_of_view = {view_id: camera_ids.get(view.intrinsics_id) for view_id, view in scene.views.items()}
+    camera_of_size: dict[tuple[int, int], int] = {}
     for view_id in sorted(scene.views):
         view = scene.views[view_id]
-        if view.intrinsics_id not in camera_ids:
-            camera = _default_camera(pycolmap, view, next_camera_id)
-            camera_ids[view.intrinsics_id] = database.write_camera(camera, use_camera_id=True)
-            next_camera_id += 1
-    for camera_id in sorted(set(camera_ids.values())):
+        if camera_of_view[view_id] is None:
+            size = (int(view.width or 0), int(view.height or 0))
+            if size not in camera_of_size:
+                if min(size) <= 0:
+                    raise InputError("view without intrinsic nor image size", field=f"views[{view_id}]")
+                camera_id = max([*camera_ids.values(), *camera_of_size.values()], default=0) + 1
+                camera = pycolmap_camera(guessed_intrinsics(camera_id, *size, openmvg=False), camera_id)
+                camera.has_prior_focal_length = False
+                camera_of_size[size] = database.write_camera(camera, use_camera_id=True)
+            camera_of_view[view_id] = camera_of_size[size]
+    for camera_id in sorted(set(camera_of_view.values())):
         rig = pycolmap.Rig(rig_id=camera_id)
         rig.add_ref_sensor(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, camera_id))
         database.write_rig(rig, use_rig_id=True)
     for view_id in sorted(scene.views):
         view = scene.views[view_id]
         image_id = view_id + view_offset
-        camera_id = camera_ids[view.intrinsics_id]
+        camera_id = camera_of_view[view_id]
         image = pycolmap.Image(name=view.name, camera_id=camera_id, image_id=image_id)
         database.write_image(image, use_image_id=True)
         frame = pycolmap.Frame(frame_id=image_id, rig_id=camera_id)
