@@ -78,9 +78,10 @@ def guess_missing_cameras(scene: SfMScene, mode: Mode, openmvg: bool) -> tuple[S
     when the image has no EXIF focal, or one from a camera its sensor database does not know,
     and neither ``-f`` nor ``-k`` was given; OpenMVG's SfM cannot use such a view. Here the
     views of one image size share a camera with COLMAP's guess (io.cameras.guessed_intrinsics:
-    f = 1.2 x the larger side, marked as a guess), which ``auto`` and ``refine`` calibrate: what
-    the listing's ``-f`` would have made of them (it groups views of one size and focal into
-    one intrinsic). One camera per view, as COLMAP's front end makes them, measured worse on
+    f = 1.2 x the larger side, marked as a guess; the principal point of the given cameras of
+    that size, if any: :func:`_principal_point_of_size`), which ``auto`` and ``refine``
+    calibrate: what the listing's ``-f`` would have made of them (it groups views of one size
+    and focal into one intrinsic). One camera per view, as COLMAP's front end makes them, measured worse on
     Strecha's OpenMVG projects with every intrinsic removed (castle-P19 0.30 against 0.10 deg;
     docs/tuning.md "Intrinsics"). ``fixed`` calibrates nothing: there the views stay without a
     camera and out of the outputs (the run warns)."""
@@ -99,7 +100,8 @@ def guess_missing_cameras(scene: SfMScene, mode: Mode, openmvg: bool) -> tuple[S
         size = (int(view.width), int(view.height))
         if size not in camera_of_size:
             camera_of_size[size] = camera_id = max(out.intrinsics, default=-1) + 1
-            out.intrinsics[camera_id] = cameras.guessed_intrinsics(camera_id, *size, openmvg)
+            out.intrinsics[camera_id] = _principal_point_of_size(
+                cameras.guessed_intrinsics(camera_id, *size, openmvg), scene)
         camera_id = camera_of_size[size]
         out.views[view_id] = replace(view, intrinsics_id=camera_id)
         out.normalized[view_id] = cameras.normalize(out.intrinsics[camera_id], scene.keypoints[view_id])
@@ -107,6 +109,28 @@ def guess_missing_cameras(scene: SfMScene, mode: Mode, openmvg: bool) -> tuple[S
                 "size, with COLMAP's guess f = %.1f x the larger side, to calibrate", len(missing), len(camera_of_size),
                 cameras.GUESS_FOCAL_FACTOR)
     return out, missing
+
+
+def _principal_point_of_size(guess: Intrinsics, scene: SfMScene) -> Intrinsics:
+    """``guess`` with the principal point of the views of ``scene`` whose camera is given and
+    of the guess's image size (their median), if there are any. Such views' images most likely
+    come from the device whose other images kept their EXIF (an edit or a messenger strips
+    it), and a principal point that a few images see cannot be estimated (to first order it is
+    a rotation of the camera: ``min_images_principal_point``): Herz-Jesus-P8's and entry-P10's
+    OpenMVG projects with one view's intrinsic undefined ended at 0.105 and 0.056-0.128 deg
+    with the guess's centre, 10 px off, and at 0.040 and 0.023-0.033 deg with it (all given:
+    0.040 and 0.022 deg). Where the listing left the given cameras at the centre, nothing changes."""
+    pp = cameras.parameter_groups(guess)["principal_point"]
+    given = [np.asarray(scene.intrinsics[view.intrinsics_id].params, dtype=np.float64)[
+        cameras.parameter_groups(scene.intrinsics[view.intrinsics_id])["principal_point"]]
+        for view in scene.views.values() if view.intrinsics_id in scene.intrinsics
+        and (scene.intrinsics[view.intrinsics_id].width, scene.intrinsics[view.intrinsics_id].height)
+        == (guess.width, guess.height)]
+    if not given:
+        return guess
+    params = np.array(guess.params, dtype=np.float64)
+    params[pp] = np.median(given, axis=0)
+    return replace(guess, params=params)
 
 
 def cameras_to_calibrate(scene: SfMScene, mode: Mode) -> set[int]:
