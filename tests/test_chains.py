@@ -174,6 +174,31 @@ def test_readme_openmvg_chain(tmp_path):
         assert _rotation_errors_deg(out, poses).max() < 0.5
 
 
+@pytest.mark.skipif(not (OPENMVG_BIN and Path(OPENMVG_BIN, "openMVG_main_SfMInit_ImageListing").is_file()),
+                    reason="OpenMVG's tools not found (set ROTONLY_OPENMVG_BIN to their bin folder)")
+def test_readme_openmvg_chain_without_a_camera(tmp_path):
+    """The README's OpenMVG chain as its comment says to run it without K and without EXIF
+    (the rendered images have none): the listing leaves every intrinsic undefined, the matches
+    are filtered with a fundamental matrix, and rotonly guesses the camera and calibrates it;
+    OpenMVG's own tools take the sfm_data.json it writes."""
+    poses, _, _ = _images(tmp_path)
+    if poses is None:
+        pytest.skip("ROTONLY_CHAIN_IMAGES: real images may carry an EXIF focal")
+    block = readme_block("openMVG_main_SfMInit_ImageListing")
+    block = block.replace(' -k "$K"', "").replace("-g e", "-g f").replace("matches.e.bin", "matches.f.bin")
+    _run(block, tmp_path, B=OPENMVG_BIN)
+    listed = json.loads((tmp_path / "P" / "sfm_data.json").read_text())
+    assert listed["intrinsics"] == []  # no K, no EXIF: the listing leaves every view without a camera
+    out = tmp_path / "OUT"
+    document = json.loads((out / "sfm_data.json").read_text())
+    (camera,) = document["intrinsics"]
+    focal = camera["value"]["ptr_wrapper"]["data"]["focal_length"]
+    assert abs(focal / FOCAL - 1) < 0.01
+    robust = json.loads((tmp_path / "P" / "robust.json").read_text())
+    assert len(robust["extrinsics"]) == len(document["extrinsics"]) == len(poses) and len(robust["structure"]) > 100
+    assert _rotation_errors_deg(out, poses).max() < 0.5
+
+
 @pytest.mark.skipif(shutil.which("colmap") is None, reason="COLMAP's command-line tool not installed")
 def test_readme_colmap_chain(tmp_path):
     poses, _, cam = _images(tmp_path)
