@@ -92,7 +92,7 @@ def load_scene(scene: SfMScene, kind: InputKind, input_label: str, options: RunO
     started = time.perf_counter()
     scene, guessed_views = guess_missing_cameras(scene, options.intrinsics.mode, kind == InputKind.OPENMVG)
     with_camera = [v for v, view in scene.views.items() if view.intrinsics_id in scene.intrinsics]
-    if len(with_camera) < 2:  # --intrinsics fixed, which guesses none
+    if len(with_camera) < min(2, len(scene.views)):  # views without a camera under --intrinsics fixed
         raise InputError(f"{len(scene.views) - len(with_camera)} of {len(scene.views)} views have no camera (an "
                          f"undefined intrinsic: no EXIF focal when the images were listed), which --intrinsics fixed "
                          f"cannot use (auto guesses and calibrates one)", path=input_label, field="intrinsics")

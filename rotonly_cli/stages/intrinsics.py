@@ -81,10 +81,10 @@ def guess_missing_cameras(scene: SfMScene, mode: Mode, openmvg: bool) -> tuple[S
     f = 1.2 x the larger side, marked as a guess; the principal point of the given cameras of
     that size, if any: :func:`_principal_point_of_size`), which ``auto`` and ``refine``
     calibrate: what the listing's ``-f`` would have made of them (it groups views of one size
-    and focal into one intrinsic). One camera per view, as COLMAP's front end makes them, measured worse on
-    Strecha's OpenMVG projects with every intrinsic removed (castle-P19 0.30 against 0.10 deg;
-    docs/tuning.md "Intrinsics"). ``fixed`` calibrates nothing: there the views stay without a
-    camera and out of the outputs (the run warns)."""
+    and focal into one intrinsic). One camera per view, as COLMAP's front end makes them,
+    measured worse on Strecha's OpenMVG projects with every intrinsic removed (castle-P19 0.30
+    against 0.10 deg; docs/tuning.md "Intrinsics"). ``fixed`` calibrates nothing: there the
+    views stay without a camera and out of the outputs (the run warns)."""
     missing = [v for v, view in sorted(scene.views.items())
                if view.intrinsics_id not in scene.intrinsics and v in scene.keypoints]
     if mode == Mode.FIXED or not missing:
@@ -120,16 +120,14 @@ def _principal_point_of_size(guess: Intrinsics, scene: SfMScene) -> Intrinsics:
     OpenMVG projects with one view's intrinsic undefined ended at 0.105 and 0.056-0.128 deg
     with the guess's centre, 10 px off, and at 0.040 and 0.023-0.033 deg with it (all given:
     0.040 and 0.022 deg). Where the listing left the given cameras at the centre, nothing changes."""
-    pp = cameras.parameter_groups(guess)["principal_point"]
-    given = [np.asarray(scene.intrinsics[view.intrinsics_id].params, dtype=np.float64)[
-        cameras.parameter_groups(scene.intrinsics[view.intrinsics_id])["principal_point"]]
-        for view in scene.views.values() if view.intrinsics_id in scene.intrinsics
-        and (scene.intrinsics[view.intrinsics_id].width, scene.intrinsics[view.intrinsics_id].height)
-        == (guess.width, guess.height)]
+    of_views = [scene.intrinsics[view.intrinsics_id] for view in scene.views.values()
+                if view.intrinsics_id in scene.intrinsics]
+    given = [np.asarray(k.params, dtype=np.float64)[cameras.parameter_groups(k)["principal_point"]]
+             for k in of_views if (k.width, k.height) == (guess.width, guess.height)]
     if not given:
         return guess
     params = np.array(guess.params, dtype=np.float64)
-    params[pp] = np.median(given, axis=0)
+    params[cameras.parameter_groups(guess)["principal_point"]] = np.median(given, axis=0)
     return replace(guess, params=params)
 
 
