@@ -168,6 +168,27 @@ def test_write_database_shifts_zero_based_ids(tmp_path: Path) -> None:
         np.testing.assert_allclose(back.normalized[view_id + 1], scene.normalized[view_id], atol=1e-9)
 
 
+def test_write_database_guesses_a_camera_per_image_size_for_views_without_one(tmp_path: Path) -> None:
+    """Views whose OpenMVG intrinsic is undefined (listed without EXIF focal) get COLMAP's
+    no-EXIF camera, one per image size (it gave them all one, sized as the first), marked as
+    a guess; views with a camera keep theirs."""
+    scene = SfMScene(intrinsics={0: Intrinsics(0, "pinhole", 640, 480, np.array([500.0, 320.5, 240.5]))})
+    sizes = {0: (640, 480), 1: (640, 480), 2: (640, 480), 3: (480, 640)}
+    for view_id, (width, height) in sizes.items():
+        intrinsic = 0 if view_id == 0 else openmvg.UNDEFINED_INDEX
+        scene.views[view_id] = View(view_id, f"img{view_id}.jpg", intrinsic, width=width, height=height)
+        scene.keypoints[view_id] = np.zeros((0, 2))
+    colmap.write_database(tmp_path / "g.db", scene)
+    back = colmap.read_database(tmp_path / "g.db")
+    cameras = [back.intrinsics[back.views[view_id + 1].intrinsics_id] for view_id in range(4)]
+    assert cameras[0].prior_focal is not False and cameras[0].model == "SIMPLE_PINHOLE"
+    assert back.views[2].intrinsics_id == back.views[3].intrinsics_id != back.views[4].intrinsics_id
+    assert cameras[1].prior_focal is False and cameras[1].model == "SIMPLE_RADIAL"
+    np.testing.assert_allclose(cameras[1].params, [768.0, 320.0, 240.0, 0.0])
+    np.testing.assert_allclose(cameras[3].params, [768.0, 240.0, 320.0, 0.0])
+    assert len(back.intrinsics) == 3
+
+
 @pytest.mark.parametrize("model, params", [
     ("pinhole", [800.0, 320.5, 240.5]),
     ("pinhole_radial_k1", [800.0, 320.5, 240.5, -0.1]),
