@@ -187,6 +187,20 @@ def test_view_graph_focal_of_the_simulated_guess(user_inputs):
     assert calibrated[1].params[1:].tolist() == scene.intrinsics[1].params[1:].tolist()  # only the focal
 
 
+def test_view_graph_focal_of_twin_guesses_is_one():
+    """A camera per view with the same guess (COLMAP's default): the twins share the
+    view-graph focal, as accurate as the one camera's; a focal each, from about one
+    fundamental matrix per camera, ended 65 % off on entry-P10's guessed database."""
+    from rotonly_cli.simulation.user_cameras import camera_per_view, user_scene, verified_pairs
+
+    problem = simulate_user_cameras(5, -0.25, 0.0, num_views=6, num_points=2000)
+    scene = camera_per_view(user_scene(problem, problem.guessed, verified_pairs(problem)))
+    calibrated, report = stage.view_graph_focals(scene, set(scene.intrinsics), IntrinsicsOptions())
+    assert report["success"] and sorted(calibrated) == sorted(scene.intrinsics)
+    focals = {k.focal_px for k in calibrated.values()}
+    assert len(focals) == 1 and focals.pop() == pytest.approx(1380.0, rel=0.005)
+
+
 @pytest.mark.parametrize("fmt", ["colmap", "openmvg"])
 def test_guessed_intrinsics_are_calibrated(user_inputs, reference_error, tmp_path, fmt):
     """COLMAP: prior_focal_length = 0 says the focal is a guess. OpenMVG: a wrong EXIF focal
