@@ -508,29 +508,21 @@ def _adjust(subset: SfMScene, refine: set[int], offset: int, options: Intrinsics
 
 def residual_sigma_px(reconstruction) -> float:
     """Per-coordinate sigma (px) of the reprojection residuals of ``reconstruction`` (a
-    pycolmap Reconstruction) as it is now: the median error norm / √(2 ln 2) (a Gaussian
-    residual's norm is Rayleigh), so that the few points an adjustment sends far off do not
-    count (castle-P19's OpenMVG matches: a mean of 1e150 px after one adjustment), times
-    √(n / (n − p)) for the p parameters the adjustment fitted to its n residual coordinates
-    (3 per point, 6 per image). NaN without observations. The points' stored errors are not
-    used: an adjustment does not update them (they were the errors before it)."""
-    errors, num_points = [], len(reconstruction.points3D)
-    for image_id in reconstruction.reg_image_ids():
-        image = reconstruction.images[image_id]
-        observed = [(point.xy, point.point3D_id) for point in image.points2D if point.has_point3D()]
-        if not observed:
-            continue
-        xy = np.array([o[0] for o in observed], dtype=np.float64)
-        world = np.array([reconstruction.points3D[o[1]].xyz for o in observed], dtype=np.float64)
-        pose = image.cam_from_world()
-        in_camera = world @ np.asarray(pose.rotation.matrix()).T + np.asarray(pose.translation)
-        projected = np.asarray(reconstruction.cameras[image.camera_id].img_from_cam(in_camera), dtype=np.float64)
-        errors.append(np.linalg.norm(projected.reshape(-1, 2) - xy, axis=1))
+    pycolmap Reconstruction) as it is now (:func:`reprojection_errors` of its scene): the
+    median error norm / √(2 ln 2) (a Gaussian residual's norm is Rayleigh), so that the few
+    points an adjustment sends far off do not count (castle-P19's OpenMVG matches: a mean of
+    1e150 px after one adjustment), times √(n / (n − p)) for the p parameters the adjustment
+    fitted to its n residual coordinates (3 per point, 6 per image). NaN without observations.
+    The points' stored errors are not used: an adjustment does not update them (they were the
+    errors before it)."""
+    from rotonly_cli.io.colmap.model import scene_from_reconstruction
+
+    errors = list(reprojection_errors(scene_from_reconstruction(reconstruction)).values())
     if not errors:
         return float("nan")
     errors = np.concatenate(errors)
     residuals = 2 * errors.size
-    fitted = 3 * num_points + 6 * len(reconstruction.reg_image_ids())
+    fitted = 3 * len(reconstruction.points3D) + 6 * len(reconstruction.reg_image_ids())
     dof = residuals / (residuals - fitted) if residuals > fitted else np.inf
     return float(np.nanmedian(errors) / np.sqrt(2.0 * np.log(2.0)) * np.sqrt(dof))
 
