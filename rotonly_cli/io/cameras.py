@@ -15,7 +15,7 @@ import numpy as np
 from rotonly_cli.errors import InputError
 from rotonly_cli.io.colmap.cameras import normalize_keypoints, pycolmap_camera, to_colmap_intrinsics
 from rotonly_cli.io.openmvg.cameras import distort_project, undistort_normalize
-from rotonly_cli.scene.types import Intrinsics, SfMScene
+from rotonly_cli.scene.types import Intrinsics, SfMScene, View
 
 #: OpenMVG model <-> the COLMAP model with the same parameters in the same order
 #: (formats.md §4.4); ``pinhole_radial_k3`` only while k3 = 0 (then it is COLMAP's RADIAL)
@@ -39,6 +39,26 @@ def guessed_intrinsics(camera_id: int, width: int, height: int, openmvg: bool) -
     return Intrinsics(camera_id, "pinhole_radial_k1" if openmvg else "SIMPLE_RADIAL", int(width), int(height),
                       np.array([GUESS_FOCAL_FACTOR * max(width, height), width / 2, height / 2, 0.0]),
                       prior_focal=False)
+
+
+def guessed_cameras_per_size(views: list[View], first_id: int,
+                             openmvg: bool) -> tuple[dict[int, Intrinsics], dict[int, int]]:
+    """For ``views`` that have no camera: one :func:`guessed_intrinsics` per image size, ids
+    from ``first_id`` up in the order of the views, and {view id: its camera id}. A view
+    without its size cannot be guessed (InputError)."""
+    guesses: dict[int, Intrinsics] = {}
+    camera_of_size: dict[tuple[int, int], int] = {}
+    camera_of_view: dict[int, int] = {}
+    for view in views:
+        if not view.width or not view.height:
+            raise InputError("a view without intrinsic needs its image size (width, height) for a guessed camera",
+                             field=f"views[{view.id}]")
+        size = (int(view.width), int(view.height))
+        if size not in camera_of_size:
+            camera_of_size[size] = camera_id = first_id + len(camera_of_size)
+            guesses[camera_id] = guessed_intrinsics(camera_id, *size, openmvg)
+        camera_of_view[view.id] = camera_of_size[size]
+    return guesses, camera_of_view
 
 
 def is_openmvg_model(intrinsics: Intrinsics) -> bool:

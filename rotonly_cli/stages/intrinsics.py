@@ -89,24 +89,16 @@ def guess_missing_cameras(scene: SfMScene, mode: Mode, openmvg: bool) -> tuple[S
                if view.intrinsics_id not in scene.intrinsics and v in scene.keypoints]
     if mode == Mode.FIXED or not missing:
         return scene, []
+    guesses, camera_of_view = cameras.guessed_cameras_per_size([scene.views[v] for v in missing],
+                                                               max(scene.intrinsics, default=-1) + 1, openmvg)
     out = copy.copy(scene)
-    out.views, out.intrinsics, out.normalized = dict(scene.views), dict(scene.intrinsics), dict(scene.normalized)
-    camera_of_size: dict[tuple[int, int], int] = {}
-    for view_id in missing:
-        view = scene.views[view_id]
-        if not view.width or not view.height:
-            raise InputError("a view without intrinsic needs its image size (width, height) for a guessed camera",
-                             field=f"views[{view_id}]")
-        size = (int(view.width), int(view.height))
-        if size not in camera_of_size:
-            camera_of_size[size] = camera_id = max(out.intrinsics, default=-1) + 1
-            out.intrinsics[camera_id] = _principal_point_of_size(
-                cameras.guessed_intrinsics(camera_id, *size, openmvg), scene)
-        camera_id = camera_of_size[size]
-        out.views[view_id] = replace(view, intrinsics_id=camera_id)
+    out.views, out.normalized = dict(scene.views), dict(scene.normalized)
+    out.intrinsics = {**scene.intrinsics, **{c: _principal_point_of_size(k, scene) for c, k in guesses.items()}}
+    for view_id, camera_id in camera_of_view.items():
+        out.views[view_id] = replace(scene.views[view_id], intrinsics_id=camera_id)
         out.normalized[view_id] = cameras.normalize(out.intrinsics[camera_id], scene.keypoints[view_id])
     logger.info("intrinsics: %d view(s) without a camera in the input (no EXIF focal): %d camera(s), one per image "
-                "size, with COLMAP's guess f = %.1f x the larger side, to calibrate", len(missing), len(camera_of_size),
+                "size, with COLMAP's guess f = %.1f x the larger side, to calibrate", len(missing), len(guesses),
                 cameras.GUESS_FOCAL_FACTOR)
     return out, missing
 

@@ -259,22 +259,17 @@ def _fill_database(pycolmap, database, scene: SfMScene, view_offset: int,
         camera_ids[intrinsic_id] = database.write_camera(camera, use_camera_id=True)
     # a view without intrinsic (OpenMVG's listing found no EXIF focal): COLMAP's no-EXIF
     # default, one camera per image size (§4.4; stages.intrinsics.guess_missing_cameras)
-    from rotonly_cli.io.cameras import guessed_intrinsics
+    from rotonly_cli.io.cameras import guessed_cameras_per_size
 
-    camera_of_view = {view_id: camera_ids.get(view.intrinsics_id) for view_id, view in scene.views.items()}
-    camera_of_size: dict[tuple[int, int], int] = {}
-    for view_id in sorted(scene.views):
-        view = scene.views[view_id]
-        if camera_of_view[view_id] is None:
-            size = (int(view.width or 0), int(view.height or 0))
-            if size not in camera_of_size:
-                if min(size) <= 0:
-                    raise InputError("view without intrinsic nor image size", field=f"views[{view_id}]")
-                camera_id = max([*camera_ids.values(), *camera_of_size.values()], default=0) + 1
-                camera = pycolmap_camera(guessed_intrinsics(camera_id, *size, openmvg=False), camera_id)
-                camera.has_prior_focal_length = False
-                camera_of_size[size] = database.write_camera(camera, use_camera_id=True)
-            camera_of_view[view_id] = camera_of_size[size]
+    guesses, guessed_of_view = guessed_cameras_per_size(
+        [scene.views[v] for v in sorted(scene.views) if scene.views[v].intrinsics_id not in camera_ids],
+        max(camera_ids.values(), default=0) + 1, openmvg=False)
+    for camera_id, guess in guesses.items():
+        camera = pycolmap_camera(guess, camera_id)
+        camera.has_prior_focal_length = False
+        database.write_camera(camera, use_camera_id=True)
+    camera_of_view = {**{v: camera_ids[view.intrinsics_id] for v, view in scene.views.items()
+                         if view.intrinsics_id in camera_ids}, **guessed_of_view}
     for camera_id in sorted(set(camera_of_view.values())):
         rig = pycolmap.Rig(rig_id=camera_id)
         rig.add_ref_sensor(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, camera_id))
