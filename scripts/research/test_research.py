@@ -26,12 +26,16 @@ ROOT = Path(__file__).resolve().parents[2]
 FIXTURES = ROOT / "data_fixtures"
 
 
-def _load_script(name: str):
-    spec = importlib.util.spec_from_file_location(f"research_{name}", Path(__file__).with_name(f"{name}.py"))
+def _load_script_at(path: Path, name: str):
+    spec = importlib.util.spec_from_file_location(f"research_{name}", path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module
     spec.loader.exec_module(module)
     return module
+
+
+def _load_script(name: str):
+    return _load_script_at(Path(__file__).with_name(f"{name}.py"), name)
 
 
 probe = _load_script("probe_grrm_residuals")
@@ -489,3 +493,40 @@ def test_probe_survey_on_a_small_flat_field(capsys):
     (row,) = [line.split(" | ") for line in capsys.readouterr().out.splitlines() if line.startswith("| 0 ")]
     assert row[3:5] == ["rotonly", "10/10"] and float(row[5]) < 0.03 and float(row[6]) < 0.05
     assert row[7].startswith("1380.0") and row[8] == "kept"
+
+
+def test_scaled_camera_follows_the_resize():
+    """A 2x shrink halves every PINHOLE parameter in COLMAP's corner-at-0 convention; a shrink
+    that rounds the height scales each axis by its own ratio."""
+    probe_lowres = _load_script("probe_low_resolution")
+    np.testing.assert_allclose(probe_lowres.scaled_camera([1380.0, 1382.0, 768.0, 512.0], (1536, 1024), (768, 512)),
+                               [690.0, 691.0, 384.0, 256.0])
+    np.testing.assert_allclose(probe_lowres.scaled_camera([1380.0, 1380.0, 768.0, 512.0], (1536, 1024), (512, 341)),
+                               [460.0, 1380.0 * 341 / 1024, 256.0, 512.0 * 341 / 1024])
+
+
+def test_probe_low_resolution_on_rendered_images(tmp_path, capsys, monkeypatch):
+    """Eight rendered images of a textured room (tests/test_chains.py) as a Strecha scene:
+    described and matched by pycolmap at their size and at half of it, every view registered
+    with a small rotation error in both rows, the images and databases kept in --work."""
+    monkeypatch.syspath_prepend(str(ROOT / "tests"))  # test_chains' own helpers
+    chains = _load_script_at(ROOT / "tests" / "test_chains.py", "chains")
+    scene = tmp_path / "root" / "Room"
+    poses = chains.render(scene / "images")
+    (scene / "gt_dense_cameras").mkdir()
+    K = np.array([[chains.FOCAL, 0, chains.CX], [0, chains.FOCAL, chains.CY], [0, 0, 1]])  # Strecha's convention
+    for index, (R, centre) in enumerate(poses):
+        rows = [*K, np.zeros(3), *R.T, centre]
+        text = "\n".join(" ".join(f"{v:.12g}" for v in row) for row in rows)
+        (scene / "gt_dense_cameras" / f"{index:04d}.jpg.camera").write_text(f"{text}\n{chains.WIDTH} {chains.HEIGHT}\n")
+    probe_lowres = _load_script("probe_low_resolution")
+    assert probe_lowres.main(["--root", str(tmp_path / "root"), "--scenes", "Room", "--factors", "1", "2",
+                              "--mapper", "--work", str(tmp_path / "work")]) == 0
+    rows = [line.split(" | ") for line in capsys.readouterr().out.splitlines() if line.startswith("| Room")]
+    assert [row[1:3] for row in rows] == [["1", "480 x 360"], ["2", "240 x 180"]]
+    for row in rows:
+        assert int(row[3]) > 1000 and row[4] == "8 / 8" and float(row[5]) < 0.5 and float(row[7]) < 0.05
+        assert row[9].endswith("(8 / 8)")
+    assert (tmp_path / "work" / "Room_x2" / "database.db").is_file()
+    assert sorted(p.name for p in (tmp_path / "work" / "Room_x2" / "images").iterdir()) == \
+        [f"{index:04d}.jpg" for index in range(8)]
