@@ -286,8 +286,14 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
     """Into ``summary`` (and run.reports): the intrinsics each camera started from and ended
     with (reports/intrinsics.json), the views left out of the outputs, and the run's warnings
     (the calibration's, those views, the baseline check of the centres, the edges on no cycle,
-    the views a rejection round cut loose), each also logged."""
-    from rotonly_cli.stages.average import unchecked_edges, unchecked_edges_warning
+    the views a rejection round cut loose, the pairs' scatter about the final rotations), each
+    also logged."""
+    from rotonly_cli.stages.average import (
+        pair_scatter_deg,
+        pair_scatter_warning,
+        unchecked_edges,
+        unchecked_edges_warning,
+    )
     from rotonly_cli.stages.load import unprojectable_warning
     from rotonly_cli.stages.reject import undone_round_warning
     from rotonly_cli.stages.translate import baseline_warning, pure_rotation_warning, unregistered_warning
@@ -297,6 +303,7 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
         summary.update(run.calibration.summary())
     bridges = unchecked_edges(run.graph, set(scene.poses))
     summary["edges_on_no_cycle"] = [list(pair) for pair in bridges]
+    summary["pair_residual_deg_median"] = pair_scatter_deg(run.graph, scene.poses)
     summary["unregistered_views"] = unregistered = [v for v in run.graph.view_ids() if v not in scene.poses]
     without_camera = {v for v in unregistered if run.scene.views[v].intrinsics_id not in run.scene.intrinsics}
     found = [unprojectable_warning(run.reports.get("load")),
@@ -304,7 +311,8 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
                                   without_camera),
              baseline_warning(run.reports.get("translate")), pure_rotation_warning(run.reports.get("translate")),
              unchecked_edges_warning(bridges),
-             undone_round_warning(run.reports.get("reject"))]
+             undone_round_warning(run.reports.get("reject")),
+             pair_scatter_warning(summary["pair_residual_deg_median"])]
     summary["warnings"] = summary.get("warnings", []) + [warning for warning in found if warning]
     for warning in summary["warnings"]:
         logger.warning("%s", warning)

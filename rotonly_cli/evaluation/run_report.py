@@ -359,6 +359,7 @@ def _summary(reports: dict, graph) -> str:
          + _num(reports, "export.reprojection_error_px.mean") + ", RMSE "
          + _num(reports, "export.reprojection_error_px.rmse") + ", max "
          + _num(reports, "export.reprojection_error_px.max")],
+        ["pairs' rotations about the global ones [deg]", "median " + _num(reports, "run.pair_residual_deg_median")],
         ["rotation error vs ground truth [deg]", "mean " + _num(reports, "run.rotation_error_deg.mean") + ", median "
          + _num(reports, "run.rotation_error_deg.median") if _get(reports, "run.rotation_error_deg") else "no --gt"],
         ["total time", _num(reports, "run.time_s", " s")],

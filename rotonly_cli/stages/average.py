@@ -100,3 +100,49 @@ def unchecked_edges_warning(edges: list[tuple[int, int]], max_shown: int = 8) ->
     return (f"{len(edges)} pair(s) of the view graph lie on no cycle (edges {shown}): the rotation across each "
             f"rests on that pair's two-view estimate alone, which nothing checks; images overlapping both sides "
             f"would close cycles (reports/run.json: edges_on_no_cycle)")
+
+
+#: the run warns when the median of :func:`pair_residuals_deg` is above this (deg). On the
+#: Strecha scenes (as shipped, with noise added, and re-matched at lower resolutions) the mean
+#: rotation error was 0.25-2.1x that median; the shipped inputs stay below it but castle-P19's
+#: OpenMVG matches (0.079-0.122 deg over seeds 0-3, error 0.062-0.113 deg), and above it
+#: pycolmap's BA of rotonly's model cut the error by a third or more (docs/tuning.md "Pair
+#: scatter")
+PAIR_SCATTER_WARN_DEG = 0.1
+
+
+def pair_residuals_deg(graph: ViewGraph, R_cam_from_world: dict[int, np.ndarray]) -> np.ndarray:
+    """Angle (deg) between each active REGULAR edge's own relative rotation (TRRM's, the pair
+    alone) and the one the final rotations imply, R_j R_iᵀ, over the edges between views in
+    ``R_cam_from_world`` (view id -> rotation). Each pair's translation is free in TRRM and in
+    GRRM, so where it is poorly fixed (few matches, noisy or low-resolution keypoints) the
+    pairs scatter about the global solution, and the rotations are uncertain at that level."""
+    from rotonly_cli.geometry import so3
+    from rotonly_cli.scene.view_graph import regular_edges
+
+    edges = [graph.edges[k] for k in regular_edges(graph)
+             if graph.edges[k].i in R_cam_from_world and graph.edges[k].j in R_cam_from_world]
+    if not edges:
+        return np.zeros(0)
+    R_i = np.stack([R_cam_from_world[edge.i] for edge in edges])
+    R_j = np.stack([R_cam_from_world[edge.j] for edge in edges])
+    R_pair = np.stack([edge.R_j_from_i for edge in edges])
+    return np.degrees(so3.geodesic_angle(R_pair, R_j @ np.swapaxes(R_i, 1, 2)))
+
+
+def pair_scatter_deg(graph: ViewGraph, poses: dict) -> float | None:
+    """Median of :func:`pair_residuals_deg` at ``poses`` (view id -> Pose, the outputs'); None
+    without a REGULAR edge between them (reports/run.json: pair_residual_deg_median)."""
+    residuals = pair_residuals_deg(graph, {v: pose.R_cam_from_world for v, pose in poses.items()})
+    return float(np.median(residuals)) if residuals.size else None
+
+
+def pair_scatter_warning(median_deg: float | None) -> str | None:
+    """The run summary's warning when the pairs' rotations scatter by more than
+    PAIR_SCATTER_WARN_DEG (median of :func:`pair_residuals_deg`); None below it."""
+    if median_deg is None or not median_deg > PAIR_SCATTER_WARN_DEG:
+        return None
+    return (f"the pairs' own relative rotations scatter by a median {median_deg:.2f} deg about the global rotations "
+            f"(few matches per pair, noisy or low-resolution keypoints): expect rotation errors of that order; a "
+            f"bundle adjustment of OUT/sparse (colmap bundle_adjuster) tightens them (reports/run.json: "
+            f"pair_residual_deg_median; view_graph.json: each edge's residual_deg)")

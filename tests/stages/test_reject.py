@@ -5,7 +5,7 @@ import numpy as np
 
 from rotonly_cli.geometry import so3
 from rotonly_cli.options import RejectOptions
-from rotonly_cli.scene.types import View
+from rotonly_cli.scene.types import Pose, View
 from rotonly_cli.scene.view_graph import Edge, ViewGraph
 from rotonly_cli.stages.reject import DROP_REASON, reject_round
 
@@ -194,7 +194,7 @@ def test_run_summary_carries_the_undone_round_warning(monkeypatch):
     reject_stage(run)
 
     class Scene:
-        poses = {0: None, 1: None, 2: None}
+        poses = {v: Pose(R[v], C[v]) for v in range(3)}
 
     summary: dict = {}
     summarize_outcome(run, Scene(), summary)
