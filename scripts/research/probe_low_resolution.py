@@ -126,7 +126,8 @@ def main(argv: list[str] | None = None) -> int:
                 size, new_size = shrunk_images(scene_dir / "images", folder / "images", factor)
                 database = matched_database(folder / "images", folder / "database.db",
                                             scaled_camera(camera, size, new_size), threads)
-                matches = sum(len(pair.matches) for pair in read_database(database).pairs.values())
+                matched = read_database(database)
+                matches = sum(len(pair.matches) for pair in matched.pairs.values())
                 started = time.perf_counter()
                 result = rotonly_cli.run(database, gt=gt_path, jobs=threads, progress=False)
                 seconds = time.perf_counter() - started
@@ -135,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
                                                       progress=False))
                 mapper = ""
                 if args.mapper:
-                    mapped_error, mapped = mapper_rotation_error(database, read_database(database), gt_path, threads)
+                    mapped_error, mapped = mapper_rotation_error(database, matched, gt_path, threads)
                     mapper = f" {mapped_error:.4f} ({mapped} / {len(gt.views)}) |"
                 print(f"| {name} | {factor} | {new_size[0]} x {new_size[1]} | {matches} | {row['registered']} / "
                       f"{len(gt.views)} | {row['rotation_deg']:.4f} | {averaged['rotation_deg']:.4f} "
