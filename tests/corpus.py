@@ -225,6 +225,12 @@ def _truncated_db(root: Path, bases: dict) -> list:
     return ["run", path, "-o", out(root)]
 
 
+def _folder_with_sfm_data_bin(root: Path, bases: dict) -> list:
+    (root / "project").mkdir()
+    (root / "project" / "sfm_data.bin").write_bytes(b"\x02\x00\x00\x00cereal")
+    return ["run", root / "project", "-o", out(root)]
+
+
 def _sqlite_without_tables(root: Path, bases: dict) -> list:
     path = root / "database.db"
     with closing(sqlite3.connect(path)) as connection:
@@ -244,6 +250,17 @@ FILE_CASES = [
          ("missing.db", "no such file")),
     Case("input-folder-without-project", lambda root, bases: ["run", root, "-o", out(root)],
          (str(os.sep), "neither a COLMAP model")),
+    # the formats rotonly does not read, named with what to do: OpenMVG's other sfm_data
+    # serializations (its converter writes the .json) and one file of a COLMAP model
+    _raw_file_case("input-openmvg-sfm-data-bin", b"\x02\x00\x00\x00cereal", (
+        "OpenMVG sfm_data in binary form", "openMVG_main_ConvertSfM_DataFormat -i"), file="sfm_data.bin"),
+    _raw_file_case("input-openmvg-sfm-data-xml", b"<?xml version=\"1.0\"?><cereal/>", (
+        "in XML form", "sfm_data.json"), file="sfm_data.xml"),
+    Case("input-folder-with-openmvg-sfm-data-bin", _folder_with_sfm_data_bin,
+         ("neither a COLMAP model", "sfm_data.bin looks like an OpenMVG sfm_data",
+          "openMVG_main_ConvertSfM_DataFormat")),
+    _raw_file_case("input-colmap-model-file", b"\x00" * 8, ("a COLMAP model is read from its folder",),
+                   file="images.bin"),
 ]
 
 

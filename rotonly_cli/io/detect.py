@@ -48,6 +48,29 @@ def is_strecha_folder(path: PathLike) -> bool:
     return (path / GT_SUBDIR).is_dir() or any(path.glob("*.camera"))
 
 
+#: OpenMVG's other sfm_data serializations (cereal binary, XML), which rotonly does not read
+OPENMVG_OTHER_SUFFIXES = (".bin", ".xml")
+
+
+def unread_format_hint(path: Path) -> str:
+    """What a file or folder rotonly cannot read seems to be, and what to do: an OpenMVG
+    sfm_data.bin / .xml (OpenMVG writes them as readily as .json; its converter makes the
+    .json), or one file of a COLMAP model (its folder is the input); "" otherwise."""
+    if path.is_dir():
+        other = [path / f"sfm_data{suffix}" for suffix in OPENMVG_OTHER_SUFFIXES]
+        path = next((candidate for candidate in other if candidate.is_file()), None)
+        if path is None:
+            return ""
+    if path.stem in MODEL_FILE_STEMS:
+        return f"; a COLMAP model is read from its folder: give {path.parent}"
+    if path.suffix.lower() in OPENMVG_OTHER_SUFFIXES:
+        form = "binary" if path.suffix.lower() == ".bin" else "XML"
+        return (f"; {path.name} looks like an OpenMVG sfm_data in {form} form, which rotonly does not read: "
+                f"convert it with openMVG_main_ConvertSfM_DataFormat -i {path} "
+                f"-o {path.with_suffix('.json')}")
+    return ""
+
+
 def detect_input(path: Path) -> InputKind:
     """The kind of a `rotonly run` / `rotonly convert` input; InputError otherwise."""
     if not path.exists():
@@ -58,12 +81,12 @@ def detect_input(path: Path) -> InputKind:
         if (path / "sfm_data.json").is_file():
             return InputKind.OPENMVG
         raise InputError("folder is neither a COLMAP model (cameras/images/points3D .bin|.txt) "
-                         "nor an OpenMVG project (sfm_data.json)", path=str(path))
+                         "nor an OpenMVG project (sfm_data.json)" + unread_format_hint(path), path=str(path))
     if is_sqlite(path):
         return InputKind.COLMAP_DB
     if path.suffix.lower() == ".json":
         return InputKind.OPENMVG
-    raise InputError("not an SQLite file (COLMAP database) nor an OpenMVG sfm_data .json",
+    raise InputError("not an SQLite file (COLMAP database) nor an OpenMVG sfm_data .json" + unread_format_hint(path),
                      path=str(path))
 
 
@@ -85,7 +108,8 @@ def read_scene(path: PathLike, field: str | None = None, ground_truth: bool = Tr
     if not path.is_dir():
         check_regular_file(path, field)
         if path.suffix.lower() != ".json":
-            raise InputError("expected an OpenMVG sfm_data .json file or a folder", path=str(path), field=field)
+            raise InputError("expected an OpenMVG sfm_data .json file or a folder" + unread_format_hint(path),
+                             path=str(path), field=field)
         return _reader("openmvg", "read_sfm_data")(str(path))
     if ground_truth and is_strecha_folder(path):
         return _reader("strecha", "read_strecha_dir")(str(path))
@@ -96,8 +120,8 @@ def read_scene(path: PathLike, field: str | None = None, ground_truth: bool = Tr
     if is_colmap_model(path / "sparse"):
         return _reader("colmap", "read_model")(str(path / "sparse"))
     expected = f"{GT_SUBDIR}/, *.camera, " if ground_truth else ""
-    raise InputError(f"folder holds none of {expected}sfm_data.json, a COLMAP model (cameras/images .bin|.txt)",
-                     path=str(path), field=field)
+    raise InputError(f"folder holds none of {expected}sfm_data.json, a COLMAP model (cameras/images .bin|.txt)"
+                     + unread_format_hint(path), path=str(path), field=field)
 
 
 def read_ground_truth(path: PathLike) -> SfMScene:
