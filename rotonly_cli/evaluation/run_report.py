@@ -159,11 +159,20 @@ def _get(reports: dict, path: str):
 
 
 def _num(reports: dict, path: str, suffix: str = "") -> str:
-    """A report number as a table cell's content, tagged with where it comes from."""
+    """A report number as a table cell's content, tagged with where it comes from (times,
+    ``*time_s``, in seconds to the millisecond)."""
     value = _get(reports, path)
     if value is None or isinstance(value, (dict, list)):
         return "–"
-    return f'<span data-source="{escape(path)}">{escape(_fmt(value))}</span>{suffix}'
+    return f'<span data-source="{escape(path)}">{escape(_shown(value, path))}</span>{suffix}'
+
+
+def _shown(value, path: str) -> str:
+    """:func:`_fmt`, but times (``*time_s``) in seconds to the millisecond: a stage's 3e-05 s
+    reads 0.000, not 3e-05."""
+    if path.endswith("time_s") and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return f"{value:.3f}"
+    return _fmt(value)
 
 
 def _table(header: list[str] | None, rows: list[list[str]], cls: str = "") -> str:
@@ -196,7 +205,7 @@ def _value_html(value, path: str) -> str:
         shown = ", ".join(_value_html(v, f"{path}.{i}") for i, v in enumerate(value[:MAX_LIST_ITEMS]))
         more = f", … ({len(value)} items)" if len(value) > MAX_LIST_ITEMS else ""
         return f"[{shown}{more}]"
-    return f'<span data-source="{escape(path)}">{escape(_fmt(value))}</span>'
+    return f'<span data-source="{escape(path)}">{escape(_shown(value, path))}</span>'
 
 
 # ============================================================================ figures
