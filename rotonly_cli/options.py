@@ -513,6 +513,18 @@ class IntrinsicsOptions:
     #: rounds stop when the intrinsics moved by less than this fraction of the half diagonal;
     #: the relative poses of the load stage are re-estimated when they moved by more
     converged_shift: float = 0.02
+    #: whenever the view graph calibrates a camera, it is calibrated again with each of its
+    #: images with at least ``zoom_min_pairs`` fundamental matrices on a camera of its own;
+    #: when ``zoom_min_images`` or more were, the run warns if those focal lengths fall into
+    #: two groups (stages.intrinsics.focal_groups): a gap of at least ``zoom_min_gap``
+    #: (relative) and ``zoom_gap_to_spread`` times either group's own range. A zoom lens
+    #: under one camera (docs/tuning.md "Intrinsics"); an image with one or two fundamental
+    #: matrices took 548 px for 1381 (entry-P10)
+    zoom_check: bool = True
+    zoom_min_pairs: int = 3
+    zoom_min_images: int = 4
+    zoom_min_gap: float = 0.02
+    zoom_gap_to_spread: float = 3.0
     #: warnings: final mean reprojection error above this (px) ...
     warn_reprojection_px: float = 1.0
     #: ... or the focal of a camera not marked as a guess moved by more than this fraction
@@ -544,6 +556,11 @@ class IntrinsicsOptions:
             raise InputError("rotation_fit_max_px must be > 0", field="intrinsics")
         if not self.rotation_fit_max_matches >= 8:
             raise InputError("rotation_fit_max_matches must be >= 8", field="intrinsics")
+        if self.zoom_min_images < 4 or self.zoom_min_pairs < 1 or not (self.zoom_min_gap > 0
+                                                                       and self.zoom_gap_to_spread > 0):
+            raise InputError("zoom_min_images >= 4, zoom_min_pairs >= 1, zoom_min_gap > 0 and zoom_gap_to_spread > 0 "
+                             "needed",
+                             field="intrinsics")
         return self
 
 

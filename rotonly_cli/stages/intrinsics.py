@@ -326,10 +326,8 @@ def view_graph_focals(scene: SfMScene, calibrate: set[int], options: IntrinsicsO
     four rounds (22 s) to undo. Twins whose focal the input gives (an EXIF camera per image,
     calibrated as suspects) share it too: a focal each left entry-P10's such database at
     0.1638 deg (shared: 0.0460), though castle-P19's gained by it (0.038 against 0.044 deg,
-    seeds 0-2). Runs on a database written for it in a temporary folder
-    (removed on every exit path): calibrate_view_graph rewrites the database it is given."""
-    import pycolmap
-
+    seeds 0-2). With ``zoom_check``, whether the images of each calibrated camera agree on
+    its focal (:func:`per_image_focals`) goes to the report's ``per_image``."""
     start = time.perf_counter()
     fundamentals = refit_fundamentals(scene, options, jobs)
     report = {"cameras": sorted(calibrate), "num_pairs": len(fundamentals), "refit_time_s": time.perf_counter() - start}
@@ -342,12 +340,7 @@ def view_graph_focals(scene: SfMScene, calibrate: set[int], options: IntrinsicsO
     groups = [group for group in twin_cameras(scene.intrinsics, calibrate) if len(group) > 1]
     owner = {camera_id: group[0] for group in groups for camera_id in group}
     merged = _merged(scene, groups) if groups else scene
-    with tempfile.TemporaryDirectory(prefix="rotonly-vgc-") as scratch:
-        path = Path(scratch) / "database.db"
-        write_fundamental_database(path, merged, fundamentals, {owner.get(c, c) for c in calibrate})
-        calibration = pycolmap.ViewGraphCalibrationOptions(random_seed=options.seed, reestimate_relative_pose=False)
-        success = bool(pycolmap.calibrate_view_graph(str(path), calibration))
-        params = read_camera_params(path, merged)
+    success, params = _calibrate_view_graph(merged, fundamentals, {owner.get(c, c) for c in calibrate}, options)
     calibrated = {}
     for camera_id in sorted(calibrate):
         given = scene.intrinsics[camera_id]
@@ -361,12 +354,118 @@ def view_graph_focals(scene: SfMScene, calibrate: set[int], options: IntrinsicsO
         updated = np.array(given.params, dtype=np.float64)
         updated[cameras.parameter_groups(given)["focal"]] = focal
         calibrated[camera_id] = replace(given, params=updated)
-    report.update(success=success, focal_px={str(c): k.focal_px for c, k in calibrated.items()},
-                  time_s=time.perf_counter() - start)
+    report.update(success=success, focal_px={str(c): k.focal_px for c, k in calibrated.items()})
+    if options.zoom_check and calibrated:
+        report["per_image"] = per_image_focals(replace(scene, intrinsics={**scene.intrinsics, **calibrated}),
+                                               set(calibrated), fundamentals, options)
+    report["time_s"] = time.perf_counter() - start
     logger.info("intrinsics: view-graph calibration over %d pairs: %s (%.2f s)", len(fundamentals),
                 ", ".join(f"camera {c} f {scene.intrinsics[c].focal_px:.1f} -> {k.focal_px:.1f} px"
                           for c, k in calibrated.items()) or "no camera calibrated", report["time_s"])
     return calibrated, report
+
+
+def _calibrate_view_graph(scene: SfMScene, fundamentals: dict[tuple[int, int], np.ndarray], free: set[int],
+                          options: IntrinsicsOptions) -> tuple[bool, dict[int, np.ndarray]]:
+    """``pycolmap.calibrate_view_graph`` of ``scene``'s cameras in ``free`` (the others held)
+    over ``fundamentals``, on a database written for it in a temporary folder (removed on
+    every exit path: it rewrites the database it is given): (success, {camera: params in
+    COLMAP's model order})."""
+    import pycolmap
+
+    with tempfile.TemporaryDirectory(prefix="rotonly-vgc-") as scratch:
+        path = Path(scratch) / "database.db"
+        write_fundamental_database(path, scene, fundamentals, free)
+        calibration = pycolmap.ViewGraphCalibrationOptions(random_seed=options.seed, reestimate_relative_pose=False)
+        success = bool(pycolmap.calibrate_view_graph(str(path), calibration))
+        return success, read_camera_params(path, scene)
+
+
+def per_image_focals(scene: SfMScene, calibrated: set[int], fundamentals: dict[tuple[int, int], np.ndarray],
+                     options: IntrinsicsOptions) -> dict:
+    """Do the images of one camera agree on its focal length? For every device among
+    ``calibrated`` (a camera, or twins: :func:`twin_cameras`), each of its images with at least
+    ``zoom_min_pairs`` fundamental matrices gets a camera of its own, started at ``scene``'s
+    focal, and the view graph is calibrated again with those free and the rest held; a
+    device with at least ``zoom_min_images`` such images is checked by :func:`focal_groups`:
+    {"focal_px": {camera: {view: focal}}, "disagree": [findings]}. A zoom lens or two devices
+    under one camera (COLMAP's ``single_camera``, OpenMVG's ``-k``) give one focal to images
+    taken at two: fountain-P11's database with four of its eleven images zoomed 5 % ended
+    0.94 deg off, and no shared calibration fits both (docs/tuning.md "Intrinsics")."""
+    pairs_of: dict[int, int] = {}
+    for i, j in fundamentals:
+        pairs_of[i] = pairs_of.get(i, 0) + 1
+        pairs_of[j] = pairs_of.get(j, 0) + 1
+    checked = {}
+    for group in twin_cameras(scene.intrinsics, calibrated):
+        views = sorted(v for v, view in scene.views.items()
+                       if view.intrinsics_id in group and pairs_of.get(v, 0) >= options.zoom_min_pairs)
+        if len(views) >= options.zoom_min_images:
+            checked[group[0]] = views
+    if not checked:
+        return {}
+    # every checked image its own camera (ids after the scene's), free
+    own = {view_id: max(scene.intrinsics) + 1 + n for n, view_id in enumerate(v for vs in checked.values() for v in vs)}
+    intrinsics = dict(scene.intrinsics)
+    for view_id, camera_id in own.items():
+        intrinsics[camera_id] = replace(scene.intrinsics[scene.views[view_id].intrinsics_id], id=camera_id)
+    views = {v: replace(view, intrinsics_id=own.get(v, view.intrinsics_id)) for v, view in scene.views.items()}
+    success, params = _calibrate_view_graph(replace(scene, intrinsics=intrinsics, views=views), fundamentals,
+                                            set(own.values()), options)
+    if not success:
+        return {"success": False}
+    focal_px, disagree = {}, []
+    for first, views_ in checked.items():
+        focal_idx = cameras.parameter_groups(cameras.to_colmap_intrinsics(scene.intrinsics[first]))["focal"]
+        focal_px[first] = focals = {v: float(np.mean(params[own[v]][focal_idx])) for v in views_}
+        groups = focal_groups(focals, options)
+        if groups is not None:
+            disagree.append({"camera": first, "groups": [{"views": group, "names": [scene.views[v].name for v in group],
+                                                           "focal_px": float(np.median([focals[v] for v in group]))}
+                                                          for group in groups]})
+    return {"success": True, "focal_px": {str(c): {str(v): f for v, f in fs.items()} for c, fs in focal_px.items()},
+            "disagree": disagree}
+
+
+def focal_groups(focals: dict[int, float], options: IntrinsicsOptions) -> list[list[int]] | None:
+    """The images of one camera split into two groups at the widest gap between their sorted
+    focal lengths (``focals``: {view: px}) when that gap is a zoom's, not the calibration's
+    scatter: at least ``zoom_min_gap`` (relative), ``zoom_gap_to_spread`` times the larger
+    group's own range, and two images a side; None otherwise. Calibrated cameras' images
+    scatter by ±0.5 % (Herz-Jesus-P8, fountain-P11) and, where few pairs hold a fundamental
+    matrix, by tens of per cent with no gap between groups (entry-P10: -65 % to +0.2 %;
+    castle-P19: -8 % to +3 %)."""
+    views = [v for v, f in focals.items() if np.isfinite(f) and f > 0]
+    if len(views) < 4:
+        return None
+    order = sorted(views, key=lambda v: focals[v])
+    log_focal = np.log([focals[v] for v in order])
+    gaps = np.diff(log_focal)
+    cut = int(np.argmax(gaps)) + 1
+    if cut < 2 or len(order) - cut < 2:
+        return None
+    spread = max(log_focal[cut - 1] - log_focal[0], log_focal[-1] - log_focal[cut])
+    gap = float(gaps[cut - 1])
+    if gap < np.log1p(options.zoom_min_gap) or gap < options.zoom_gap_to_spread * spread:
+        return None
+    return [sorted(order[:cut]), sorted(order[cut:])]
+
+
+def zoom_warning(finding: dict) -> str:
+    """The warning line of one :func:`focal_groups` finding of :func:`per_image_focals`."""
+    low, high = finding["groups"]
+    smaller = min((low, high), key=lambda g: len(g["views"]))
+    other = high if smaller is low else low
+
+    def names(group: dict, shown: int = 6) -> str:
+        listed_ = ", ".join(group["names"][:shown])
+        return listed_ + (f" and {len(group['names']) - shown} more" if len(group["names"]) > shown else "")
+
+    return (f"camera {finding['camera']}: its images disagree on the focal length: {len(smaller['views'])} "
+            f"({names(smaller)}) at {smaller['focal_px']:.0f} px, {len(other['views'])} at {other['focal_px']:.0f} px "
+            f"(the view-graph calibration with a camera per image): a zoom lens or two devices under one camera? "
+            f"One focal cannot fit both: give each image its own camera (COLMAP: --ImageReader.single_camera 0; "
+            f"OpenMVG: SfMInit_ImageListing without -k) and run again")
 
 
 #: the input verifier's configurations of pairs a homography explains best: a rotating camera
@@ -972,6 +1071,8 @@ class Calibration:
         per_camera, overall = mean_reprojection_errors(posed)
         final = {c: posed.intrinsics[c] for c in self.given}
         warnings = warnings_for(self.given, final, set(self.calibrate), overall, self.options)
+        warnings += [zoom_warning(finding) for report in self.view_graph
+                     for finding in (report.get("per_image") or {}).get("disagree", [])]
         for camera_id, intrinsic in self.given.items():
             if intrinsic.prior_focal is False and camera_id not in self.calibrate:
                 warnings.append(f"camera {camera_id}: its focal length is marked as a guess (prior_focal_length = 0) "

@@ -159,12 +159,15 @@ def run_row(label: str, input_path: Path, gt: Path, true: np.ndarray, options, m
             "position": (evaluation.get("position_error") or {}).get("mean", float("nan")),
             "registered": f"{len(result.rotations)}/{result.summary['num_views']}",
             "focal_error_pct": float(focal_errors[np.argmax(np.abs(focal_errors))]),
-            "principal_point_error_px": float(np.hypot(*(ends[:, 1:3] - true[1:3]).T).max())}
+            "principal_point_error_px": float(np.hypot(*(ends[:, 1:3] - true[1:3]).T).max()),
+            # the zoom check's warning (stages.intrinsics.per_image_focals): none of these inputs has a zoom
+            "zoom_warned": any("disagree on the focal length" in w for w in result.summary.get("warnings", []))}
 
 
 def print_row(row: dict) -> None:
     print(f"{row['input']:28s} {row['rotation_deg']:.4f} deg  pos {row['position']:.4f}  {row['registered']}  "
-          f"f {row['focal_error_pct']:+.2f} %  pp {row['principal_point_error_px']:.1f} px", flush=True)
+          f"f {row['focal_error_pct']:+.2f} %  pp {row['principal_point_error_px']:.1f} px"
+          f"{'  ZOOM WARNED' if row.get('zoom_warned') else ''}", flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:

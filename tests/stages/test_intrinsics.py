@@ -201,6 +201,75 @@ def test_view_graph_focal_of_twin_guesses_is_one():
     assert len(focals) == 1 and focals.pop() == pytest.approx(1380.0, rel=0.005)
 
 
+def _zoomed(problem, views: tuple[int, ...], zoom: float):
+    """``problem`` with the images ``views`` taken at ``zoom`` x the focal (no distortion):
+    their keypoints scaled about the principal point, the one camera of the input unchanged."""
+    centre = problem.true.params[1:3]
+    keypoints = {v: centre + zoom * (k - centre) if v in views else k for v, k in problem.keypoints.items()}
+    return replace(problem, keypoints=keypoints)
+
+
+@pytest.mark.parametrize("zoom", [1.0, 1.06])
+def test_view_graph_calibration_names_the_images_of_another_zoom(zoom):
+    """A zoom lens under one camera (COLMAP's single_camera): three of eight images taken at
+    6 % more focal. Calibrated one at a time, those three come out at the zoomed focal and
+    the five at the true one, within 1 %; without the zoom, no group is found."""
+    from rotonly_cli.simulation.user_cameras import user_scene, verified_pairs
+
+    problem = _zoomed(simulate_user_cameras(5, -0.25, 0.0, num_views=8, num_points=2000), (2, 5, 7), zoom)
+    scene = user_scene(problem, problem.guessed, verified_pairs(problem))
+    calibrated, report = stage.view_graph_focals(scene, {1}, IntrinsicsOptions())
+    per_image = report["per_image"]
+    assert sorted(per_image["focal_px"]["1"]) == [str(v) for v in range(1, 9)]
+    if zoom == 1.0:
+        assert per_image["disagree"] == []
+        assert calibrated[1].focal_px == pytest.approx(1380.0, rel=0.005)
+        return
+    (finding,) = per_image["disagree"]
+    assert finding["camera"] == 1
+    low, high = finding["groups"]
+    assert low["views"] == [1, 3, 4, 6, 8] and high["views"] == [2, 5, 7]
+    assert low["focal_px"] == pytest.approx(1380.0, rel=0.01)
+    assert high["focal_px"] == pytest.approx(1380.0 * zoom, rel=0.01)
+    warning = stage.zoom_warning(finding)
+    assert "3 (sim_0002.jpg, sim_0005.jpg, sim_0007.jpg)" in warning and "single_camera 0" in warning
+    _, plain = stage.view_graph_focals(scene, {1}, IntrinsicsOptions(zoom_check=False))
+    assert "per_image" not in plain
+    # images with fewer fundamental matrices than zoom_min_pairs are not judged; too few left: no check
+    _, few = stage.view_graph_focals(scene, {1}, IntrinsicsOptions(zoom_min_pairs=100))
+    assert few["per_image"] == {}
+
+
+@pytest.mark.parametrize("relative, groups", [
+    # a zoom: two tight groups 5 % apart (fountain-P11, four of eleven images zoomed)
+    ([0.3, 5.2, 0.1, -0.1, 4.8, -0.2, -0.1, 5.0, 0.3, 0.1, 5.2], [[0, 2, 3, 5, 6, 8, 9], [1, 4, 7, 10]]),
+    # three of Herz-Jesus-P8's eight images zoomed 3 %
+    ([-0.3, 3.2, -0.4, -0.1, 3.1, 0.4, -0.3, 3.5], [[0, 2, 3, 5, 6], [1, 4, 7]]),
+    # calibrated cameras' scatter: no gap (Herz-Jesus-P8, fountain-P11)
+    ([-0.3, 0.2, -0.4, -0.1, 0.1, 0.3, -0.3, 0.5], None),
+    # few fundamental matrices: wild, but no group is tight (entry-P10, castle-P19)
+    ([-57.8, -64.6, -0.0, 0.0, -11.3, 0.0, 0.0, -23.2, 0.2, 0.2], None),
+    ([0.3, 2.1, 1.0, 0.9, -4.2, -3.6, 0.4, 3.3, -0.6, 0.1, 0.1, -0.2, 0.1, -8.2, -6.8, -2.2, -0.4, 1.0, -0.6], None),
+    # one image off is no group (two a side needed), nor a gap under 2 %
+    ([0.0, 0.1, -0.1, 0.05, 9.0], None),
+    ([0.0, 0.05, 1.5, 1.55], None),
+    ([0.0, 0.05, 2.5, 2.55], [[0, 1], [2, 3]]),
+    ([0.0, 1.0, 3.5, 4.5], None),  # a gap under three times a group's own range
+    ([0.0, 1.0, 9.0], None),  # fewer than four images
+])
+def test_focal_groups_are_a_zoom_not_the_calibration_scatter(relative, groups):
+    """The measured per-image view-graph focals (per cent from the shared one) of docs/tuning.md."""
+    focals = {v: 1380.0 * (1 + r / 100) for v, r in enumerate(relative)}
+    assert stage.focal_groups(focals, IntrinsicsOptions()) == groups
+
+
+def test_options_reject_a_zoom_check_that_cannot_split():
+    with pytest.raises(InputError, match="zoom_min_images"):
+        IntrinsicsOptions(zoom_min_images=3).validate()
+    with pytest.raises(InputError, match="zoom_min_gap"):
+        IntrinsicsOptions(zoom_min_gap=0.0).validate()
+
+
 @pytest.mark.parametrize("fmt", ["colmap", "openmvg"])
 def test_guessed_intrinsics_are_calibrated(user_inputs, reference_error, tmp_path, fmt):
     """COLMAP: prior_focal_length = 0 says the focal is a guess. OpenMVG: a wrong EXIF focal
