@@ -407,7 +407,8 @@ def calibrated_chain(loaded: Run, chain=_chain) -> Run:
         graph_run, full_load = reload(True), False
     if calibration.scene is not run.scene:
         run = _rerun(graph_run, calibration.scene, loaded, estimation=True, chain=chain)
-    for round_ in range(options.max_rounds):
+    round_, last_round = 0, options.max_rounds - 1
+    while True:
         settled = calibration.estimate(output_scene(run))
         if calibration.back_to_given():
             calibration.time_s += time.perf_counter() - started
@@ -415,11 +416,15 @@ def calibrated_chain(loaded: Run, chain=_chain) -> Run:
         if settled and unjudged:  # the guesses settled: now the given cameras can be judged
             unjudged = False
             settled = not judge_given(run)
-        if settled or round_ == options.max_rounds - 1:
+        if (settled or round_ >= last_round) and calibration.check_zoom():
+            # images at another zoom got a camera of their own: rounds for it
+            settled, last_round = False, round_ + options.max_rounds
+        if settled or round_ >= last_round:
             break
         if calibration.moved_from(graph_run.scene):  # the load stage's RANSAC ran with other intrinsics
             graph_run, full_load = reload(True), False
         run = _rerun(graph_run, calibration.scene, loaded, estimation=True, chain=chain)
+        round_ += 1
     calibration.time_s += time.perf_counter() - started
     if not full_load or calibration.moved_from(graph_run.scene):
         graph_run = reload(False)

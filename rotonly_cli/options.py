@@ -513,12 +513,13 @@ class IntrinsicsOptions:
     #: rounds stop when the intrinsics moved by less than this fraction of the half diagonal;
     #: the relative poses of the load stage are re-estimated when they moved by more
     converged_shift: float = 0.02
-    #: whenever the view graph calibrates a camera, it is calibrated again with each of its
-    #: images with at least ``zoom_min_pairs`` fundamental matrices on a camera of its own;
-    #: when ``zoom_min_images`` or more were, the run warns if those focal lengths fall into
-    #: two groups (stages.intrinsics.focal_groups): a gap of at least ``zoom_min_gap``
-    #: (relative) and ``zoom_gap_to_spread`` times either group's own range. A zoom lens
-    #: under one camera (docs/tuning.md "Intrinsics"); an image with one or two fundamental
+    #: once the calibration's rounds settle, each calibrated camera is checked: its images
+    #: with at least ``zoom_min_pairs`` fundamental matrices are calibrated on a camera each
+    #: (stages.intrinsics.Calibration.check_zoom), and when ``zoom_min_images`` or more were,
+    #: two groups of focal lengths (stages.intrinsics.focal_groups: a gap of at least
+    #: ``zoom_min_gap``, relative, and ``zoom_gap_to_spread`` times either group's own range)
+    #: give the images of one group a camera of their own (a zoom lens under one camera:
+    #: docs/algorithms.md §8 "Images at another zoom"); an image with one or two fundamental
     #: matrices took 548 px for 1381 (entry-P10)
     zoom_check: bool = True
     zoom_min_pairs: int = 3

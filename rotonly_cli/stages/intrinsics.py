@@ -326,8 +326,7 @@ def view_graph_focals(scene: SfMScene, calibrate: set[int], options: IntrinsicsO
     four rounds (22 s) to undo. Twins whose focal the input gives (an EXIF camera per image,
     calibrated as suspects) share it too: a focal each left entry-P10's such database at
     0.1638 deg (shared: 0.0460), though castle-P19's gained by it (0.038 against 0.044 deg,
-    seeds 0-2). With ``zoom_check``, whether the images of each calibrated camera agree on
-    its focal (:func:`per_image_focals`) goes to the report's ``per_image``."""
+    seeds 0-2)."""
     start = time.perf_counter()
     fundamentals = refit_fundamentals(scene, options, jobs)
     report = {"cameras": sorted(calibrate), "num_pairs": len(fundamentals), "refit_time_s": time.perf_counter() - start}
@@ -354,11 +353,8 @@ def view_graph_focals(scene: SfMScene, calibrate: set[int], options: IntrinsicsO
         updated = np.array(given.params, dtype=np.float64)
         updated[cameras.parameter_groups(given)["focal"]] = focal
         calibrated[camera_id] = replace(given, params=updated)
-    report.update(success=success, focal_px={str(c): k.focal_px for c, k in calibrated.items()})
-    if options.zoom_check and calibrated:
-        report["per_image"] = per_image_focals(replace(scene, intrinsics={**scene.intrinsics, **calibrated}),
-                                               set(calibrated), fundamentals, options)
-    report["time_s"] = time.perf_counter() - start
+    report.update(success=success, focal_px={str(c): k.focal_px for c, k in calibrated.items()},
+                  time_s=time.perf_counter() - start)
     logger.info("intrinsics: view-graph calibration over %d pairs: %s (%.2f s)", len(fundamentals),
                 ", ".join(f"camera {c} f {scene.intrinsics[c].focal_px:.1f} -> {k.focal_px:.1f} px"
                           for c, k in calibrated.items()) or "no camera calibrated", report["time_s"])
@@ -451,8 +447,9 @@ def focal_groups(focals: dict[int, float], options: IntrinsicsOptions) -> list[l
     return [sorted(order[:cut]), sorted(order[cut:])]
 
 
-def zoom_warning(finding: dict) -> str:
-    """The warning line of one :func:`focal_groups` finding of :func:`per_image_focals`."""
+def zoom_warning(finding: dict, split_to: int | None = None) -> str:
+    """The warning line of one :func:`focal_groups` finding of :func:`per_image_focals`;
+    ``split_to``: the camera the calibration gave the images of one group (Calibration._split)."""
     low, high = finding["groups"]
     smaller = min((low, high), key=lambda g: len(g["views"]))
     other = high if smaller is low else low
@@ -461,11 +458,15 @@ def zoom_warning(finding: dict) -> str:
         listed_ = ", ".join(group["names"][:shown])
         return listed_ + (f" and {len(group['names']) - shown} more" if len(group["names"]) > shown else "")
 
-    return (f"camera {finding['camera']}: its images disagree on the focal length: {len(smaller['views'])} "
-            f"({names(smaller)}) at {smaller['focal_px']:.0f} px, {len(other['views'])} at {other['focal_px']:.0f} px "
-            f"(the view-graph calibration with a camera per image): a zoom lens or two devices under one camera? "
-            f"One focal cannot fit both: give each image its own camera (COLMAP: --ImageReader.single_camera 0; "
-            f"OpenMVG: SfMInit_ImageListing without -k) and run again")
+    found = (f"camera {finding['camera']}: its images disagree on the focal length: {len(smaller['views'])} "
+             f"({names(smaller)}) at {smaller['focal_px']:.0f} px, {len(other['views'])} at {other['focal_px']:.0f} px "
+             f"(the view-graph calibration with a camera per image): a zoom lens or two devices under one camera? ")
+    if split_to is not None:
+        return found + (f"The images of one focal were given camera {split_to} and both were calibrated (the outputs "
+                        f"have it); with a camera per image (COLMAP: --ImageReader.single_camera 0; OpenMVG: "
+                        f"SfMInit_ImageListing without -k) the input would say so itself")
+    return found + ("One focal cannot fit both: give each image its own camera (COLMAP: --ImageReader.single_camera 0; "
+                    "OpenMVG: SfMInit_ImageListing without -k) and run again")
 
 
 #: the input verifier's configurations of pairs a homography explains best: a rotating camera
@@ -901,6 +902,11 @@ class Calibration:
     #: wall time the calibration added to the run (view-graph focals, estimation passes and
     #: rounds; not the pass whose result is written)
     time_s: float = 0.0
+    #: cameras this calibration added for images at another zoom (:meth:`_split`): {new
+    #: camera: {"from": camera, "views": [...], "names": [...], "focal_px": its view-graph focal}}
+    splits: dict[int, dict] = field(default_factory=dict)
+    #: the report of :meth:`check_zoom` (None: not made)
+    zoom_check: dict | None = None
 
     def shift_limit_px(self, camera_id: int) -> float:
         """:func:`shift_limit_px` of a given camera at the matches' measured noise."""
@@ -927,6 +933,77 @@ class Calibration:
                 # if significant
                 if shift_px(self.given[camera_id], focals[camera_id]) <= self.shift_limit_px(camera_id):
                     self.scene = with_intrinsics(self.scene, {camera_id: self.given[camera_id]})
+
+    def check_zoom(self) -> bool:
+        """Once, when the rounds have settled: do the images of each calibrated camera agree on
+        its focal (:func:`per_image_focals`)? The check's cameras (:meth:`_check_camera`) take
+        the rounds' distortion and focal, and the given principal point; images at another zoom
+        get a camera of their own (:meth:`_split`). True if some did: the rounds go on.
+        On the first view-graph calibration's cameras (no distortion yet), a simulated capture
+        with k1 = -0.3 and the focal guessed 40 % long split its images at 2149 and 3112 px
+        (true: 1380 for all); on the settled ones as they are, a zoom bends the principal
+        point (Herz-Jesus-P8 with three images zoomed 5 %: 60 px), and the groups drown."""
+        if not self.options.zoom_check or self.zoom_check is not None:
+            return False
+        start = time.perf_counter()
+        devices = {c for c in self.calibrate if c not in self.splits}
+        checked = {c: self._check_camera(c) for c in devices}
+        scene = with_intrinsics(self.scene, checked)
+        fundamentals = refit_fundamentals(scene, self.options, self.jobs) if devices else {}
+        self.zoom_check = per_image_focals(scene, devices, fundamentals, self.options) if fundamentals else {}
+        split = [self._split(finding, checked) for finding in self.zoom_check.get("disagree", [])]
+        self.zoom_check["time_s"] = time.perf_counter() - start
+        self.time_s += self.zoom_check["time_s"]
+        return any(split)
+
+    def _check_camera(self, camera_id: int) -> Intrinsics:
+        """The given camera with the current distortion and mean focal length (the given ratio
+        of fx to fy kept): what the zoom check calibrates each image from."""
+        given, current = self.given[camera_id], self.scene.intrinsics[camera_id]
+        groups = cameras.parameter_groups(given)
+        params = np.array(given.params, dtype=np.float64)
+        if current.model == given.model and len(groups.get("distortion", [])):
+            params[groups["distortion"]] = np.asarray(current.params, dtype=np.float64)[groups["distortion"]]
+        params[groups["focal"]] *= current.focal_px / given.focal_px
+        return replace(given, params=params)
+
+    def _split(self, finding: dict, checked: dict[int, Intrinsics]) -> bool:
+        """One camera's images at two focal lengths (a :func:`per_image_focals` finding on the
+        ``checked`` cameras): the group whose focal lies farther from the camera's given one
+        moves to a camera of its own, both restart from the checked camera with their group's
+        focal, and the new one is calibrated as a guess from there (its ``given`` says so: the
+        input's focal is wrong for those images). Only a camera of its own images; twins (a
+        camera per image, the images of each group still tied by one focal) keep the warning."""
+        camera_id = finding["camera"]
+        if any(camera_id in group and len(group) > 1 for group in twin_cameras(self.given, self.given)):
+            return False
+        given_focal = self.given[camera_id].focal_px
+        low, high = finding["groups"]
+        move = max((low, high), key=lambda group: abs(np.log(group["focal_px"] / given_focal)))
+        keep = high if move is low else low
+        new_id = max(set(self.given) | set(self.scene.intrinsics)) + 1
+
+        def with_focal(intrinsics: Intrinsics, value: float, **changes) -> Intrinsics:
+            params = np.array(intrinsics.params, dtype=np.float64)
+            params[cameras.parameter_groups(intrinsics)["focal"]] *= value / intrinsics.focal_px
+            return replace(intrinsics, params=params, **changes)
+
+        # Not a twin of the camera it came from: twins share the first adjustment's focal,
+        # which bent a simulated capture's principal point by 18 px
+        self.given[new_id] = with_focal(self.given[camera_id], move["focal_px"], id=new_id, prior_focal=False)
+        views = {v: replace(view, intrinsics_id=new_id) if v in move["views"] else view
+                 for v, view in self.scene.views.items()}
+        self.scene = with_intrinsics(replace(self.scene, views=views), {
+            new_id: with_focal(checked[camera_id], move["focal_px"], id=new_id),
+            camera_id: with_focal(checked[camera_id], keep["focal_px"])})
+        self.calibrate[new_id] = "zoom"
+        self.reference[new_id] = cameras.refinement_model(self.scene.intrinsics[new_id])
+        self.splits[new_id] = {"from": camera_id, "views": list(move["views"]), "names": list(move["names"]),
+                               "focal_px": float(move["focal_px"])}
+        logger.info("intrinsics: camera %d's images %s are at another zoom (%.0f px against %.0f px): camera %d, "
+                    "calibrated on its own", camera_id, ", ".join(move["names"]), move["focal_px"], keep["focal_px"],
+                    new_id)
+        return True
 
     def add_suspects(self, sigma_by_camera: dict[str, float], scene: SfMScene,
                      posed: Callable[[], SfMScene] | None = None) -> bool:
@@ -1059,20 +1136,23 @@ class Calibration:
     def moved_from(self, scene: SfMScene) -> bool:
         """True if the current intrinsics moved the image of some camera by more than
         ``converged_shift`` from ``scene``'s (whose load stage then no longer fits)."""
-        return any(shift_px(scene.intrinsics[c], self.scene.intrinsics[c]) / half_diagonal(scene.intrinsics[c])
-                   > self.options.converged_shift for c in self.calibrate)
+        return any(c not in scene.intrinsics or shift_px(scene.intrinsics[c], self.scene.intrinsics[c])
+                   / half_diagonal(scene.intrinsics[c]) > self.options.converged_shift for c in self.calibrate)
 
     def back_to_given(self) -> bool:
-        """True when there is a fallback run and every camera is back to its given intrinsics."""
-        return self.fallback is not None and all(_same(self.scene.intrinsics[c], k) for c, k in self.given.items())
+        """True when there is a fallback run and every camera is back to its given intrinsics
+        (never after a split: the fallback gave the split images the other focal)."""
+        return self.fallback is not None and not self.splits and all(_same(self.scene.intrinsics[c], k)
+                                                                     for c, k in self.given.items())
 
     def finish(self, posed: SfMScene) -> dict:
         """The report (reports/intrinsics.json) of the run's final reconstruction ``posed``."""
         per_camera, overall = mean_reprojection_errors(posed)
         final = {c: posed.intrinsics[c] for c in self.given}
         warnings = warnings_for(self.given, final, set(self.calibrate), overall, self.options)
-        warnings += [zoom_warning(finding) for report in self.view_graph
-                     for finding in (report.get("per_image") or {}).get("disagree", [])]
+        split_to = {split["from"]: new_id for new_id, split in self.splits.items()}
+        warnings += [zoom_warning(finding, split_to.get(finding["camera"]))
+                     for finding in (self.zoom_check or {}).get("disagree", [])]
         for camera_id, intrinsic in self.given.items():
             if intrinsic.prior_focal is False and camera_id not in self.calibrate:
                 warnings.append(f"camera {camera_id}: its focal length is marked as a guess (prior_focal_length = 0) "
@@ -1089,6 +1169,7 @@ class Calibration:
             "settled": self.settled, "suspect_threshold_px": self.suspect_threshold_px,
             "centred_principal_point_check": self.centred_check, "suspect_check": self.suspect_check,
             "noise_sigma_px": self.noise_sigma_px,
+            "zoom_check": self.zoom_check, "split_cameras": {str(c): split for c, split in self.splits.items()},
             "kept_given_intrinsics": all(_same(final[c], k) for c, k in self.given.items()),
             "warnings": warnings, "time_s": self.time_s}
         return self.result
@@ -1098,11 +1179,28 @@ class Calibration:
         input's ({id: {"model", "params"}}), so that the stage commands use the same."""
         cameras_ = {str(c): {"model": k.model, "params": [float(v) for v in np.asarray(k.params).ravel()]}
                     for c, k in self.scene.intrinsics.items() if c in self.given and not _same(k, self.given[c])}
-        return {"mode": str(self.options.mode), "cameras": cameras_} if cameras_ else {}
+        splits = {str(c): {"from": split["from"], "views": split["views"], "focal_px": split["focal_px"]}
+                  for c, split in self.splits.items()}
+        return {"mode": str(self.options.mode), "cameras": cameras_, **({"splits": splits} if splits else {})} \
+            if cameras_ or splits else {}
 
     def restore(self, saved: dict) -> None:
         """The intrinsics of :meth:`changed` (saved by an earlier command) in place of the input's."""
         restored = {}
+        for key, split in (saved or {}).get("splits", {}).items():  # the cameras a zoom check added
+            camera_id, source = int(key), int(split["from"])
+            if source not in self.given or camera_id in self.given or not set(split["views"]) <= set(self.scene.views):
+                raise InputError("the workspace's split camera does not fit the input",
+                                 field=f"state.npz options.intrinsics.splits[{key}]")
+            start = self.given[source]
+            params = np.array(start.params, dtype=np.float64)
+            params[cameras.parameter_groups(start)["focal"]] *= float(split["focal_px"]) / start.focal_px
+            self.given[camera_id] = replace(start, id=camera_id, params=params, prior_focal=False)
+            views = {v: replace(view, intrinsics_id=camera_id) if v in split["views"] else view
+                     for v, view in self.scene.views.items()}
+            self.scene = with_intrinsics(replace(self.scene, views=views), {camera_id: self.given[camera_id]})
+            self.splits[camera_id] = {"from": source, "views": list(split["views"]),
+                                      "focal_px": float(split["focal_px"])}
         for key, camera in (saved or {}).get("cameras", {}).items():
             camera_id = int(key)
             if camera_id not in self.given:

@@ -210,17 +210,19 @@ def _zoomed(problem, views: tuple[int, ...], zoom: float):
 
 
 @pytest.mark.parametrize("zoom", [1.0, 1.06])
-def test_view_graph_calibration_names_the_images_of_another_zoom(zoom):
+def test_per_image_focals_name_the_images_of_another_zoom(zoom):
     """A zoom lens under one camera (COLMAP's single_camera): three of eight images taken at
-    6 % more focal. Calibrated one at a time, those three come out at the zoomed focal and
-    the five at the true one, within 1 %; without the zoom, no group is found."""
+    6 % more focal. With a camera each, those three come out at the zoomed focal and the five
+    at the true one, within 1 %; without the zoom, no group is found."""
     from rotonly_cli.simulation.user_cameras import user_scene, verified_pairs
 
     problem = _zoomed(simulate_user_cameras(5, -0.25, 0.0, num_views=8, num_points=2000), (2, 5, 7), zoom)
     scene = user_scene(problem, problem.guessed, verified_pairs(problem))
-    calibrated, report = stage.view_graph_focals(scene, {1}, IntrinsicsOptions())
-    per_image = report["per_image"]
-    assert sorted(per_image["focal_px"]["1"]) == [str(v) for v in range(1, 9)]
+    calibrated, _ = stage.view_graph_focals(scene, {1}, IntrinsicsOptions())
+    scene = stage.with_intrinsics(scene, calibrated)
+    fundamentals = stage.refit_fundamentals(scene, IntrinsicsOptions())
+    per_image = stage.per_image_focals(scene, {1}, fundamentals, IntrinsicsOptions())
+    assert per_image["success"] and sorted(per_image["focal_px"]["1"]) == [str(v) for v in range(1, 9)]
     if zoom == 1.0:
         assert per_image["disagree"] == []
         assert calibrated[1].focal_px == pytest.approx(1380.0, rel=0.005)
@@ -233,11 +235,60 @@ def test_view_graph_calibration_names_the_images_of_another_zoom(zoom):
     assert high["focal_px"] == pytest.approx(1380.0 * zoom, rel=0.01)
     warning = stage.zoom_warning(finding)
     assert "3 (sim_0002.jpg, sim_0005.jpg, sim_0007.jpg)" in warning and "single_camera 0" in warning
-    _, plain = stage.view_graph_focals(scene, {1}, IntrinsicsOptions(zoom_check=False))
-    assert "per_image" not in plain
+    assert "were given camera 9" in stage.zoom_warning(finding, 9)
     # images with fewer fundamental matrices than zoom_min_pairs are not judged; too few left: no check
-    _, few = stage.view_graph_focals(scene, {1}, IntrinsicsOptions(zoom_min_pairs=100))
-    assert few["per_image"] == {}
+    assert stage.per_image_focals(scene, {1}, fundamentals, IntrinsicsOptions(zoom_min_pairs=100)) == {}
+
+
+@pytest.fixture(scope="module")
+def zoomed_inputs(tmp_path_factory):
+    """Eight views, three of them (2, 5, 7) taken at 6 % more focal, under one camera: as
+    COLMAP's guess (single_camera, focal 25 % off) and as a known camera with the other
+    images' true focal (OpenMVG's -k)."""
+    problem = _zoomed(simulate_user_cameras(5, -0.25, 0.0, num_views=8, num_points=2000), (2, 5, 7), 1.06)
+    root = tmp_path_factory.mktemp("zoomed")
+    return problem, write_inputs(root / "guessed", problem), write_inputs(root / "known", problem, true_intrinsics=True)
+
+
+@pytest.mark.parametrize("which, fmt", [("guessed", "colmap"), ("known", "openmvg")])
+def test_images_of_another_zoom_get_a_camera_of_their_own(zoomed_inputs, tmp_path, which, fmt):
+    """The zoom check splits the camera: the three zoomed images end on a camera of their
+    own at the zoomed focal, the others on theirs, within 0.5 % each; the rotations are
+    those of a calibrated capture, where one focal for all (the check off) is far off; the
+    warning says what was done; the workspace's stage commands keep the split."""
+    _, guessed, known = zoomed_inputs
+    paths = {"guessed": guessed, "known": known}[which]
+    summary = run_pipeline(paths[fmt], tmp_path / "out", _options())
+    scene = read_scene(tmp_path / "out" / "sfm_data.json")
+    camera_of = {int(view.name[4:8]): view.intrinsics_id for view in scene.views.values()}
+    assert len(set(camera_of.values())) == 2
+    assert {camera_of[v] for v in (2, 5, 7)} != {camera_of[v] for v in (1, 3, 4, 6, 8)}
+    assert len({camera_of[v] for v in (2, 5, 7)}) == len({camera_of[v] for v in (1, 3, 4, 6, 8)}) == 1
+    focal = {v: scene.intrinsics[camera_of[v]].focal_px for v in camera_of}
+    assert focal[2] == pytest.approx(1380.0 * 1.06, rel=0.005) and focal[1] == pytest.approx(1380.0, rel=0.005)
+    split = _rotation_error(tmp_path / "out", paths["gt"])
+    assert any("were given camera" in w for w in summary["warnings"])
+    one_focal = run_pipeline(paths[fmt], tmp_path / "one", RunOptions(jobs=1, intrinsics=IntrinsicsOptions(
+        zoom_check=False)))
+    assert not any("disagree on the focal" in w for w in one_focal["warnings"])
+    assert split <= 0.03 and _rotation_error(tmp_path / "one", paths["gt"]) >= 5 * split
+    resume(tmp_path / "out", "triangulate")
+    assert len(read_scene(tmp_path / "out" / "sfm_data.json").intrinsics) == 2
+
+
+def test_strong_distortion_is_no_zoom(tmp_path):
+    """A guessed focal 40 % long and k1 = -0.3 (the intrinsics benchmark's seed 1): checked on
+    the first view-graph calibration, before the rounds had the distortion, its images fell
+    into two groups at 2149 and 3112 px; on the settled distortion they agree, and the one
+    camera stays one, at the true focal."""
+    problem = simulate_user_cameras(1, 0.4, -0.3, num_views=8, num_points=4000)
+    paths = write_inputs(tmp_path / "input", problem, formats=("colmap",))
+    summary = run_pipeline(paths["colmap"], tmp_path / "out", _options())
+    report = json.loads((tmp_path / "out" / "reports" / "intrinsics.json").read_text())
+    assert report["zoom_check"]["disagree"] == [] and report["split_cameras"] == {}
+    assert list(summary["intrinsics"]) == ["1"]
+    assert summary["intrinsics"]["1"]["end"][0] == pytest.approx(1380.0, rel=0.005)
+    assert not any("disagree on the focal" in w for w in summary["warnings"])
 
 
 @pytest.mark.parametrize("relative, groups", [
