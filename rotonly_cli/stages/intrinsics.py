@@ -377,10 +377,10 @@ def _calibrate_view_graph(scene: SfMScene, fundamentals: dict[tuple[int, int], n
         return success, read_camera_params(path, scene)
 
 
-def per_image_focals(scene: SfMScene, calibrated: set[int], fundamentals: dict[tuple[int, int], np.ndarray],
+def per_image_focals(scene: SfMScene, devices: list[list[int]], fundamentals: dict[tuple[int, int], np.ndarray],
                      options: IntrinsicsOptions) -> dict:
-    """Do the images of one camera agree on its focal length? For every device among
-    ``calibrated`` (a camera, or twins: :func:`twin_cameras`), each of its images with at least
+    """Do the images of one camera agree on its focal length? For every device of ``devices``
+    (a camera, or twins: :func:`twin_cameras`, as lists of camera ids), each of its images with at least
     ``zoom_min_pairs`` fundamental matrices gets a camera of its own, started at ``scene``'s
     focal, and the view graph is calibrated again with those free and the rest held; a
     device with at least ``zoom_min_images`` such images is checked by :func:`focal_groups`:
@@ -393,7 +393,7 @@ def per_image_focals(scene: SfMScene, calibrated: set[int], fundamentals: dict[t
         pairs_of[i] = pairs_of.get(i, 0) + 1
         pairs_of[j] = pairs_of.get(j, 0) + 1
     checked = {}
-    for group in twin_cameras(scene.intrinsics, calibrated):
+    for group in devices:
         views = sorted(v for v, view in scene.views.items()
                        if view.intrinsics_id in group and pairs_of.get(v, 0) >= options.zoom_min_pairs)
         if len(views) >= options.zoom_min_images:
@@ -946,8 +946,9 @@ class Calibration:
         if not self.options.zoom_check or self.zoom_check is not None:
             return False
         start = time.perf_counter()
-        devices = {c for c in self.calibrate if c not in self.splits}
-        checked = {c: self._check_camera(c) for c in devices}
+        # twins are one device, checked from one camera (the rounds gave a guess's twins a focal each)
+        devices = twin_cameras(self.given, {c for c in self.calibrate if c not in self.splits})
+        checked = {c: replace(self._check_camera(group), id=c) for group in devices for c in group}
         scene = with_intrinsics(self.scene, checked)
         fundamentals = refit_fundamentals(scene, self.options, self.jobs) if devices else {}
         self.zoom_check = per_image_focals(scene, devices, fundamentals, self.options) if fundamentals else {}
@@ -956,15 +957,17 @@ class Calibration:
         self.time_s += self.zoom_check["time_s"]
         return any(split)
 
-    def _check_camera(self, camera_id: int) -> Intrinsics:
-        """The given camera with the current distortion and mean focal length (the given ratio
-        of fx to fy kept): what the zoom check calibrates each image from."""
-        given, current = self.given[camera_id], self.scene.intrinsics[camera_id]
+    def _check_camera(self, device: list[int]) -> Intrinsics:
+        """The given camera of ``device`` (twins' camera ids) with the current distortion (its
+        first camera's) and mean focal length (the given ratio of fx to fy kept): what the
+        zoom check calibrates each image from."""
+        given, current = self.given[device[0]], self.scene.intrinsics[device[0]]
         groups = cameras.parameter_groups(given)
         params = np.array(given.params, dtype=np.float64)
         if current.model == given.model and len(groups.get("distortion", [])):
             params[groups["distortion"]] = np.asarray(current.params, dtype=np.float64)[groups["distortion"]]
-        params[groups["focal"]] *= current.focal_px / given.focal_px
+        focal = float(np.mean([self.scene.intrinsics[c].focal_px for c in device]))
+        params[groups["focal"]] *= focal / given.focal_px
         return replace(given, params=params)
 
     def _split(self, finding: dict, checked: dict[int, Intrinsics]) -> bool:

@@ -221,7 +221,7 @@ def test_per_image_focals_name_the_images_of_another_zoom(zoom):
     calibrated, _ = stage.view_graph_focals(scene, {1}, IntrinsicsOptions())
     scene = stage.with_intrinsics(scene, calibrated)
     fundamentals = stage.refit_fundamentals(scene, IntrinsicsOptions())
-    per_image = stage.per_image_focals(scene, {1}, fundamentals, IntrinsicsOptions())
+    per_image = stage.per_image_focals(scene, [[1]], fundamentals, IntrinsicsOptions())
     assert per_image["success"] and sorted(per_image["focal_px"]["1"]) == [str(v) for v in range(1, 9)]
     if zoom == 1.0:
         assert per_image["disagree"] == []
@@ -237,7 +237,7 @@ def test_per_image_focals_name_the_images_of_another_zoom(zoom):
     assert "3 (sim_0002.jpg, sim_0005.jpg, sim_0007.jpg)" in warning and "single_camera 0" in warning
     assert "were given camera 9" in stage.zoom_warning(finding, 9)
     # images with fewer fundamental matrices than zoom_min_pairs are not judged; too few left: no check
-    assert stage.per_image_focals(scene, {1}, fundamentals, IntrinsicsOptions(zoom_min_pairs=100)) == {}
+    assert stage.per_image_focals(scene, [[1]], fundamentals, IntrinsicsOptions(zoom_min_pairs=100)) == {}
 
 
 @pytest.fixture(scope="module")
@@ -274,6 +274,21 @@ def test_images_of_another_zoom_get_a_camera_of_their_own(zoomed_inputs, tmp_pat
     assert split <= 0.03 and _rotation_error(tmp_path / "one", paths["gt"]) >= 5 * split
     resume(tmp_path / "out", "triangulate")
     assert len(read_scene(tmp_path / "out" / "sfm_data.json").intrinsics) == 2
+
+
+def test_twins_at_another_zoom_are_warned_about_not_split(zoomed_inputs, tmp_path):
+    """COLMAP's camera per image with one guess for all (twins, calibrated as one device):
+    the zoomed images are named, and the warning tells what to give them; the cameras stay
+    as the input has them (one per image)."""
+    problem, _, _ = zoomed_inputs
+    paths = write_inputs(tmp_path / "input", problem, formats=("colmap",), camera_per_view=True)
+    summary = run_pipeline(paths["colmap"], tmp_path / "out", _options())
+    report = json.loads((tmp_path / "out" / "reports" / "intrinsics.json").read_text())
+    (finding,) = report["zoom_check"]["disagree"]
+    assert [group["views"] for group in finding["groups"]] == [[1, 3, 4, 6, 8], [2, 5, 7]]
+    assert report["split_cameras"] == {} and len(summary["intrinsics"]) == 8
+    (warning,) = [w for w in summary["warnings"] if "disagree on the focal" in w]
+    assert "One focal cannot fit both" in warning
 
 
 def test_strong_distortion_is_no_zoom(tmp_path):
