@@ -530,3 +530,28 @@ def test_probe_low_resolution_on_rendered_images(tmp_path, capsys, monkeypatch):
     assert (tmp_path / "work" / "Room_x2" / "database.db").is_file()
     assert sorted(p.name for p in (tmp_path / "work" / "Room_x2" / "images").iterdir()) == \
         [f"{index:04d}.jpg" for index in range(8)]
+
+
+def test_probe_zoom_on_fixture(tmp_path, capsys):
+    """The Herz-Jesu fixture's database with every third image (0000, 0005, 0007) at 5 % more
+    focal under its one camera: the zoom check finds exactly those, writes two cameras and
+    warns, and the rotations are those of a calibrated capture (the fixture's 0.0193 deg,
+    within 2x), where the one camera as given ends 10x worse or more; the fixture is untouched."""
+    from rotonly_cli.io.colmap import read_database
+
+    probe_zoom = _load_script("probe_zoom")
+    scene = read_database(FIXTURES / "herzjesu_p8" / "database.db")
+    views = probe_zoom.zoomed_views(scene, 3)
+    zoomed = read_database(probe_zoom.zoomed_database(scene, views, 1.05, tmp_path / "zoomed.db"))
+    centre = np.array([760.595, 503.655])
+    for v in scene.views:
+        expected = centre + (1.05 if v in views else 1.0) * (scene.keypoints[v] - centre)
+        assert np.allclose(zoomed.keypoints[v], expected, atol=1e-3)
+    (tmp_path / "root").mkdir()
+    (tmp_path / "root" / "Herz-Jesus-P8").symlink_to(FIXTURES / "herzjesu_p8")
+    before = _digest(FIXTURES / "herzjesu_p8" / "database.db")
+    assert probe_zoom.main(["--root", str(tmp_path / "root"), "--scenes", "Herz-Jesus-P8", "--zooms", "1.05"]) == 0
+    assert _digest(FIXTURES / "herzjesu_p8" / "database.db") == before
+    (row,) = [line.split(" | ") for line in capsys.readouterr().out.splitlines() if line.startswith("| Herz")]
+    assert row[2] == row[5] == "0000 0005 0007" and row[4] == "2" and row[6] == "yes"
+    assert float(row[3]) < 2 * 0.0193 and float(row[7].rstrip(" |")) > 10 * float(row[3])
