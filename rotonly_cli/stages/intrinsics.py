@@ -447,9 +447,10 @@ def focal_groups(focals: dict[int, float], options: IntrinsicsOptions) -> list[l
     return [sorted(order[:cut]), sorted(order[cut:])]
 
 
-def zoom_warning(finding: dict, split_to: int | None = None) -> str:
+def zoom_warning(finding: dict, split_to: int | None = None, twins: bool = False) -> str:
     """The warning line of one :func:`focal_groups` finding of :func:`per_image_focals`;
-    ``split_to``: the camera the calibration gave the images of one group (Calibration._split)."""
+    ``split_to``: the camera the calibration gave the images of one group (Calibration._split);
+    ``twins``: the finding is about cameras given identical intrinsics (not split)."""
     low, high = finding["groups"]
     smaller = min((low, high), key=lambda g: len(g["views"]))
     other = high if smaller is low else low
@@ -465,6 +466,9 @@ def zoom_warning(finding: dict, split_to: int | None = None) -> str:
         return found + (f"The images of one focal were given camera {split_to} and both were calibrated (the outputs "
                         f"have it); with a camera per image (COLMAP: --ImageReader.single_camera 0; OpenMVG: "
                         f"SfMInit_ImageListing without -k) the input would say so itself")
+    if twins:
+        return found + ("One focal cannot fit both, and cameras given identical intrinsics are calibrated as one "
+                        "device: give the images of each zoom their own intrinsics (their EXIF focal) and run again")
     return found + ("One focal cannot fit both: give each image its own camera (COLMAP: --ImageReader.single_camera 0; "
                     "OpenMVG: SfMInit_ImageListing without -k) and run again")
 
@@ -1154,7 +1158,8 @@ class Calibration:
         final = {c: posed.intrinsics[c] for c in self.given}
         warnings = warnings_for(self.given, final, set(self.calibrate), overall, self.options)
         split_to = {split["from"]: new_id for new_id, split in self.splits.items()}
-        warnings += [zoom_warning(finding, split_to.get(finding["camera"]))
+        twins = {c for group in twin_cameras(self.given, self.given) if len(group) > 1 for c in group}
+        warnings += [zoom_warning(finding, split_to.get(finding["camera"]), finding["camera"] in twins)
                      for finding in (self.zoom_check or {}).get("disagree", [])]
         for camera_id, intrinsic in self.given.items():
             if intrinsic.prior_focal is False and camera_id not in self.calibrate:

@@ -288,7 +288,7 @@ def test_twins_at_another_zoom_are_warned_about_not_split(zoomed_inputs, tmp_pat
     assert [group["views"] for group in finding["groups"]] == [[1, 3, 4, 6, 8], [2, 5, 7]]
     assert report["split_cameras"] == {} and len(summary["intrinsics"]) == 8
     (warning,) = [w for w in summary["warnings"] if "disagree on the focal" in w]
-    assert "One focal cannot fit both" in warning
+    assert "calibrated as one device: give the images of each zoom their own intrinsics" in warning
 
 
 def test_strong_distortion_is_no_zoom(tmp_path):
