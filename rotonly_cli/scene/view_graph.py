@@ -250,3 +250,17 @@ def edge_batch(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: list[
     x_j = np.concatenate([normalized[graph.edges[k].j][graph.edges[k].matches[:, 1]] for k in edges])
     counts = np.array([graph.edges[k].num_inliers for k in edges], dtype=np.int64)
     return pg.pack_flat(x_i, x_j, np.concatenate([[0], np.cumsum(counts)]))
+
+
+def edge_residuals_deg(edges: list[Edge], R_cam_from_world: dict[int, np.ndarray]) -> np.ndarray:
+    """Angle (deg) between each of ``edges``' relative rotation R_j_from_i and the one
+    ``R_cam_from_world`` implies, R_j R_iᵀ (view id -> rotation; every edge's views in it),
+    in one batch: the residual of the averaging's view-graph check."""
+    from rotonly_cli.geometry import so3
+
+    if not edges:
+        return np.zeros(0)
+    R_i = np.stack([R_cam_from_world[edge.i] for edge in edges])
+    R_j = np.stack([R_cam_from_world[edge.j] for edge in edges])
+    R_pair = np.stack([edge.R_j_from_i for edge in edges])
+    return np.degrees(so3.geodesic_angle(R_pair, R_j @ np.swapaxes(R_i, 1, 2)))

@@ -17,7 +17,14 @@ import numpy as np
 from rotonly_cli.errors import AlgorithmError
 from rotonly_cli.geometry.averaging import AveragingOptions, average_rotations
 from rotonly_cli.options import AverageOptions
-from rotonly_cli.scene.view_graph import ViewGraph, bridge_edges, largest_component, view_index
+from rotonly_cli.scene.view_graph import (
+    ViewGraph,
+    bridge_edges,
+    edge_residuals_deg,
+    largest_component,
+    regular_edges,
+    view_index,
+)
 from rotonly_cli.stages import listed
 
 logger = logging.getLogger(__name__)
@@ -117,17 +124,9 @@ def pair_residuals_deg(graph: ViewGraph, R_cam_from_world: dict[int, np.ndarray]
     ``R_cam_from_world`` (view id -> rotation). Each pair's translation is free in TRRM and in
     GRRM, so where it is poorly fixed (few matches, noisy or low-resolution keypoints) the
     pairs scatter about the global solution, and the rotations are uncertain at that level."""
-    from rotonly_cli.geometry import so3
-    from rotonly_cli.scene.view_graph import regular_edges
-
-    edges = [graph.edges[k] for k in regular_edges(graph)
-             if graph.edges[k].i in R_cam_from_world and graph.edges[k].j in R_cam_from_world]
-    if not edges:
-        return np.zeros(0)
-    R_i = np.stack([R_cam_from_world[edge.i] for edge in edges])
-    R_j = np.stack([R_cam_from_world[edge.j] for edge in edges])
-    R_pair = np.stack([edge.R_j_from_i for edge in edges])
-    return np.degrees(so3.geodesic_angle(R_pair, R_j @ np.swapaxes(R_i, 1, 2)))
+    return edge_residuals_deg([graph.edges[k] for k in regular_edges(graph)
+                               if graph.edges[k].i in R_cam_from_world and graph.edges[k].j in R_cam_from_world],
+                              R_cam_from_world)
 
 
 def pair_scatter_deg(graph: ViewGraph, poses: dict) -> float | None:

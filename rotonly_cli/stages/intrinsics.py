@@ -388,14 +388,11 @@ def per_image_focals(scene: SfMScene, devices: list[list[int]], fundamentals: di
     under one camera (COLMAP's ``single_camera``, OpenMVG's ``-k``) give one focal to images
     taken at two: fountain-P11's database with four of its eleven images zoomed 5 % ended
     0.94 deg off, and no shared calibration fits both (docs/tuning.md "Intrinsics")."""
-    pairs_of: dict[int, int] = {}
-    for i, j in fundamentals:
-        pairs_of[i] = pairs_of.get(i, 0) + 1
-        pairs_of[j] = pairs_of.get(j, 0) + 1
+    paired, pairs_of = np.unique(np.array(list(fundamentals), dtype=np.int64).reshape(-1), return_counts=True)
+    enough = set(paired[pairs_of >= options.zoom_min_pairs].tolist())
     checked = {}
     for group in devices:
-        views = sorted(v for v, view in scene.views.items()
-                       if view.intrinsics_id in group and pairs_of.get(v, 0) >= options.zoom_min_pairs)
+        views = sorted(v for v, view in scene.views.items() if view.intrinsics_id in group and v in enough)
         if len(views) >= options.zoom_min_images:
             checked[group[0]] = views
     if not checked:
@@ -867,6 +864,14 @@ def with_intrinsics(scene: SfMScene, changed: dict[int, Intrinsics]) -> SfMScene
     return copy
 
 
+def with_focal(intrinsics: Intrinsics, focal_px: float, **changes) -> Intrinsics:
+    """``intrinsics`` with its mean focal length (Intrinsics.focal_px) at ``focal_px``, the
+    ratio of fx to fy kept, and ``changes`` (dataclass fields) applied."""
+    params = np.array(intrinsics.params, dtype=np.float64)
+    params[cameras.parameter_groups(intrinsics)["focal"]] *= focal_px / intrinsics.focal_px
+    return replace(intrinsics, params=params, **changes)
+
+
 def _same(a: Intrinsics, b: Intrinsics) -> bool:
     return a.model == b.model and np.array_equal(np.asarray(a.params), np.asarray(b.params))
 
@@ -966,13 +971,12 @@ class Calibration:
         first camera's) and mean focal length (the given ratio of fx to fy kept): what the
         zoom check calibrates each image from."""
         given, current = self.given[device[0]], self.scene.intrinsics[device[0]]
-        groups = cameras.parameter_groups(given)
+        distortion = cameras.parameter_groups(given).get("distortion", [])
         params = np.array(given.params, dtype=np.float64)
-        if current.model == given.model and len(groups.get("distortion", [])):
-            params[groups["distortion"]] = np.asarray(current.params, dtype=np.float64)[groups["distortion"]]
-        focal = float(np.mean([self.scene.intrinsics[c].focal_px for c in device]))
-        params[groups["focal"]] *= focal / given.focal_px
-        return replace(given, params=params)
+        if current.model == given.model and len(distortion):
+            params[distortion] = np.asarray(current.params, dtype=np.float64)[distortion]
+        return with_focal(replace(given, params=params),
+                          float(np.mean([self.scene.intrinsics[c].focal_px for c in device])))
 
     def _split(self, finding: dict, checked: dict[int, Intrinsics]) -> bool:
         """One camera's images at two focal lengths (a :func:`per_image_focals` finding on the
@@ -989,12 +993,6 @@ class Calibration:
         move = max((low, high), key=lambda group: abs(np.log(group["focal_px"] / given_focal)))
         keep = high if move is low else low
         new_id = max(set(self.given) | set(self.scene.intrinsics)) + 1
-
-        def with_focal(intrinsics: Intrinsics, value: float, **changes) -> Intrinsics:
-            params = np.array(intrinsics.params, dtype=np.float64)
-            params[cameras.parameter_groups(intrinsics)["focal"]] *= value / intrinsics.focal_px
-            return replace(intrinsics, params=params, **changes)
-
         # Not a twin of the camera it came from: twins share the first adjustment's focal,
         # which bent a simulated capture's principal point by 18 px
         self.given[new_id] = with_focal(self.given[camera_id], move["focal_px"], id=new_id, prior_focal=False)
@@ -1200,10 +1198,8 @@ class Calibration:
             if source not in self.given or camera_id in self.given or not set(split["views"]) <= set(self.scene.views):
                 raise InputError("the workspace's split camera does not fit the input",
                                  field=f"state.npz options.intrinsics.splits[{key}]")
-            start = self.given[source]
-            params = np.array(start.params, dtype=np.float64)
-            params[cameras.parameter_groups(start)["focal"]] *= float(split["focal_px"]) / start.focal_px
-            self.given[camera_id] = replace(start, id=camera_id, params=params, prior_focal=False)
+            self.given[camera_id] = with_focal(self.given[source], float(split["focal_px"]), id=camera_id,
+                                               prior_focal=False)
             views = {v: replace(view, intrinsics_id=camera_id) if v in split["views"] else view
                      for v, view in self.scene.views.items()}
             self.scene = with_intrinsics(replace(self.scene, views=views), {camera_id: self.given[camera_id]})

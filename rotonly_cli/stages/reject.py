@@ -20,9 +20,14 @@ import time
 import numpy as np
 
 from rotonly_cli.geometry import pairwise as pg
-from rotonly_cli.geometry import so3
 from rotonly_cli.options import RejectOptions
-from rotonly_cli.scene.view_graph import ViewGraph, largest_component, regular_edges, view_index
+from rotonly_cli.scene.view_graph import (
+    ViewGraph,
+    edge_residuals_deg,
+    largest_component,
+    regular_edges,
+    view_index,
+)
 from rotonly_cli.stages import listed
 
 logger = logging.getLogger(__name__)
@@ -79,7 +84,10 @@ def reject_round(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from
     sigma = 1.4826 * float(np.median(every))
     threshold = max(options.outlier_sigmas * sigma, options.min_threshold_px)
     filtered: dict[str, int] = {}
-    for k, error in zip(edges, errors):
+    # the view-graph check of the averaging, at the optimised rotations
+    residuals = edge_residuals_deg([graph.edges[k] for k in edges],
+                                   {v: R_cam_from_world[row] for v, row in index.items() if posed[row]})
+    for k, error, residual in zip(edges, errors, residuals):
         edge = graph.edges[k]
         keep = error <= threshold
         if np.count_nonzero(keep) < min_inliers:
@@ -88,9 +96,7 @@ def reject_round(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from
             report["edges_kept_whole"] = report.get("edges_kept_whole", 0) + 1
             continue
         report["num_dropped"] += edge.drop_matches(keep, DROP_REASON)
-        # the view-graph check of the averaging, at the optimised rotations
-        R_ij = R_cam_from_world[index[edge.j]] @ R_cam_from_world[index[edge.i]].T
-        edge.residual_deg = float(np.degrees(so3.geodesic_angle(edge.R_j_from_i[None], R_ij[None])[0]))
+        edge.residual_deg = float(residual)
         if edge.residual_deg > max_residual_deg:
             edge.filter(RESIDUAL_REASON)
             filtered[RESIDUAL_REASON] = filtered.get(RESIDUAL_REASON, 0) + 1

@@ -25,8 +25,6 @@ from pathlib import Path
 
 import numpy as np
 
-SCENES = ("Herz-Jesus-P8", "entry-P10", "fountain-P11", "castle-P19")
-
 
 def noisy_database(scene, noise_px: float, out: Path, seed: int = 0) -> Path:
     """``scene`` (a database as read) written to ``out`` with every keypoint moved by
@@ -86,9 +84,10 @@ def main(argv: list[str] | None = None) -> int:
     from rotonly_cli.io.colmap import read_database
     from rotonly_cli.runtime.parallel import usable_cpus
 
+    from strecha_gt import add_scenes_arguments, scene_database
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--root", type=Path, required=True, help="folder of Strecha scenes (data/strecha layout)")
-    parser.add_argument("--scenes", nargs="+", default=list(SCENES))
+    add_scenes_arguments(parser)
     parser.add_argument("--noise-px", type=float, nargs="+", default=[0.0, 0.5, 1.0],
                         help="keypoint noise added (px per coordinate; 0: the database as it is)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the noise (the runs use rotonly's own)")
@@ -102,9 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|---|---|---|---|---|---|" + ("---|" if args.mapper else ""))
     with tempfile.TemporaryDirectory(prefix="rotonly-probe-") as scratch:
         for name in args.scenes:
-            database, gt = args.root / name / "database.db", args.root / name / "gt_dense_cameras"
-            if not database.is_file():
-                parser.error(f"--root/--scenes: no {database}")
+            database, gt = scene_database(parser, args.root, name)
             scene = read_database(database)
             for noise in args.noise_px:
                 path = database if noise == 0 else noisy_database(scene, noise, Path(scratch) / f"{name}_{noise}.db",

@@ -27,8 +27,6 @@ from pathlib import Path
 
 import numpy as np
 
-SCENES = ("Herz-Jesus-P8", "entry-P10", "fountain-P11", "castle-P19")
-
 
 def scaled_camera(params: np.ndarray, size: tuple[int, int], new_size: tuple[int, int]) -> np.ndarray:
     """PINHOLE (fx, fy, cx, cy) in COLMAP's pixel convention (the image's corner at 0) for the
@@ -94,9 +92,10 @@ def main(argv: list[str] | None = None) -> int:
     from rotonly_cli.io.strecha import read_strecha_dir
     from rotonly_cli.runtime.parallel import usable_cpus
 
+    from strecha_gt import add_scenes_arguments
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--root", type=Path, required=True, help="folder of Strecha scenes (data/strecha layout)")
-    parser.add_argument("--scenes", nargs="+", default=list(SCENES))
+    add_scenes_arguments(parser)
     parser.add_argument("--factors", type=int, nargs="+", default=[2, 3, 4],
                         help="shrink factors of the scenes' images (1: as they are)")
     parser.add_argument("--mapper", action="store_true",

@@ -23,8 +23,6 @@ from pathlib import Path
 
 import numpy as np
 
-SCENES = ("Herz-Jesus-P8", "entry-P10", "fountain-P11", "castle-P19")
-
 
 def sequential_pairs(scene, window: int):
     """``scene`` (an SfMScene as read) with the pairs of views at most ``window`` apart in
@@ -42,9 +40,10 @@ def main(argv: list[str] | None = None) -> int:
     from rotonly_cli.errors import AlgorithmError
     from rotonly_cli.stages.load import read_input
 
+    from strecha_gt import add_scenes_arguments
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--root", type=Path, required=True, help="folder of Strecha scenes (data/strecha layout)")
-    parser.add_argument("--scenes", nargs="+", default=list(SCENES))
+    add_scenes_arguments(parser)
     parser.add_argument("--inputs", nargs="+", choices=("database", "openmvg"), default=["database", "openmvg"])
     parser.add_argument("--windows", nargs="+", type=int, default=[1, 2, 3])
     args = parser.parse_args(argv)

@@ -24,8 +24,6 @@ from pathlib import Path
 
 import numpy as np
 
-SCENES = ("Herz-Jesus-P8", "entry-P10", "fountain-P11", "castle-P19")
-
 
 def zoomed_views(scene, every: int) -> list[int]:
     """Every ``every``-th view of ``scene`` in id order, from the second."""
@@ -64,9 +62,10 @@ def main(argv: list[str] | None = None) -> int:
     from rotonly_cli.options import IntrinsicsOptions, RunOptions
     from rotonly_cli.runtime.parallel import usable_cpus
 
+    from strecha_gt import add_scenes_arguments, scene_database
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--root", type=Path, required=True, help="folder of Strecha scenes (data/strecha layout)")
-    parser.add_argument("--scenes", nargs="+", default=list(SCENES))
+    add_scenes_arguments(parser)
     parser.add_argument("--zooms", type=float, nargs="+", default=[1.03, 1.05, 1.15],
                         help="focal factor of the zoomed images")
     parser.add_argument("--every", type=int, default=3, help="every this many images is zoomed (from the second)")
@@ -79,9 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory(prefix="rotonly-probe-zoom-") as scratch:
         for name in args.scenes:
-            database, gt = args.root / name / "database.db", args.root / name / "gt_dense_cameras"
-            if not database.is_file():
-                parser.error(f"--root/--scenes: no {database}")
+            database, gt = scene_database(parser, args.root, name)
             scene = read_database(database)
             if len(scene.intrinsics) != 1:
                 parser.error(f"{database}: {len(scene.intrinsics)} cameras; the probe zooms under one")

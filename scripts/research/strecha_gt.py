@@ -46,6 +46,25 @@ def gt_track_residuals(structure, view_ids, normalized: dict, R_gt: np.ndarray, 
             "projected": cam[:, :2] / cam[:, 2:3]}
 
 
+#: the shared Strecha scenes, in the order the probes go through them
+SCENES = ("Herz-Jesus-P8", "entry-P10", "fountain-P11", "castle-P19")
+
+
+def add_scenes_arguments(parser) -> None:
+    """The probes' --root and --scenes (several scenes, default all of SCENES)."""
+    parser.add_argument("--root", type=Path, required=True, help="folder of Strecha scenes (data/strecha layout)")
+    parser.add_argument("--scenes", nargs="+", default=list(SCENES))
+
+
+def scene_database(parser, root: Path, name: str) -> tuple[Path, Path]:
+    """(database.db, gt_dense_cameras/) of scene ``name`` under ``root``; a usage error
+    (exit 2) when the database is missing."""
+    database = root / name / "database.db"
+    if not database.is_file():
+        parser.error(f"--root/--scenes: no {database}")
+    return database, root / name / "gt_dense_cameras"
+
+
 def add_scene_arguments(parser, default_scene: str = "Herz-Jesus-P8") -> None:
     """The probes' --root, --scene and --input."""
     parser.add_argument("--root", type=Path, required=True, help="folder of Strecha scenes (data/strecha layout)")
