@@ -231,6 +231,13 @@ def _folder_with_sfm_data_bin(root: Path, bases: dict) -> list:
     return ["run", root / "project", "-o", out(root)]
 
 
+def _matches_file_of_project(root: Path, bases: dict) -> list:
+    """An OpenMVG project's matches file given as the input, beside its sfm_data.json."""
+    (root / "sfm_data.json").write_text("{}")
+    (root / "matches.putative.bin").write_bytes(b"\x01\x00\x00\x00cereal")
+    return ["run", root / "matches.putative.bin", "-o", out(root)]
+
+
 def _sqlite_without_tables(root: Path, bases: dict) -> list:
     path = root / "database.db"
     with closing(sqlite3.connect(path)) as connection:
@@ -261,6 +268,8 @@ FILE_CASES = [
           "openMVG_main_ConvertSfM_DataFormat")),
     _raw_file_case("input-colmap-model-file", b"\x00" * 8, ("a COLMAP model is read from its folder",),
                    file="images.bin"),
+    Case("input-openmvg-matches-file", _matches_file_of_project,
+         ("matches.putative.bin looks like an OpenMVG matches file", "-M", "sfm_data.json -M")),
 ]
 
 

@@ -55,7 +55,8 @@ OPENMVG_OTHER_SUFFIXES = (".bin", ".xml")
 def unread_format_hint(path: Path) -> str:
     """What a file or folder rotonly cannot read seems to be, and what to do: an OpenMVG
     sfm_data.bin / .xml (OpenMVG writes them as readily as .json; its converter makes the
-    .json), or one file of a COLMAP model (its folder is the input); "" otherwise."""
+    .json), an OpenMVG matches file (the project is the input, the file its -M), or one file
+    of a COLMAP model (its folder is the input); "" otherwise."""
     if path.is_dir():
         other = [path / f"sfm_data{suffix}" for suffix in OPENMVG_OTHER_SUFFIXES]
         path = next((candidate for candidate in other if candidate.is_file()), None)
@@ -63,6 +64,10 @@ def unread_format_hint(path: Path) -> str:
             return ""
     if path.stem in MODEL_FILE_STEMS:
         return f"; a COLMAP model is read from its folder: give {path.parent}"
+    if path.name.startswith("matches.") and path.suffix.lower() in (".bin", ".txt"):
+        project = path.parent / "sfm_data.json"
+        return (f"; {path.name} looks like an OpenMVG matches file: give the project's sfm_data.json with this file "
+                f"as -M" + (f" (rotonly run {project} -M {path} ...)" if project.is_file() else ""))
     if path.suffix.lower() in OPENMVG_OTHER_SUFFIXES:
         form = "binary" if path.suffix.lower() == ".bin" else "XML"
         return (f"; {path.name} looks like an OpenMVG sfm_data in {form} form, which rotonly does not read: "
