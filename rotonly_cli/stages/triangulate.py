@@ -8,6 +8,7 @@ import os
 import time
 from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -197,6 +198,67 @@ def _sigma_by_camera(scene: SfMScene, view_ids: list[int], view_rows: np.ndarray
     return {str(int(c)): 1.4826 * float(np.median(error_px[cameras == c])) for c in np.unique(cameras)}
 
 
+def posed_edges(graph: ViewGraph, R_cam_from_world: np.ndarray, centers: np.ndarray) -> tuple[np.ndarray, list[int]]:
+    """(per view row: has a rotation and a centre, the active edges between such views)."""
+    view_ids = graph.view_ids()
+    row_of = {v: r for r, v in enumerate(view_ids)}
+    posed = np.all(np.isfinite(R_cam_from_world.reshape(len(view_ids), -1)), axis=1) & \
+        np.all(np.isfinite(centers), axis=1)
+    return posed, [k for k in graph.active_edges()
+                   if posed[row_of[graph.edges[k].i]] and posed[row_of[graph.edges[k].j]]]
+
+
+@dataclass
+class TriangulatedTracks:
+    """The tracks of the active edges between posed views that the triangulation keeps
+    (:func:`triangulated_tracks`), with their points and the counts the report gives."""
+
+    kept: Tracks  # the tracks with a valid point; Tracks.view holds view rows (graph.view_ids() order)
+    points: np.ndarray  # (kept.num_tracks, 3) world points
+    mean_error: np.ndarray  # (kept.num_tracks,) mean normalized reprojection error
+    num_edges: int
+    num_observations: int  # before the outlier test
+    num_observations_dropped: int  # by the outlier test
+    num_tracks: int  # after the outlier test, before the triangulation's checks
+    num_behind_camera: int
+    outlier_sigma_px: float
+    outlier_threshold_px: float
+    outlier_sigma_px_by_camera: dict
+
+
+def triangulated_tracks(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.ndarray, centers: np.ndarray,
+                        options: TriangulationOptions | None = None, track_cache: TrackCache | None = None,
+                        outliers: LiGTOptions | None = None) -> TriangulatedTracks:
+    """The tracks of the active edges between posed views (gross outlier matches left out
+    under the rotations, scene.tracks.graph_tracks), each observation tested against the
+    rest of its track (``outliers``: the robust LiGT rounds' test, once), triangulated; the
+    tracks with a valid point. Shared by :func:`triangulate_graph` and the reject stage's
+    confirmation of matches by their tracks (stages/reject.py)."""
+    outliers = outliers or LiGTOptions()
+    view_ids = graph.view_ids()
+    focal = scene.focal_px(view_ids)
+    focal = np.where(np.isfinite(focal), focal, 1000.0)
+    posed, edges = posed_edges(graph, R_cam_from_world, centers)
+    R = np.where(posed[:, None, None], R_cam_from_world, np.eye(3))
+    tracks, obs_xy = graph_tracks(graph, scene.normalized, edges, R, cache=track_cache)
+    C = np.where(posed[:, None], centers, 0.0)
+    # the outlier test of the robust LiGT rounds (stages/translate): observations that
+    # reproject badly against the rest of their track leave it before the final solve
+    num_observations = tracks.num_observations
+    error = observation_errors(R, np.where(posed[:, None], centers, np.nan), tracks.track_id, tracks.view,
+                               obs_xy, np.ones(num_observations, dtype=bool)) * focal[tracks.view]
+    finite = np.isfinite(error)
+    sigma, threshold = outlier_threshold_px(error[finite], outliers) if finite.any() else (np.nan, np.inf)
+    camera_sigma = _sigma_by_camera(scene, view_ids, tracks.view[finite], error[finite])
+    tracks, obs_xy = _keep_observations(tracks, obs_xy, error <= threshold)
+    result = triangulate_tracks(R, C, tracks.track_id, tracks.view, obs_xy, tracks.num_tracks, options)
+    valid = result.valid
+    return TriangulatedTracks(tracks.subset(valid), result.points_in_world[valid],
+                              result.mean_reprojection_error[valid],
+                              len(edges), num_observations, int(num_observations - tracks.num_observations),
+                              tracks.num_tracks, int((~result.in_front).sum()), sigma, threshold, camera_sigma)
+
+
 def triangulate_graph(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.ndarray, centers: np.ndarray,
                       image_root: str | Path | None = None,
                       options: TriangulationOptions | None = None,
@@ -211,39 +273,18 @@ def triangulate_graph(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.nd
     or computed; without them the images are decoded here, beside the triangulation.
     ``track_cache``: the run's, shared with translate (scene/tracks)."""
     start = time.perf_counter()
-    outliers = outliers or LiGTOptions()
     view_ids = graph.view_ids()
-    focal = scene.focal_px(view_ids)
-    focal = np.where(np.isfinite(focal), focal, 1000.0)
-    row_of = {v: r for r, v in enumerate(view_ids)}
-    posed = np.all(np.isfinite(R_cam_from_world.reshape(len(view_ids), -1)), axis=1) & \
-        np.all(np.isfinite(centers), axis=1)
-    edges = [k for k in graph.active_edges()
-             if posed[row_of[graph.edges[k].i]] and posed[row_of[graph.edges[k].j]]]
-    R = np.where(posed[:, None, None], R_cam_from_world, np.eye(3))
     with ThreadPoolExecutor(max_workers=1) as pool:
         # JPEG decoding (for the colours) on a second thread while this one triangulates:
         # one decoder thread, the images of every view an edge touches, keypoint colours
         # only kept (no decoded image stays alive)
-        edge_views = sorted({graph.edges[k].i for k in edges} | {graph.edges[k].j for k in edges})
         colors_future = keypoint_rgb
         if colors_future is None and image_root is not None:
+            edges = posed_edges(graph, R_cam_from_world, centers)[1]
+            edge_views = sorted({graph.edges[k].i for k in edges} | {graph.edges[k].j for k in edges})
             colors_future = pool.submit(keypoint_colors, scene, image_root, edge_views, 1)
-        tracks, obs_xy = graph_tracks(graph, scene.normalized, edges, R, cache=track_cache)
-        C = np.where(posed[:, None], centers, 0.0)
-        # the outlier test of the robust LiGT rounds (stages/translate): observations that
-        # reproject badly against the rest of their track leave it before the final solve
-        num_observations = tracks.num_observations
-        error = observation_errors(R, np.where(posed[:, None], centers, np.nan), tracks.track_id, tracks.view,
-                                   obs_xy, np.ones(num_observations, dtype=bool)) * focal[tracks.view]
-        finite = np.isfinite(error)
-        sigma, threshold = outlier_threshold_px(error[finite], outliers) if finite.any() else (np.nan, np.inf)
-        camera_sigma = _sigma_by_camera(scene, view_ids, tracks.view[finite], error[finite])
-        tracks, obs_xy = _keep_observations(tracks, obs_xy, error <= threshold)
-        result = triangulate_tracks(R, C, tracks.track_id, tracks.view, obs_xy, tracks.num_tracks, options)
-        valid = result.valid
-        kept = tracks.subset(valid)
-        points = result.points_in_world[valid]
+        solved = triangulated_tracks(graph, scene, R_cam_from_world, centers, options, track_cache, outliers)
+        kept, points = solved.kept, solved.points
         keypoint_rgb = colors_future if isinstance(colors_future, dict | None) else colors_future.result()
     colors, color_report = point_colors(scene, image_root, view_ids, kept.track_id, kept.view, kept.feature,
                                         kept.num_tracks, keypoint_rgb)
@@ -253,14 +294,15 @@ def triangulate_graph(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.nd
     structure = Structure(point_ids=np.arange(kept.num_tracks, dtype=np.int64), points=points, colors=colors,
                           observations=observation_lists(track_lengths, view_feature),
                           observation_arrays=(track_lengths, view_feature))
-    error = result.mean_reprojection_error[valid]
-    report = {"num_edges": len(edges), "num_observations_dropped": int(num_observations - tracks.num_observations),
-              "outlier_sigma_px": sigma, "outlier_threshold_px": threshold, "outlier_sigma_px_by_camera": camera_sigma,
-              "num_tracks": tracks.num_tracks, "num_points": int(valid.sum()),
-              "num_rejected": int(tracks.num_tracks - valid.sum()),
-              "num_behind_camera": int((~result.in_front).sum()),
+    error = solved.mean_error
+    report = {"num_edges": solved.num_edges, "num_observations_dropped": solved.num_observations_dropped,
+              "outlier_sigma_px": solved.outlier_sigma_px, "outlier_threshold_px": solved.outlier_threshold_px,
+              "outlier_sigma_px_by_camera": solved.outlier_sigma_px_by_camera,
+              "num_tracks": solved.num_tracks, "num_points": kept.num_tracks,
+              "num_rejected": int(solved.num_tracks - kept.num_tracks),
+              "num_behind_camera": solved.num_behind_camera,
               "track_length_mean": float(kept.length.mean()) if kept.num_tracks else 0.0,
               "reprojection_error_normalized_median": float(np.median(error)) if error.size else None,
               **color_report, "time_s": time.perf_counter() - start}
-    logger.info("triangulate: %d of %d tracks kept (%d points)", int(valid.sum()), tracks.num_tracks, int(valid.sum()))
+    logger.info("triangulate: %d of %d tracks kept (%d points)", kept.num_tracks, solved.num_tracks, kept.num_tracks)
     return structure, report
