@@ -579,6 +579,19 @@ class RejectOptions:
     #: the rounds end: fewer matches than one edge needs (--min-inliers' default) cannot move
     #: the rotations, and the GRRM + LiGT re-solve costs 10-20 % of a run (docs/tuning.md)
     min_dropped_to_resolve: int = 30
+    #: rounds confirming matches by their tracks, run first when LiGT left views out or its
+    #: first solve misfits the tracks (chain._confirmation_rounds); 0: none
+    confirm_max_rounds: int = 3
+    #: ... the misfit: the first solve's sigma beyond this many times the last robust round's
+    confirm_misfit_sigmas: float = 10.0
+    #: a match is confirmed when a track of this many views or more holds its two keypoints
+    confirm_min_views: int = 3
+    #: ... and the rounds need at least this fraction of the matches confirmed: the
+    #: unconfirmed ones a minority, as robust estimation needs of its outliers
+    confirm_min_fraction: float = 0.5
+    #: the rounds are kept when LiGT's first solve on every match fits the tracks under the
+    #: new rotations with at most this ratio of the sigma before (stages/translate.first_solve_sigma_px)
+    confirm_misfit_ratio: float = 0.5
 
 
 @dataclass(frozen=True)

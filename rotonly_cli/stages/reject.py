@@ -14,15 +14,18 @@ pipeline then runs GRRM and LiGT on what is left, until a round drops nothing
 
 from __future__ import annotations
 
+import copy
 import logging
 import time
 
 import numpy as np
 
 from rotonly_cli.geometry import pairwise as pg
+from rotonly_cli.geometry.tracks import Tracks
 from rotonly_cli.options import RejectOptions
 from rotonly_cli.scene.view_graph import (
     ViewGraph,
+    bridge_edges,
     edge_residuals_deg,
     largest_component,
     regular_edges,
@@ -33,6 +36,10 @@ from rotonly_cli.stages import listed
 logger = logging.getLogger(__name__)
 DROP_REASON = "inconsistent with the global poses"
 RESIDUAL_REASON = "rotation residual after multi-view rejection"
+CONFIRM_REASON = "not in a track of three or more views"
+#: an edge keeps only its confirmed matches when they over-determine its relative pose (one
+#: more than the five-point sample); with fewer it has no evidence either way and keeps all
+MIN_CONFIRMED = 6
 
 
 def undone_round_warning(report: dict | None) -> str | None:
@@ -103,3 +110,51 @@ def reject_round(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from
     largest_component(graph)
     report.update(sigma_px=sigma, threshold_px=threshold, edges_filtered=filtered, time_s=time.perf_counter() - start)
     return report
+
+
+def confirmed_matches(graph: ViewGraph, tracks: Tracks, edges: list[int], min_views: int = 3) -> list[np.ndarray]:
+    """Per edge of ``edges`` (m,) bool: the matches whose two keypoints are observations of
+    one track of ``tracks`` (the triangulation's kept tracks, views as rows of
+    ``graph.view_ids()``) that holds at least ``min_views`` views. A third view confirms
+    such a match: its point reprojects within the outlier test there too."""
+    index = view_index(graph)
+    long_track = tracks.length[tracks.track_id] >= min_views
+    track_of = {}
+    for view_id, row in index.items():
+        mine = long_track & (tracks.view == row)
+        lookup = np.full(int(tracks.feature[mine].max()) + 1 if mine.any() else 0, -1, dtype=np.int64)
+        lookup[tracks.feature[mine]] = tracks.track_id[mine]
+        track_of[view_id] = lookup
+
+    def tracks_of(view_id: int, keypoints: np.ndarray) -> np.ndarray:
+        lookup = track_of[view_id]
+        out = np.full(keypoints.shape, -1, dtype=np.int64)
+        inside = keypoints < lookup.size
+        out[inside] = lookup[keypoints[inside]]
+        return out
+
+    confirmed = []
+    for k in edges:
+        edge = graph.edges[k]
+        track_i = tracks_of(edge.i, edge.matches[:, 0])
+        confirmed.append((track_i >= 0) & (track_i == tracks_of(edge.j, edge.matches[:, 1])))
+    return confirmed
+
+
+def confirm_round(original: ViewGraph, confirmed: list[np.ndarray], edges: list[int]) -> tuple[ViewGraph, dict]:
+    """A copy of ``original`` whose ``edges`` keep only their ``confirmed`` matches
+    (:func:`confirmed_matches`), but for the edges with fewer than MIN_CONFIRMED and the
+    bridges (no cycle runs through them: the rotation across one is its own pair's estimate
+    whatever the others say, so fewer matches only make it noisier), which keep all of
+    their own; and the round's counts."""
+    graph = copy.deepcopy(original)
+    report = {"num_edges": len(edges), "num_matches": 0, "num_dropped": 0, "edges_kept_whole": 0}
+    bridge = bridge_edges([(original.edges[k].i, original.edges[k].j) for k in original.active_edges()])
+    is_bridge = dict(zip(original.active_edges(), bridge))
+    for k, keep in zip(edges, confirmed):
+        report["num_matches"] += int(keep.size)
+        if np.count_nonzero(keep) < MIN_CONFIRMED or is_bridge[k]:
+            report["edges_kept_whole"] += 1
+            continue
+        report["num_dropped"] += graph.edges[k].drop_matches(keep, CONFIRM_REASON)
+    return graph, report

@@ -239,6 +239,21 @@ def views_off(report: dict | None) -> dict[str, float]:
     return ((report or {}).get("baselines") or {}).get("views_off") or {}
 
 
+def first_solve_sigma_px(report: dict | None) -> float:
+    """The robust sigma (px) of the reprojection errors of LiGT's first solve, every
+    observation of the tracks in (before any robust round drops one): how far the rotations
+    are from what the tracks say (nan without robust rounds)."""
+    rounds = (report or {}).get("robust_rounds") or []
+    return float(rounds[0]["sigma_px"]) if rounds else float("nan")
+
+
+def last_round_sigma_px(report: dict | None) -> float:
+    """The robust sigma (px) of the reprojection errors of LiGT's last robust round: the noise
+    of the observations it kept (nan without robust rounds)."""
+    rounds = (report or {}).get("robust_rounds") or []
+    return float(rounds[-1]["sigma_px"]) if rounds else float("nan")
+
+
 def views_without_centre(report: dict | None) -> set[int]:
     """The registered views a translate report left without a centre (empty for no report)."""
     return set((report or {}).get("views_without_centre") or [])

@@ -118,6 +118,11 @@ def test_views_the_rounds_leave_out_are_resected():
     assert sorted(entry["view_id"] for entry in resected) == [13, 14, 15, 16, 17, 18, 19]
     assert all(entry["kept"] and entry["inliers"] >= 0.9 * entry["points"] for entry in resected)
     assert not any("not in the outputs" in w for w in result.summary["warnings"])
+    # the reject stage's confirmation by tracks is tried (views were left out) and undone: the
+    # views were left out for want of tracks across the link, not for bent rotations, and
+    # under the rotations of the confirmed matches LiGT still leaves some out
+    confirmation = result.reports["reject"]["confirmation"]
+    assert confirmation["undone"] and confirmation["views_left_out_all_matches"]
 
 
 def test_a_view_without_pairs_is_named_in_a_warning():
