@@ -555,3 +555,17 @@ def test_probe_zoom_on_fixture(tmp_path, capsys):
     (row,) = [line.split(" | ") for line in capsys.readouterr().out.splitlines() if line.startswith("| Herz")]
     assert row[2] == row[5] == "0000 0005 0007" and row[4] == "2" and row[6] == "yes"
     assert float(row[3]) < 2 * 0.0193 and float(row[7].rstrip(" |")) > 10 * float(row[3])
+
+
+def test_probe_openmvg_preset_commands():
+    """The probe builds a project with OpenMVG's own five tools from the images, the shared
+    project's camera and the preset asked for (the run itself needs OpenMVG: not here)."""
+    probe = _load_script("probe_openmvg_preset")
+    K = probe.shared_K(FIXTURES / "castle_p19_openmvg")
+    f, _, cx, _, fy, cy, *_ = map(float, K.split(";"))
+    assert f == fy and 1000 < f < 2000 and 0 < cx < 3072 and 0 < cy < 2048
+    commands = probe.project_commands(Path("/bin/mvg"), Path("/data/images"), Path("/work/p"), K, "NORMAL")
+    assert [Path(c[0]).name for c in commands] == [f"openMVG_main_{name}" for name in (
+        "SfMInit_ImageListing", "ComputeFeatures", "PairGenerator", "ComputeMatches", "GeometricFilter")]
+    assert commands[1][-2:] == ["-p", "NORMAL"] and commands[-1][commands[-1].index("-g") + 1] == "e"
+    assert commands[-1][-1] == "/work/p/matches.e.bin"
