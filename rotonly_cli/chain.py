@@ -308,7 +308,7 @@ def reject_stage(run: Run) -> None:
             # views out of the set that tracks tie together (the same input, seed 1: views 12-15
             # lost their centres in the second round): the round is undone
             run.graph, run.rotations, run.centers = graph_before, rotations_before, centers_before
-            run.reports.update(reports_before)
+            _restore_reports(run, reports_before)
             report["undone"] = {"views_off": off_after, "views_without_centre": lost}
             logger.info("reject: round undone, its LiGT solve %s",
                         f"put view(s) {', '.join(off_after)} off their pairs' baselines" if off_after else
@@ -322,6 +322,16 @@ def reject_stage(run: Run) -> None:
                                                     if "undone" not in r and "not_applied" not in r)),
                              **({"confirmation": confirmation} if confirmation else {}),
                              "time_s": time.perf_counter() - start - resolving}
+
+
+def _restore_reports(run: Run, saved: dict) -> None:
+    """The reports of ``saved`` back in ``run.reports``; a stage that had none has none again
+    (a stage command's run starts without its predecessors' reports)."""
+    for key, report in saved.items():
+        if report is None:
+            run.reports.pop(key, None)
+        else:
+            run.reports[key] = report
 
 
 def _rotations_misfit_tracks(run: Run) -> bool:
@@ -438,7 +448,7 @@ def _confirmation_rounds(run: Run, resolve) -> dict:
                     "misfits the tracks by %.3g px (before %.3g) and ties every view in: kept", misfit, misfit_before)
         return result
     run.graph, run.rotations, run.centers = original, saved[0], saved[1]
-    run.reports.update(saved[2])
+    _restore_reports(run, saved[2])
     logger.info("reject: confirmation undone: under the rotations of the confirmed matches %s", "; ".join(failed))
     return {**result, "undone": True}
 

@@ -257,3 +257,14 @@ def write_report(out_dir: str | os.PathLike, stage: str, report: dict) -> Path:
     path = Path(out_dir) / "reports" / f"{stage}.json"
     atomic.write_text(path, json.dumps(_clean(report), indent=1, sort_keys=True) + "\n")
     return path
+
+
+def read_report(out_dir: str | os.PathLike, stage: str) -> dict | None:
+    """``out_dir/reports/<stage>.json`` as written by :func:`write_report`; None when absent or
+    not a JSON object (a report is a record, never an input the run depends on for its data)."""
+    path = Path(out_dir) / "reports" / f"{stage}.json"
+    try:
+        report = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return report if isinstance(report, dict) else None

@@ -292,3 +292,36 @@ def test_confirmation_by_tracks_straightens_rotations_bent_by_wrong_matches():
     bent = rotonly_cli.run(CASTLE_NORMAL / "openmvg" / "sfm_data.json", gt=CASTLE_NORMAL, progress=False,
                            options=RunOptions(reject=RejectOptions(confirm_max_rounds=0)))
     assert bent.evaluation["rotation_error_deg"]["mean"] > 0.2 and len(bent.rotations) == 17
+
+
+def test_an_undone_round_leaves_no_empty_report(monkeypatch):
+    """A stage command's run starts without its predecessors' reports; a round undone there
+    takes the re-solve's reports out again instead of leaving None for the writers."""
+    from rotonly_cli.chain import reject_stage
+
+    graph, normalized, R, C = _graph(np.random.default_rng(0), wrong_px=15.0, num_wrong=60)
+    run = _run_for_reject_stage(graph, normalized, R, C)
+    del run.reports["translate"]
+    _fake_solves(monkeypatch, {}, views_without_centre=(2,))
+    reject_stage(run)
+    assert run.reports["reject"]["rounds"][0]["undone"]["views_without_centre"] == [2]
+    assert "translate" not in run.reports and "optimize" not in run.reports
+    assert all(report is not None for report in run.reports.values())
+
+
+def test_the_reject_command_confirms_like_the_run(tmp_path):
+    """`rotonly reject OUT` on a workspace made up to `translate` reads LiGT's report from
+    OUT/reports, so it confirms the matches as `rotonly run` does (the same rotations)."""
+    import json
+
+    from rotonly_cli.chain import STAGES
+    from rotonly_cli.pipeline import resume, run_into
+
+    sfm_data = CASTLE_NORMAL / "openmvg" / "sfm_data.json"
+    run_into(sfm_data, tmp_path / "out", RunOptions(progress=False), stages=STAGES[:STAGES.index("reject")])
+    resume(tmp_path / "out", "reject", RunOptions(progress=False))
+    confirmation = json.loads((tmp_path / "out" / "reports" / "reject.json").read_text())["confirmation"]
+    assert "undone" not in confirmation and confirmation["views_left_out_before"] == list(range(11, 19))
+    assert confirmation["first_solve_sigma_px"][1] < 0.2 * confirmation["first_solve_sigma_px"][0]
+    solves = json.loads((tmp_path / "out" / "reports" / "optimize.json").read_text())["solves"]
+    assert solves >= 3  # the confirmation's GRRM solves, written back
