@@ -116,28 +116,29 @@ def confirmed_matches(graph: ViewGraph, tracks: Tracks, edges: list[int], min_vi
     """Per edge of ``edges`` (m,) bool: the matches whose two keypoints are observations of
     one track of ``tracks`` (the triangulation's kept tracks, views as rows of
     ``graph.view_ids()``) that holds at least ``min_views`` views. A third view confirms
-    such a match: its point reprojects within the outlier test there too."""
+    such a match: its point reprojects within the outlier test there too. One sorted key
+    per observation (view row, keypoint), looked up for every match at once."""
     index = view_index(graph)
     long_track = tracks.length[tracks.track_id] >= min_views
-    track_of = {}
-    for view_id, row in index.items():
-        mine = long_track & (tracks.view == row)
-        lookup = np.full(int(tracks.feature[mine].max()) + 1 if mine.any() else 0, -1, dtype=np.int64)
-        lookup[tracks.feature[mine]] = tracks.track_id[mine]
-        track_of[view_id] = lookup
-
-    def tracks_of(view_id: int, keypoints: np.ndarray) -> np.ndarray:
-        lookup = track_of[view_id]
-        out = np.full(keypoints.shape, -1, dtype=np.int64)
-        inside = keypoints < lookup.size
-        out[inside] = lookup[keypoints[inside]]
-        return out
-
-    confirmed = []
-    for k in edges:
-        edge = graph.edges[k]
-        track_i = tracks_of(edge.i, edge.matches[:, 0])
-        confirmed.append((track_i >= 0) & (track_i == tracks_of(edge.j, edge.matches[:, 1])))
+    rows = [np.full(len(graph.edges[k].matches), index[v], dtype=np.int64) for k in edges
+            for v in (graph.edges[k].i, graph.edges[k].j)]
+    keypoints = [graph.edges[k].matches[:, c].astype(np.int64) for k in edges for c in (0, 1)]
+    stride = 1 + max([int(tracks.feature.max(initial=0))] + [int(x.max(initial=0)) for x in keypoints])
+    keys = tracks.view[long_track] * stride + tracks.feature[long_track]
+    order = np.argsort(keys)
+    keys, track_ids = keys[order], tracks.track_id[long_track][order]
+    if not keys.size:
+        return [np.zeros(len(graph.edges[k].matches), dtype=bool) for k in edges]
+    query = np.concatenate(rows + [np.zeros(0, dtype=np.int64)]) * stride + \
+        np.concatenate(keypoints + [np.zeros(0, dtype=np.int64)])
+    at = np.minimum(np.searchsorted(keys, query), keys.size - 1)
+    track_of = np.where(keys[at] == query, track_ids[at], -1)
+    confirmed, start = [], 0
+    for k in edges:  # per edge: its i-side keypoints, then its j-side ones
+        m = len(graph.edges[k].matches)
+        track_i, track_j = track_of[start:start + m], track_of[start + m:start + 2 * m]
+        confirmed.append((track_i >= 0) & (track_i == track_j))
+        start += 2 * m
     return confirmed
 
 
