@@ -159,6 +159,7 @@ def run(input, out: str | os.PathLike | None = None, *, gt=None, matches_dir=Non
                                  "progress": progress})
     options.load.validate()
     options.intrinsics.validate()
+    options.reject.validate()
     in_memory = _scene_input(input)
     source, kind, label = (Path(input), None, None) if in_memory is None else in_memory
     evaluation = None

@@ -250,6 +250,7 @@ def reject_stage(run: Run) -> None:
     from rotonly_cli.stages.reject import reject_round
     from rotonly_cli.stages.translate import ligt_centres, views_ligt_left_out, views_off
 
+    run.options.reject.validate()
     start = time.perf_counter()
     solve_time = {k: float((run.reports.get(k) or {}).get("time_s") or 0.0) for k in ("optimize", "translate")}
     resolving = 0.0  # seconds of this stage spent in GRRM and LiGT re-solves

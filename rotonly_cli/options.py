@@ -593,6 +593,18 @@ class RejectOptions:
     #: new rotations with at most this ratio of the sigma before (stages/translate.first_solve_sigma_px)
     confirm_misfit_ratio: float = 0.5
 
+    def validate(self) -> RejectOptions:
+        if self.max_rounds < 0 or self.confirm_max_rounds < 0:
+            raise InputError("must be >= 0", field="reject.max_rounds")
+        if self.confirm_min_views < 3:
+            # two views are any match's own pair: nothing would be confirmed by a third
+            raise InputError("must be >= 3", field="reject.confirm_min_views")
+        if not (0.0 < self.confirm_min_fraction <= 1.0 and 0.0 < self.confirm_misfit_ratio <= 1.0):
+            raise InputError("must be in (0, 1]", field="reject.confirm_min_fraction")
+        if not (self.confirm_misfit_sigmas > 0 and self.outlier_sigmas > 0 and self.min_threshold_px >= 0):
+            raise InputError("must be > 0", field="reject.confirm_misfit_sigmas")
+        return self
+
 
 @dataclass(frozen=True)
 class AverageOptions:

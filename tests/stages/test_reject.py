@@ -325,3 +325,18 @@ def test_the_reject_command_confirms_like_the_run(tmp_path):
     assert confirmation["first_solve_sigma_px"][1] < 0.2 * confirmation["first_solve_sigma_px"][0]
     solves = json.loads((tmp_path / "out" / "reports" / "optimize.json").read_text())["solves"]
     assert solves >= 3  # the confirmation's GRRM solves, written back
+
+
+def test_reject_options_are_checked():
+    import pytest
+
+    from rotonly_cli.errors import InputError
+
+    assert RejectOptions().validate() == RejectOptions()
+    for bad in ({"confirm_max_rounds": -1}, {"confirm_min_views": 2}, {"confirm_min_fraction": 0.0},
+                {"confirm_misfit_ratio": 1.5}, {"confirm_misfit_sigmas": 0.0}, {"outlier_sigmas": -1.0}):
+        with pytest.raises(InputError, match="reject"):
+            RejectOptions(**bad).validate()
+    with pytest.raises(InputError, match="confirm_min_views"):
+        rotonly_cli.run(CASTLE_NORMAL / "openmvg" / "sfm_data.json",
+                        options=RunOptions(reject=RejectOptions(confirm_min_views=2)))
