@@ -366,6 +366,7 @@ def _restored_calibration(scene: SfMScene, options: RunOptions, saved: dict) -> 
     calibration.restore(saved)
     return calibration
 
+
 #: the reports of earlier stages a stage command reads from OUT/reports (the rest start empty)
 REPORTS_READ = {"reject": ("optimize", "translate")}
 
