@@ -287,8 +287,8 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
     """Into ``summary`` (and run.reports): the intrinsics each camera started from and ended
     with (reports/intrinsics.json), the views left out of the outputs, and the run's warnings
     (the calibration's, those views, the baseline check of the centres, the edges on no cycle,
-    the views a rejection round cut loose, the pairs' scatter about the final rotations), each
-    also logged."""
+    the rotations the tracks refuted, the views a rejection round cut loose, the pairs' scatter
+    about the final rotations), each also logged."""
     from rotonly_cli.stages.average import (
         pair_scatter_deg,
         pair_scatter_warning,
@@ -296,7 +296,7 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
         unchecked_edges_warning,
     )
     from rotonly_cli.stages.load import unprojectable_warning
-    from rotonly_cli.stages.reject import undone_round_warning
+    from rotonly_cli.stages.reject import confirmation_warning, undone_round_warning
     from rotonly_cli.stages.translate import baseline_warning, pure_rotation_warning, unregistered_warning
 
     if run.calibration is not None:
@@ -312,7 +312,7 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
                                   without_camera),
              baseline_warning(run.reports.get("translate")), pure_rotation_warning(run.reports.get("translate")),
              unchecked_edges_warning(bridges),
-             undone_round_warning(run.reports.get("reject")),
+             confirmation_warning(run.reports.get("reject")), undone_round_warning(run.reports.get("reject")),
              pair_scatter_warning(summary["pair_residual_deg_median"])]
     summary["warnings"] = summary.get("warnings", []) + [warning for warning in found if warning]
     for warning in summary["warnings"]:

@@ -62,6 +62,23 @@ def undone_round_warning(report: dict | None) -> str | None:
     return None
 
 
+def confirmation_warning(report: dict | None) -> str | None:
+    """The run summary's warning when the reject stage's confirmation by tracks was kept
+    (reports/reject.json: ``confirmation``): the pairs held wrong matches that fit their own
+    epipolar geometry (repeated structure, most likely) and had bent the rotations until the
+    tracks refuted them. The run's rotations are the corrected ones, but such an input's are
+    the least certain; None otherwise."""
+    confirmation = (report or {}).get("confirmation")
+    if not confirmation or confirmation.get("undone") or not confirmation.get("rounds"):
+        return None
+    before, after = confirmation["first_solve_sigma_px"]
+    left = confirmation.get("views_left_out_before") or []
+    return (f"the tracks refuted the rotations the pairs' matches gave (LiGT's first solve {before:.3g} px off the "
+            f"tracks{f', view(s) {listed(map(str, left))} left out' if left else ''}): pairs hold wrong matches "
+            f"that fit their own epipolar geometry, repeated structure most likely; the rotations were solved again "
+            f"on the matches a third view confirms ({after:.3g} px off; reports/reject.json: confirmation)")
+
+
 def reject_round(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_world: np.ndarray,
                  centers: np.ndarray, focal_px: np.ndarray, options: RejectOptions = RejectOptions(),
                  min_inliers: int = 30, max_residual_deg: float = 5.0) -> dict:

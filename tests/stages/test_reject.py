@@ -289,6 +289,7 @@ def test_confirmation_by_tracks_straightens_rotations_bent_by_wrong_matches():
     assert not any(CONFIRM_REASON in edge.dropped_matches for edge in result.graph.edges)
     assert sum(edge.num_inliers for edge in result.graph.edges) > 0.9 * sum(
         round_["num_matches"] for round_ in confirmation["rounds"][-1:])
+    assert any("the tracks refuted the rotations" in w for w in result.summary["warnings"])
     bent = rotonly_cli.run(CASTLE_NORMAL / "openmvg" / "sfm_data.json", gt=CASTLE_NORMAL, progress=False,
                            options=RunOptions(reject=RejectOptions(confirm_max_rounds=0)))
     assert bent.evaluation["rotation_error_deg"]["mean"] > 0.2 and len(bent.rotations) == 17
@@ -340,3 +341,16 @@ def test_reject_options_are_checked():
     with pytest.raises(InputError, match="confirm_min_views"):
         rotonly_cli.run(CASTLE_NORMAL / "openmvg" / "sfm_data.json",
                         options=RunOptions(reject=RejectOptions(confirm_min_views=2)))
+
+
+def test_confirmation_warning_names_the_misfit_and_the_views():
+    from rotonly_cli.stages.reject import confirmation_warning
+
+    assert confirmation_warning(None) is None and confirmation_warning({"rounds": []}) is None
+    kept = {"confirmation": {"rounds": [{}], "first_solve_sigma_px": [17.87, 1.497],
+                             "views_left_out_before": [11, 12, 13]}}
+    warning = confirmation_warning(kept)
+    assert "17.9 px off the tracks, view(s) 11, 12, 13 left out" in warning and "(1.5 px off" in warning
+    assert "repeated structure" in warning and "reports/reject.json" in warning
+    assert confirmation_warning({"confirmation": {**kept["confirmation"], "undone": True}}) is None
+    assert confirmation_warning({"confirmation": {"rounds": [], "too_few_confirmed": {}}}) is None
