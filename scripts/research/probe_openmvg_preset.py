@@ -3,12 +3,14 @@
 were made with ComputeFeatures' HIGH preset; OpenMVG's default is NORMAL (3-4 times fewer
 matches per pair, so the wrong matches of repeated structure weigh more). For each Strecha
 scene this builds a project from the scene's images with OpenMVG 2.1's own tools and the given
-preset (kept under --work and reused), then scores on its E-verified matches: rotonly (per
-seed, with and without the reject stage's confirmation by tracks), OpenMVG's global SfM, and
-pycolmap's global mapper on the same matches written as a COLMAP database.
+preset (kept under --work and reused), then scores on its E-verified matches (and, with
+``--filters e f``, on the F-verified ones a user without the intrinsics makes): rotonly (per
+seed, with and without the reject stage's confirmation by tracks), OpenMVG's global SfM (E
+only: its global engine needs them), and pycolmap's global mapper on the same matches written
+as a COLMAP database.
 
     LD_LIBRARY_PATH=OPENMVG/lib python scripts/research/probe_openmvg_preset.py --root DATA/strecha \
-        --openmvg-bin OPENMVG/bin --work WORK [--preset NORMAL] [--seeds 0 1 2]
+        --openmvg-bin OPENMVG/bin --work WORK [--preset NORMAL] [--seeds 0 1 2] [--filters e f]
 """
 
 from __future__ import annotations
@@ -43,12 +45,22 @@ def shared_K(scene_dir: Path) -> str:
     return f"{f};0;{cx};0;{f};{cy};0;0;1"
 
 
-def build_project(openmvg_bin: Path, scene_dir: Path, project: Path, preset: str) -> None:
-    if (project / "matches.e.bin").is_file():
-        return
+def build_project(openmvg_bin: Path, scene_dir: Path, project: Path, preset: str, filters: list[str]) -> None:
+    """The project, with matches.<model>.bin for every geometric filter of ``filters``; a step
+    whose product is there already is not run again (a kept project is reused)."""
+    commands = project_commands(openmvg_bin, scene_dir / "images", project, shared_K(scene_dir), preset)
+    filtered = commands[-1]
+    commands += [[*filtered[:filtered.index("-g") + 1], model, "-o", str(project / f"matches.{model}.bin")]
+                 for model in filters if model != "e"]
+    # what each step leaves: the listing's sfm_data.json, the describer's image_describer.json,
+    # else the file it writes
+    products = [project / "sfm_data.json", project / "image_describer.json"] + \
+        [Path(command[command.index("-o") + 1]) for command in commands[2:]]
     project.mkdir(parents=True, exist_ok=True)
-    with open(project / "build.log", "w") as log:
-        for command in project_commands(openmvg_bin, scene_dir / "images", project, shared_K(scene_dir), preset):
+    with open(project / "build.log", "a") as log:
+        for command, product in zip(commands, products):
+            if product.exists():
+                continue
             log.write(f"$ {' '.join(command)}\n")
             log.flush()
             subprocess.run(command, stdout=log, stderr=subprocess.STDOUT, check=True)
@@ -75,6 +87,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work", type=Path, required=True, help="where the projects are built (and reused)")
     parser.add_argument("--preset", default="NORMAL", choices=("NORMAL", "HIGH", "ULTRA"))
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--filters", nargs="+", default=["e"], choices=("e", "f"),
+                        help="GeometricFilter's models whose matches are scored")
     args = parser.parse_args(argv)
     logging.getLogger("rotonly_cli").setLevel(logging.ERROR)
     print("| scene | method | seed | registered | rotation (deg) | position (GT units) |")
@@ -82,30 +96,33 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.scenes:
         scene_dir = args.root / name
         project = args.work / f"{name}-{args.preset}"
-        build_project(args.openmvg_bin, scene_dir, project, args.preset)
+        build_project(args.openmvg_bin, scene_dir, project, args.preset, args.filters)
         gt = read_ground_truth(scene_dir)
         sfm_data = project / "sfm_data.json"
-        for seed in args.seeds:
-            for label, options in (("rotonly", RunOptions(progress=False)),
-                                   ("rotonly, no confirmation", RunOptions(progress=False))):
-                if label != "rotonly":
-                    options = replace(options, reject=replace(options.reject, confirm_max_rounds=0))
-                result = rotonly_cli.run(sfm_data, gt=scene_dir, seed=seed, options=options)
-                evaluation = result.evaluation
-                print(f"| {name} | {label} | {seed} | {len(result.rotations)} / {len(gt.poses)} | "
-                      f"{evaluation['rotation_error_deg']['mean']:.4f} | "
-                      f"{(evaluation.get('position_error') or {}).get('mean', float('nan')):.4f} |", flush=True)
-        with tempfile.TemporaryDirectory(prefix="rotonly_preset_") as tmp:
-            own = run_openmvg_global(project, gt, args.openmvg_bin, Path(tmp), Path(tmp))
-            print(f"| {name} | OpenMVG 2.1 global SfM | - | {own.num_registered} / {len(gt.poses)} | "
-                  f"{own.rotation_mean_deg:.4f} | {own.position_mean:.4f} |", flush=True)
-            database = Path(tmp) / "database.db"
-            write_database(database, read_project(sfm_data))
-            rotations = pycolmap_global_mapper(database)
-            names = dict(enumerate(sorted(rotations)))
-            mapper = evaluate(gt, rotations_scene(names, {k: rotations[n] for k, n in names.items()}))
-            print(f"| {name} | pycolmap global mapper (K fixed) | - | {mapper.num_matched} / {len(gt.poses)} | "
-                  f"{mapper.rotation_error_deg.mean:.4f} | - |", flush=True)
+        for model in args.filters:
+            matches = project / f"matches.{model}.bin"
+            for seed in args.seeds:
+                for label, options in (("rotonly", RunOptions(progress=False)),
+                                       ("rotonly, no confirmation", RunOptions(progress=False))):
+                    if label != "rotonly":
+                        options = replace(options, reject=replace(options.reject, confirm_max_rounds=0))
+                    result = rotonly_cli.run(sfm_data, gt=scene_dir, matches=matches, seed=seed, options=options)
+                    evaluation = result.evaluation
+                    print(f"| {name} | {label}, {model} matches | {seed} | {len(result.rotations)} / {len(gt.poses)} | "
+                          f"{evaluation['rotation_error_deg']['mean']:.4f} | "
+                          f"{(evaluation.get('position_error') or {}).get('mean', float('nan')):.4f} |", flush=True)
+            with tempfile.TemporaryDirectory(prefix="rotonly_preset_") as tmp:
+                if model == "e":
+                    own = run_openmvg_global(project, gt, args.openmvg_bin, Path(tmp), Path(tmp))
+                    print(f"| {name} | OpenMVG 2.1 global SfM, e matches | - | {own.num_registered} / "
+                          f"{len(gt.poses)} | {own.rotation_mean_deg:.4f} | {own.position_mean:.4f} |", flush=True)
+                database = Path(tmp) / "database.db"
+                write_database(database, read_project(sfm_data, None, matches))
+                rotations = pycolmap_global_mapper(database)
+                names = dict(enumerate(sorted(rotations)))
+                mapper = evaluate(gt, rotations_scene(names, {k: rotations[n] for k, n in names.items()}))
+                print(f"| {name} | pycolmap global mapper (K fixed), {model} matches | - | {mapper.num_matched} / "
+                      f"{len(gt.poses)} | {mapper.rotation_error_deg.mean:.4f} | - |", flush=True)
     return 0
 
 

@@ -569,3 +569,27 @@ def test_probe_openmvg_preset_commands():
         "SfMInit_ImageListing", "ComputeFeatures", "PairGenerator", "ComputeMatches", "GeometricFilter")]
     assert commands[1][-2:] == ["-p", "NORMAL"] and commands[-1][commands[-1].index("-g") + 1] == "e"
     assert commands[-1][-1] == "/work/p/matches.e.bin"
+
+
+def test_probe_openmvg_preset_builds_each_step_once(tmp_path):
+    """build_project runs OpenMVG's steps in order, the F filter after the E one when asked,
+    and on a kept project only the steps whose product is missing (fake tools here)."""
+    probe = _load_script("probe_openmvg_preset")
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    for name in ("SfMInit_ImageListing", "ComputeFeatures", "PairGenerator", "ComputeMatches", "GeometricFilter"):
+        tool = bin_dir / f"openMVG_main_{name}"
+        product = {"SfMInit_ImageListing": '"$out/sfm_data.json"',
+                   "ComputeFeatures": '"$out/image_describer.json"'}.get(name, '"$out"')
+        tool.write_text(f'#!/bin/sh\nwhile [ "$1" != "-o" ]; do shift; done; out="$2"\n'
+                        f'echo {name} >> "{tmp_path}/calls"\ntouch {product}\n')
+        tool.chmod(0o755)
+    project = tmp_path / "castle-NORMAL"
+    probe.build_project(bin_dir, FIXTURES / "castle_p19_openmvg", project, "NORMAL", ["e", "f"])
+    calls = (tmp_path / "calls").read_text().split()
+    assert calls == ["SfMInit_ImageListing", "ComputeFeatures", "PairGenerator", "ComputeMatches",
+                     "GeometricFilter", "GeometricFilter"]
+    assert (project / "matches.e.bin").is_file() and (project / "matches.f.bin").is_file()
+    (project / "matches.f.bin").unlink()
+    probe.build_project(bin_dir, FIXTURES / "castle_p19_openmvg", project, "NORMAL", ["e", "f"])
+    assert (tmp_path / "calls").read_text().split()[len(calls):] == ["GeometricFilter"]
