@@ -273,9 +273,7 @@ def reject_stage(run: Run) -> None:
     for _ in range(run.options.reject.max_rounds):
         if run.rotations is None or run.centers is None:
             break
-        # what an undone round restores (reject_round changes the graph in place)
-        graph_before, rotations_before, centers_before = copy.deepcopy(run.graph), run.rotations, run.centers
-        reports_before = {k: run.reports.get(k) for k in ("optimize", "translate")}
+        before = _snapshot(run)  # what an undone round restores (reject_round changes the graph in place)
         # matches are judged under LiGT's own centres: a resected view's centre carries the error
         # of the points it was resected from (castle-P19's OpenMVG matches, seed 4: judged with
         # them, the round's drops took the rotations 0.1099 -> 0.1153 deg)
@@ -292,7 +290,7 @@ def reject_stage(run: Run) -> None:
         if report["num_dropped"] == 0 and not report["edges_filtered"]:
             break
         if report["num_dropped"] < run.options.reject.min_dropped_to_resolve and not report["edges_filtered"]:
-            run.graph = graph_before  # too few to move the rotations: not worth a re-solve, not applied
+            run.graph = before.graph  # too few to move the rotations: not worth a re-solve, not applied
             report["not_applied"] = f"fewer than {run.options.reject.min_dropped_to_resolve} matches"
             break
         _ensure_two_views(run.graph, "multi-view rejection")
@@ -302,14 +300,13 @@ def reject_stage(run: Run) -> None:
         # tracks' rigid set, and their rotations are the ones those drops spoiled (castle-P19's
         # OpenMVG matches, focal x1.2: resected, the round kept, 0.0945 -> 0.1267 deg)
         lost = sorted(views_ligt_left_out(run.reports.get("translate"))
-                      - views_ligt_left_out(reports_before["translate"]))
-        if len(off_after) > len(views_off(reports_before["translate"])) or lost:
+                      - views_ligt_left_out(before.reports["translate"]))
+        if len(off_after) > len(views_off(before.reports["translate"])) or lost:
             # LiGT's solve on the cleaned tracks collapsed where the previous one had not (castle-P19,
             # OpenMVG matches, 5 consensus runs, seed 3: 17.6 GT units), or the dropped matches cut
             # views out of the set that tracks tie together (the same input, seed 1: views 12-15
             # lost their centres in the second round): the round is undone
-            run.graph, run.rotations, run.centers = graph_before, rotations_before, centers_before
-            _restore_reports(run, reports_before)
+            _restore(run, before)
             report["undone"] = {"views_off": off_after, "views_without_centre": lost}
             logger.info("reject: round undone, its LiGT solve %s",
                         f"put view(s) {', '.join(off_after)} off their pairs' baselines" if off_after else
@@ -325,10 +322,27 @@ def reject_stage(run: Run) -> None:
                              "time_s": time.perf_counter() - start - resolving}
 
 
-def _restore_reports(run: Run, saved: dict) -> None:
-    """The reports of ``saved`` back in ``run.reports``; a stage that had none has none again
-    (a stage command's run starts without its predecessors' reports)."""
-    for key, report in saved.items():
+@dataclass(frozen=True)
+class _Snapshot:
+    """What a re-solve of the reject stage changes, as it was before (graph copied: rounds
+    change it in place)."""
+
+    graph: ViewGraph
+    rotations: np.ndarray | None
+    centers: np.ndarray | None
+    reports: dict  # optimize and translate; None where the run had none
+
+
+def _snapshot(run: Run) -> _Snapshot:
+    return _Snapshot(copy.deepcopy(run.graph), run.rotations, run.centers,
+                     {k: run.reports.get(k) for k in ("optimize", "translate")})
+
+
+def _restore(run: Run, snapshot: _Snapshot) -> None:
+    """``run`` as it was at ``snapshot``; a report it had none of is taken out again (a stage
+    command's run may start without its predecessors' reports)."""
+    run.graph, run.rotations, run.centers = snapshot.graph, snapshot.rotations, snapshot.centers
+    for key, report in snapshot.reports.items():
         if report is None:
             run.reports.pop(key, None)
         else:
@@ -378,12 +392,16 @@ def _confirmation_rounds(run: Run, resolve) -> dict:
     from rotonly_cli.stages.triangulate import posed_edges, triangulated_tracks
 
     options = run.options.reject
-    left_before = sorted(views_ligt_left_out(run.reports.get("translate")))
-    original = copy.deepcopy(run.graph)
-    residual_before = edge_residuals_deg([original.edges[k] for k in original.active_edges()],
-                                         {v: run.rotations[row] for v, row in view_index(original).items()})
-    saved = (run.rotations, run.centers, {k: run.reports.get(k) for k in ("optimize", "translate")})
-    misfit_before = first_solve_sigma_px(saved[2]["translate"])
+    saved = _snapshot(run)
+    original = saved.graph  # the edges' matches before the rounds; every round copies it
+    index = view_index(original)
+
+    def residuals() -> np.ndarray:  # every active edge against the run's rotations now
+        return edge_residuals_deg([original.edges[k] for k in original.active_edges()],
+                                  {v: run.rotations[row] for v, row in index.items()})
+
+    left_before = sorted(views_ligt_left_out(saved.reports["translate"]))
+    residual_before, misfit_before = residuals(), first_solve_sigma_px(saved.reports["translate"])
     rounds, previous, result = [], None, {}
     for _ in range(options.confirm_max_rounds):
         edges = posed_edges(original, run.rotations, run.centers)[1]
@@ -425,15 +443,12 @@ def _confirmation_rounds(run: Run, resolve) -> dict:
     run.graph = copy.deepcopy(original)
     resolve(("translate",))
     left_all = sorted(views_ligt_left_out(run.reports.get("translate")))
-    index = view_index(original)
     # ... and the new rotations may not put a pair beyond the averaging's outlier residual
     # (an 8-view subset of castle-P19's database: a leaf turned 24 deg) nor a
     # view off its pairs' baselines (LiGT shrinking the centres fits every track)
-    residual = edge_residuals_deg([original.edges[k] for k in original.active_edges()],
-                                  {v: run.rotations[row] for v, row in index.items()})
-    new_outliers = int(np.sum((residual > run.options.average.max_residual_deg) & ~(
-        residual_before > run.options.average.max_residual_deg)))
-    off = sorted(set(views_off(run.reports.get("translate"))) - set(views_off(saved[2]["translate"])))
+    outlier = run.options.average.max_residual_deg
+    new_outliers = int(np.sum((residuals() > outlier) & ~(residual_before > outlier)))
+    off = sorted(set(views_off(run.reports.get("translate"))) - set(views_off(saved.reports["translate"])))
     misfit = first_solve_sigma_px(run.reports.get("translate"))
     result.update(views_left_out_all_matches=left_all, new_outlier_edges=new_outliers, new_views_off=off,
                   first_solve_sigma_px=[misfit_before, misfit])
@@ -448,8 +463,7 @@ def _confirmation_rounds(run: Run, resolve) -> dict:
         logger.info("reject: under the rotations of the confirmed matches LiGT's first solve on every match "
                     "misfits the tracks by %.3g px (before %.3g) and ties every view in: kept", misfit, misfit_before)
         return result
-    run.graph, run.rotations, run.centers = original, saved[0], saved[1]
-    _restore_reports(run, saved[2])
+    _restore(run, saved)
     logger.info("reject: confirmation undone: under the rotations of the confirmed matches %s", "; ".join(failed))
     return {**result, "undone": True}
 

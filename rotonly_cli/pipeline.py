@@ -367,10 +367,6 @@ def _restored_calibration(scene: SfMScene, options: RunOptions, saved: dict) -> 
     return calibration
 
 
-#: the reports of earlier stages a stage command reads from OUT/reports (the rest start empty)
-REPORTS_READ = {"reject": ("optimize", "translate")}
-
-
 def resume(out_dir: str | Path, stage: str, options: RunOptions | None = None) -> dict:
     """Run one stage on an existing workspace (``rotonly refine|average|... OUT``) in place.
 
@@ -402,9 +398,10 @@ def resume(out_dir: str | Path, stage: str, options: RunOptions | None = None) -
                   state.centers, calibration=calibration)
         if stage == "triangulate" and (run.rotations is None or run.centers is None):
             raise InputError("no rotations / centres in the workspace", path=str(out_dir))
-        # the reject stage reads LiGT's report (the views it left out, its misfit of the tracks),
-        # as `rotonly run` hands it over: loaded, and written back only if the stage re-solves
-        given = {name: read_report(out_dir, name) for name in REPORTS_READ.get(stage, ())}
+        # the earlier stages' reports, as `rotonly run` hands them over (the reject stage reads
+        # LiGT's: the views it left out, its misfit of the tracks); written back only if the
+        # stage re-solves them
+        given = {name: read_report(out_dir, name) for name in STAGES[:position]}
         run.reports.update({name: report for name, report in given.items() if report is not None})
         from rotonly_cli.monitor import StageMonitor
 
@@ -414,7 +411,7 @@ def resume(out_dir: str | Path, stage: str, options: RunOptions | None = None) -
                 STAGE_FUNCTIONS[stage](run)
         for name, report in given.items():
             if report is not None and run.reports.get(name) is report:
-                del run.reports[name]  # not re-solved: reports/<name>.json stays as it is
+                del run.reports[name]  # not redone: reports/<name>.json stays as it is
         done = list(STAGES[:position + 1])
         if position < STAGES.index("average"):
             run.rotations = None  # stale: computed from the edges before this stage

@@ -169,6 +169,15 @@ def largest_component(graph: ViewGraph, reason: str = "outside largest component
     return keep
 
 
+def active_bridges(graph: ViewGraph, views: set[int] | None = None) -> list[int]:
+    """The active edges (indices) between ``views`` (default: every view) that no cycle of
+    those edges runs through (:func:`bridge_edges`)."""
+    edges = [k for k in graph.active_edges()
+             if views is None or (graph.edges[k].i in views and graph.edges[k].j in views)]
+    bridge = bridge_edges([(graph.edges[k].i, graph.edges[k].j) for k in edges])
+    return [k for k, is_bridge in zip(edges, bridge) if is_bridge]
+
+
 def bridge_edges(edges: list[tuple[int, int]]) -> list[bool]:
     """Per edge (view id pairs), whether it is a bridge: no cycle of ``edges`` runs through it,
     so nothing but its own two-view estimate says where its far side is (cycle consistency

@@ -19,7 +19,7 @@ from rotonly_cli.geometry.averaging import AveragingOptions, average_rotations
 from rotonly_cli.options import AverageOptions
 from rotonly_cli.scene.view_graph import (
     ViewGraph,
-    bridge_edges,
+    active_bridges,
     edge_residuals_deg,
     largest_component,
     regular_edges,
@@ -94,9 +94,7 @@ def unchecked_edges(graph: ViewGraph, registered: set[int]) -> list[tuple[int, i
     registered views (two views have nothing else to check against)."""
     if len(registered) < 3:
         return []
-    pairs = [(graph.edges[k].i, graph.edges[k].j) for k in graph.active_edges()
-             if graph.edges[k].i in registered and graph.edges[k].j in registered]
-    return [pair for pair, bridge in zip(pairs, bridge_edges(pairs)) if bridge]
+    return [(graph.edges[k].i, graph.edges[k].j) for k in active_bridges(graph, registered)]
 
 
 def unchecked_edges_warning(edges: list[tuple[int, int]], max_shown: int = 8) -> str | None:

@@ -25,7 +25,7 @@ from rotonly_cli.geometry.tracks import Tracks
 from rotonly_cli.options import RejectOptions
 from rotonly_cli.scene.view_graph import (
     ViewGraph,
-    bridge_edges,
+    active_bridges,
     edge_residuals_deg,
     largest_component,
     regular_edges,
@@ -167,11 +167,10 @@ def confirm_round(original: ViewGraph, confirmed: list[np.ndarray], edges: list[
     their own; and the round's counts."""
     graph = copy.deepcopy(original)
     report = {"num_edges": len(edges), "num_matches": 0, "num_dropped": 0, "edges_kept_whole": 0}
-    bridge = bridge_edges([(original.edges[k].i, original.edges[k].j) for k in original.active_edges()])
-    is_bridge = dict(zip(original.active_edges(), bridge))
+    bridges = set(active_bridges(original))
     for k, keep in zip(edges, confirmed):
         report["num_matches"] += int(keep.size)
-        if np.count_nonzero(keep) < MIN_CONFIRMED or is_bridge[k]:
+        if np.count_nonzero(keep) < MIN_CONFIRMED or k in bridges:
             report["edges_kept_whole"] += 1
             continue
         report["num_dropped"] += graph.edges[k].drop_matches(keep, CONFIRM_REASON)
