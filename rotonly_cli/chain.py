@@ -267,7 +267,10 @@ def reject_stage(run: Run) -> None:
             solve_time[key] += float((run.reports.get(key) or {}).get("time_s") or 0.0)
         resolving += time.perf_counter() - resolve_start
 
-    confirmation = _confirmation_rounds(run, resolve) if _rotations_misfit_tracks(run) else None
+    refutation = confirmation = None
+    if _rotations_misfit_tracks(run):
+        refutation = _refutation_rounds(run, resolve)
+        confirmation = _confirmation_rounds(run, resolve)
     rounds = []
     focal_px = run.scene.focal_px(run.graph.view_ids())
     for _ in range(run.options.reject.max_rounds):
@@ -318,6 +321,7 @@ def reject_stage(run: Run) -> None:
     run.reports["reject"] = {"rounds": rounds,  # an undone round's drops were put back
                              "num_dropped": int(sum(r["num_dropped"] for r in rounds
                                                     if "undone" not in r and "not_applied" not in r)),
+                             **({"refutation": refutation} if refutation else {}),
                              **({"confirmation": confirmation} if confirmation else {}),
                              "time_s": time.perf_counter() - start - resolving}
 
@@ -363,6 +367,77 @@ def _rotations_misfit_tracks(run: Run) -> bool:
         return False
     return bool(views_ligt_left_out(report)) or \
         first_solve_sigma_px(report) > options.confirm_misfit_sigmas * last_round_sigma_px(report)
+
+
+def _leaves_new_bridges(graph, edge: int, bridges: set[int]) -> bool:
+    """Whether filtering ``edge`` would leave an active edge on no cycle that is on one now."""
+    from rotonly_cli.scene.view_graph import active_bridges
+
+    status = graph.edges[edge].status
+    graph.edges[edge].status = "filtered"
+    try:
+        return bool(set(active_bridges(graph)) - bridges)
+    finally:
+        graph.edges[edge].status = status
+
+
+def _refutation_rounds(run: Run, resolve) -> dict:
+    """Where LiGT's solve says the rotations disagree with the tracks, pairs that the other
+    pairs refute are filtered (stages/reject.refuted_edges, geometry/refutation): a pair whose
+    matches are consistently wrong (repeated structure that fits its own epipolar geometry)
+    bends GRRM's rotations until its own matches fit them, and where it is weakly tied, no
+    residual under the bent rotations shows it (castle-P19 from OpenMVG's F-verified matches:
+    pairs 12-17 and 15-17, 0.22-0.28 deg). Left out, its matches misfit the rotation the
+    others imply: the most refuted pair beyond ``refute_max_ratio`` is filtered and GRRM and
+    LiGT re-solved, at most ``refute_max_edges`` times. A filtered pair is put back, and the
+    test ends, when LiGT then leaves out a view it tied in (the pair was a link the tracks
+    needed) or misfits the tracks by more than ``refute_max_misfit_growth`` times the misfit
+    before. Returns the report."""
+    from rotonly_cli.scene.view_graph import active_bridges
+    from rotonly_cli.stages.optimize import grrm_inputs
+    from rotonly_cli.stages.reject import REFUTE_REASON, refuted_edges
+    from rotonly_cli.stages.translate import first_solve_sigma_px, views_ligt_left_out
+
+    options = run.options.reject
+    rounds = []
+    for _ in range(options.refute_max_edges):
+        if run.rotations is None:
+            break
+        inputs = grrm_inputs(run.graph, run.scene.normalized, run.rotations)
+        candidates = [entry for entry in refuted_edges(run.graph, inputs, run.rotations)
+                      if entry["fit_ratio"] > options.refute_max_ratio]
+        # the others refute a pair only where they stay redundant: a pair whose loss would
+        # leave other pairs on no cycle had one path to disagree with, and nothing would check
+        # those pairs afterwards (castle-P19's OpenMVG matches, an 8-view subset: two pairs
+        # filtered left five bridges, 0.18 -> 0.34 deg)
+        bridges = set(active_bridges(run.graph))
+        candidates = [entry for entry in candidates if not _leaves_new_bridges(run.graph, entry["edge_index"], bridges)]
+        if not candidates:
+            break
+        worst = candidates[0]
+        before = _snapshot(run)
+        misfit_before = first_solve_sigma_px(before.reports["translate"])
+        left_before = views_ligt_left_out(before.reports["translate"])
+        run.graph.edges[worst["edge_index"]].filter(f"{REFUTE_REASON}: its matches fit the others' rotation "
+                                                    f"{worst['fit_ratio']:.3g}x worse than its own")
+        _ensure_two_views(run.graph, "leave-one-out refutation")
+        resolve()
+        misfit = first_solve_sigma_px(run.reports.get("translate"))
+        lost = sorted(views_ligt_left_out(run.reports.get("translate")) - left_before)
+        kept = not lost and not misfit > options.refute_max_misfit_growth * misfit_before  # nan: no test
+        entry = {"edge": worst["edge"], "fit_ratio": worst["fit_ratio"],
+                 "rotation_change_deg": worst["rotation_change_deg"], "first_solve_sigma_px": [misfit_before, misfit],
+                 "views_left_out": lost, "kept": kept}
+        rounds.append(entry)
+        logger.info("reject: pair %d-%d refuted by the others (its matches fit their rotation %.3g x worse than its "
+                    "own, %.3g deg away): filtered; LiGT's first solve %.3g -> %.3g px off the tracks%s: %s",
+                    *worst["edge"], worst["fit_ratio"], worst["rotation_change_deg"], misfit_before, misfit,
+                    f", view(s) {', '.join(map(str, lost))} left out" if lost else "",
+                    "kept" if kept else "undone")
+        if not kept:
+            _restore(run, before)
+            break
+    return {"max_ratio": options.refute_max_ratio, "rounds": rounds}
 
 
 def _confirmation_rounds(run: Run, resolve) -> dict:

@@ -592,10 +592,22 @@ class RejectOptions:
     #: the rounds are kept when LiGT's first solve on every match fits the tracks under the
     #: new rotations with at most this ratio of the sigma before (stages/translate.first_solve_sigma_px)
     confirm_misfit_ratio: float = 0.5
+    #: before the confirmation (same trigger), pairs whose matches fit the relative rotation the
+    #: other pairs imply this many times worse (median epipolar residual) than their own are
+    #: filtered, the most refuted first (chain._refutation_rounds); clean inputs stay below 2.5
+    refute_max_ratio: float = 6.0
+    #: ... at most this many pairs; 0: none
+    refute_max_edges: int = 3
+    #: ... each is undone (and the test ends) when LiGT then leaves a view out that it tied in,
+    #: or its first solve misfits the tracks by more than this factor of the misfit before
+    refute_max_misfit_growth: float = 1.5
 
     def validate(self) -> RejectOptions:
-        if self.max_rounds < 0 or self.confirm_max_rounds < 0:
+        if self.max_rounds < 0 or self.confirm_max_rounds < 0 or self.refute_max_edges < 0:
             raise InputError("must be >= 0", field="reject.max_rounds")
+        if not (self.refute_max_ratio > 1.0 and self.refute_max_misfit_growth >= 1.0):
+            # a pair's matches fit their own rotation best: a ratio of 1 or less refutes every pair
+            raise InputError("must be > 1", field="reject.refute_max_ratio")
         if self.confirm_min_views < 3:
             # two views are any match's own pair: nothing would be confirmed by a third
             raise InputError("must be >= 3", field="reject.confirm_min_views")

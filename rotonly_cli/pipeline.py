@@ -296,7 +296,7 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
         unchecked_edges_warning,
     )
     from rotonly_cli.stages.load import unprojectable_warning
-    from rotonly_cli.stages.reject import confirmation_warning, undone_round_warning
+    from rotonly_cli.stages.reject import confirmation_warning, refutation_warning, undone_round_warning
     from rotonly_cli.stages.translate import baseline_warning, pure_rotation_warning, unregistered_warning
 
     if run.calibration is not None:
@@ -312,7 +312,8 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
                                   without_camera),
              baseline_warning(run.reports.get("translate")), pure_rotation_warning(run.reports.get("translate")),
              unchecked_edges_warning(bridges),
-             confirmation_warning(run.reports.get("reject")), undone_round_warning(run.reports.get("reject")),
+             refutation_warning(run.reports.get("reject")), confirmation_warning(run.reports.get("reject")),
+             undone_round_warning(run.reports.get("reject")),
              pair_scatter_warning(summary["pair_residual_deg_median"])]
     summary["warnings"] = summary.get("warnings", []) + [warning for warning in found if warning]
     for warning in summary["warnings"]:

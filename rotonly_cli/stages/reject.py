@@ -37,6 +37,10 @@ logger = logging.getLogger(__name__)
 DROP_REASON = "inconsistent with the global poses"
 RESIDUAL_REASON = "rotation residual after multi-view rejection"
 CONFIRM_REASON = "not in a track of three or more views"
+REFUTE_REASON = "refuted by the other pairs (leave-one-out)"
+#: the leave-one-out test inverts GRRM's 3n x 3n normal matrix densely: beyond this many
+#: views (3000 x 3000, ~0.5 s) it is not run
+REFUTE_MAX_VIEWS = 1000
 #: an edge keeps only its confirmed matches when they over-determine its relative pose (one
 #: more than the five-point sample); with fewer it has no evidence either way and keeps all
 MIN_CONFIRMED = 6
@@ -77,6 +81,42 @@ def confirmation_warning(report: dict | None) -> str | None:
             f"tracks{f', view(s) {listed(map(str, left))} left out' if left else ''}): pairs hold wrong matches "
             f"that fit their own epipolar geometry, repeated structure most likely; the rotations were solved again "
             f"on the matches a third view confirms ({after:.3g} px off; reports/reject.json: confirmation)")
+
+
+def refutation_warning(report: dict | None) -> str | None:
+    """The run summary's warning when the reject stage filtered pairs that the other pairs
+    refute (reports/reject.json: ``refutation``); None otherwise."""
+    kept = [r for r in ((report or {}).get("refutation") or {}).get("rounds", []) if r.get("kept")]
+    if not kept:
+        return None
+    pairs = listed(f"{r['edge'][0]}-{r['edge'][1]} ({r['fit_ratio']:.3g}x)" for r in kept)
+    return (f"pair(s) {pairs} refuted by the other pairs: their matches fit the rotation the others imply that many "
+            f"times worse than their own, wrong matches that fit their own epipolar geometry (repeated structure, "
+            f"most likely); filtered (reports/reject.json: refutation, view_graph.json)")
+
+
+def refuted_edges(graph: ViewGraph, inputs, R_cam_from_world: np.ndarray) -> list[dict]:
+    """GRRM's edges (``inputs``: stages.optimize.grrm_inputs of ``graph``) with the
+    leave-one-out test of geometry.refutation under the rotations ``R_cam_from_world`` (rows
+    of ``graph.view_ids()``), the most refuted first: per edge its index, views, fit ratio
+    and the rotation change without it (deg). Bridges are not tested."""
+    from rotonly_cli.geometry.refutation import leave_one_out
+
+    if inputs is None or len(inputs.edges) < 2:
+        return []
+    if len(inputs.views) > REFUTE_MAX_VIEWS:
+        logger.info("reject: %d views, beyond the leave-one-out test's %d: not tested", len(inputs.views),
+                    REFUTE_MAX_VIEWS)
+        return []
+    index = view_index(graph)
+    bridges = set(active_bridges(graph, set(inputs.views)))
+    test = leave_one_out(np.stack([R_cam_from_world[index[v]] for v in inputs.views]), inputs.edge_views,
+                         np.stack([graph.edges[k].R_j_from_i for k in inputs.edges]), inputs.batch,
+                         skip=np.array([k in bridges for k in inputs.edges]))
+    found = [{"edge_index": k, "edge": [graph.edges[k].i, graph.edges[k].j], "fit_ratio": float(ratio),
+              "rotation_change_deg": float(change)}
+             for k, ratio, change in zip(inputs.edges, test.fit_ratio, test.change_deg) if np.isfinite(ratio)]
+    return sorted(found, key=lambda entry: -entry["fit_ratio"])
 
 
 def reject_round(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_world: np.ndarray,
