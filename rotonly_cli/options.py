@@ -592,9 +592,10 @@ class RejectOptions:
     #: the rounds are kept when LiGT's first solve on every match fits the tracks under the
     #: new rotations with at most this ratio of the sigma before (stages/translate.first_solve_sigma_px)
     confirm_misfit_ratio: float = 0.5
-    #: before the confirmation (same trigger), pairs whose matches fit the relative rotation the
-    #: other pairs imply this many times worse (median epipolar residual) than their own are
-    #: filtered, the most refuted first (chain._refutation_rounds); clean inputs stay below 2.5
+    #: where LiGT's first solve misfits the tracks (``confirm_misfit_sigmas``), before the
+    #: confirmation: pairs whose matches fit the relative rotation the other pairs imply this
+    #: many times worse (median epipolar residual) than their own are filtered, the most refuted
+    #: first (chain._refutation_rounds); clean inputs stay below 2.5
     refute_max_ratio: float = 6.0
     #: ... at most this many pairs; 0: none
     refute_max_edges: int = 3

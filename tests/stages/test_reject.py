@@ -360,3 +360,20 @@ def test_refutation_warning_names_the_pairs():
                                         {"edge": [15, 17], "fit_ratio": 11.5, "kept": False}]}}
     warning = refutation_warning(report)
     assert "12-17 (20.4x)" in warning and "15-17" not in warning and "reports/reject.json" in warning
+
+
+def test_refutation_runs_where_the_first_solve_misfits_the_tracks():
+    """Its cue is the misfit alone: views LiGT left out while the rotations fit the tracks (a
+    weak link short of tracks) are no sign of a pair bending them."""
+    from rotonly_cli.chain import _rotations_bent, _rotations_misfit_tracks
+
+    graph, normalized, R, C = _graph(np.random.default_rng(0), wrong_px=15.0, num_wrong=60)
+    run = _run_for_reject_stage(graph, normalized, R, C)
+    rounds = [{"sigma_px": 6.2}, {"sigma_px": 0.3}]
+    run.reports["translate"] = {"robust_rounds": rounds}
+    assert _rotations_bent(run) and _rotations_misfit_tracks(run)
+    run.reports["translate"] = {"robust_rounds": [{"sigma_px": 0.7}, {"sigma_px": 0.3}], "views_without_centre": [2]}
+    assert not _rotations_bent(run) and _rotations_misfit_tracks(run)
+    run.reports["translate"] = {"robust_rounds": rounds}
+    run.options = RunOptions(reject=RejectOptions(refute_max_edges=0))
+    assert not _rotations_bent(run) and _rotations_misfit_tracks(run)
