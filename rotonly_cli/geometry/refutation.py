@@ -77,7 +77,10 @@ def left_out_changes(R_ij: np.ndarray, edge_views: np.ndarray, r: np.ndarray, W:
     free[3 * fixed_view:3 * fixed_view + 3] = False
     A = _chain_blocks(R_ij, edge_views, n)[:, :, free]
     AtW = np.einsum("eak,eab->ekb", A, W)
-    S = np.linalg.inv(np.einsum("ekb,ebl->kl", AtW, A))
+    try:
+        S = np.linalg.inv(np.einsum("ekb,ebl->kl", AtW, A))
+    except np.linalg.LinAlgError:  # pairs without information on some rotation: nothing to test
+        return np.full((len(r), 3), np.nan)
     u = np.einsum("eak,k->ea", A, S @ np.einsum("ekb,eb->k", AtW, r))
     PW = np.einsum("eak,kl,ebl->eab", A, S, A) @ W
     lhs = np.eye(3) - PW

@@ -119,3 +119,10 @@ def test_bridges_and_skipped_edges_are_not_tested():
     assert np.isnan(test.fit_ratio[-1]) and np.isnan(test.fit_ratio[3])
     assert np.isfinite(np.delete(test.fit_ratio, [3, len(own) - 1])).all()
     assert np.nanargmax(test.fit_ratio) == 12
+
+
+def test_no_information_no_test():
+    """Pairs without information on a rotation (a singular normal matrix) give NaN, no error."""
+    edge_views = np.array([[0, 1], [1, 2], [0, 2]])
+    change = left_out_changes(np.stack([np.eye(3)] * 3), edge_views, np.zeros((3, 3)), np.zeros((3, 3, 3)), 3)
+    assert np.isnan(change).all()
