@@ -318,9 +318,9 @@ def test_pairs_the_others_refute_are_filtered():
 
 
 def test_refutation_spares_pairs_whose_loss_leaves_bridges(monkeypatch):
-    """The others refute a pair only where they stay redundant: a pair that closes the only
-    cycle through a view is not filtered, however refuted, and the next is taken; a filtered
-    pair after which LiGT leaves a view out is put back, and the test ends."""
+    """The others refute a pair only where they stay redundant: the most refuted pair, if its
+    loss would leave a pair on no cycle, ends the test (those below it may be the ones it
+    bent); a filtered pair after which LiGT leaves a view out is put back, and the test ends."""
     from rotonly_cli import chain
     from rotonly_cli.stages import reject
 
@@ -333,7 +333,7 @@ def test_refutation_spares_pairs_whose_loss_leaves_bridges(monkeypatch):
     run = _run_for_reject_stage(graph, {v: np.zeros((1, 2)) for v in range(5)}, R, rng.normal(size=(5, 3)))
     closing = [k for k in graph.active_edges() if chain._leaves_new_bridges(graph, k, set())]
     assert [pairs[k] for k in closing] == [(3, 4), (0, 4)]
-    order = [6, 7, 2, 0]  # the two closing pairs most refuted, then (0, 3), then (0, 1)
+    order = []
     monkeypatch.setattr("rotonly_cli.stages.optimize.grrm_inputs", lambda *a: None)
     monkeypatch.setattr(reject, "refuted_edges", lambda graph, *a: [
         {"edge_index": k, "edge": list(pairs[k]), "fit_ratio": 50.0 - n, "rotation_change_deg": 1.0}
@@ -345,6 +345,9 @@ def test_refutation_spares_pairs_whose_loss_leaves_bridges(monkeypatch):
         run.reports["translate"] = {"robust_rounds": [{"sigma_px": 1.0}],
                                     "views_without_centre": [2] if len(solves) == 2 else []}
     run.reports["translate"] = {"robust_rounds": [{"sigma_px": 1.0}]}
+    order[:] = [6, 2, 0]  # a closing pair most refuted: nothing filtered
+    assert chain._refutation_rounds(run, resolve)["rounds"] == [] and not solves
+    order[:] = [2, 0, 6]  # (0, 3), then (0, 1): LiGT loses view 2, put back
     report = chain._refutation_rounds(run, resolve)
     assert [tuple(r["edge"]) for r in report["rounds"]] == [(0, 3), (0, 1)]
     assert [r["kept"] for r in report["rounds"]] == [True, False] and report["rounds"][1]["views_left_out"] == [2]
