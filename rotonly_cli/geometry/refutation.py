@@ -53,36 +53,42 @@ class LeaveOneOut:
     R_j_from_i: np.ndarray
 
 
-def _chain_blocks(R_ij: np.ndarray, edge_views: np.ndarray, n: int) -> np.ndarray:
-    """(E, 3, 3n) rows of δ_e = δ_j - R_ij δ_i for each edge (dense: the test runs where
-    the dense 3n x 3n inverse is affordable)."""
-    E = len(edge_views)
-    A = np.zeros((E, 3, 3 * n))
-    rows = np.arange(E)
-    for c in range(3):
-        A[rows, c, 3 * edge_views[:, 1] + c] = 1.0
-        for d in range(3):
-            A[rows, c, 3 * edge_views[:, 0] + d] = -R_ij[:, c, d]
-    return A
-
-
 def left_out_changes(R_ij: np.ndarray, edge_views: np.ndarray, r: np.ndarray, W: np.ndarray, n: int,
                      fixed_view: int = 0, skip: np.ndarray | None = None) -> np.ndarray:
     """(E, 3): how each edge's relative rotation moves (left perturbation, camera j's axes)
     when the edge is left out of the linearised averaging about the rotations whose relative
     rotations are ``R_ij`` (E, 3, 3), the edges measuring ``r`` (E, 3) with information ``W``
     (E, 3, 3), ``n`` views, one held. NaN for ``skip``ped edges and for those (I - P_e W_e)
-    leaves undetermined (bridges)."""
+    leaves undetermined (bridges).
+
+    Block by block: A_e has I at view j and -R_ij at view i, so H's blocks and P_e = A_e S A_eᵀ
+    = S_jj - S_ji R_ijᵀ - R_ij S_ij + R_ij S_ii R_ijᵀ take O(E) 3 x 3 products; only S = H⁻¹
+    (3n x 3n) is dense."""
+    edge_views = np.asarray(edge_views, dtype=np.int64).reshape(-1, 2)
+    i, j = edge_views[:, 0], edge_views[:, 1]
+    Rt = np.transpose(R_ij, (0, 2, 1))
+    H = np.zeros((n, n, 3, 3))
+    np.add.at(H, (j, j), W)
+    np.add.at(H, (i, i), Rt @ W @ R_ij)
+    np.add.at(H, (j, i), -W @ R_ij)
+    np.add.at(H, (i, j), -Rt @ W)
+    b = np.zeros((n, 3))
+    Wr = np.einsum("eab,eb->ea", W, r)
+    np.add.at(b, j, Wr)
+    np.add.at(b, i, -np.einsum("eba,eb->ea", R_ij, Wr))
     free = np.ones(3 * n, dtype=bool)
     free[3 * fixed_view:3 * fixed_view + 3] = False
-    A = _chain_blocks(R_ij, edge_views, n)[:, :, free]
-    AtW = np.einsum("eak,eab->ekb", A, W)
+    H = H.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n)[np.ix_(free, free)]
+    S = np.zeros((3 * n, 3 * n))
     try:
-        S = np.linalg.inv(np.einsum("ekb,ebl->kl", AtW, A))
+        S[np.ix_(free, free)] = np.linalg.inv(H)
     except np.linalg.LinAlgError:  # pairs without information on some rotation: nothing to test
         return np.full((len(r), 3), np.nan)
-    u = np.einsum("eak,k->ea", A, S @ np.einsum("ekb,eb->k", AtW, r))
-    PW = np.einsum("eak,kl,ebl->eab", A, S, A) @ W
+    delta = (S @ b.ravel()).reshape(n, 3)
+    S = S.reshape(n, 3, n, 3).transpose(0, 2, 1, 3)  # S[a, b] = the (a, b) 3 x 3 block
+    u = delta[j] - np.einsum("eab,eb->ea", R_ij, delta[i])
+    P = S[j, j] - S[j, i] @ Rt - R_ij @ S[i, j] + R_ij @ S[i, i] @ Rt
+    PW = P @ W
     lhs = np.eye(3) - PW
     tested = np.ones(len(r), dtype=bool) if skip is None else ~np.asarray(skip, dtype=bool)
     tested &= np.linalg.svd(lhs, compute_uv=False)[:, -1] > _MIN_FREEDOM

@@ -11,9 +11,18 @@ import numpy as np
 
 from rotonly_cli.geometry import grrm, so3
 from rotonly_cli.geometry import pairwise as pg
-from rotonly_cli.geometry.refutation import _chain_blocks, leave_one_out, left_out_changes
+from rotonly_cli.geometry.refutation import leave_one_out, left_out_changes
 
 from helpers import grrm_problem
+
+
+def _chain_blocks(R_ij: np.ndarray, edge_views: np.ndarray, n: int) -> np.ndarray:
+    """(E, 3, 3n) dense rows of δ_e = δ_j - R_ij δ_i: the reference's design matrix."""
+    A = np.zeros((len(edge_views), 3, 3 * n))
+    for e, (i, j) in enumerate(edge_views):
+        A[e, :, 3 * j:3 * j + 3] = np.eye(3)
+        A[e, :, 3 * i:3 * i + 3] = -R_ij[e]
+    return A
 
 
 def test_woodbury_shortcut_equals_solving_without_each_edge():
