@@ -358,14 +358,13 @@ def _rotations_misfit_tracks(run: Run) -> bool:
     solve (every observation in) misfits them by ``confirm_misfit_sigmas`` times the sigma of
     its last round's (the noise of the observations it kept). Clean inputs: 1-3 times;
     castle-P19 from OpenMVG's default preset: 20-70 times (docs/tuning.md)."""
-    from rotonly_cli.stages.translate import first_solve_sigma_px, last_round_sigma_px, views_ligt_left_out
+    from rotonly_cli.stages.translate import tracks_misfit, views_ligt_left_out
 
     options = run.options.reject
     report = run.reports.get("translate")
     if not options.confirm_max_rounds or report is None:
         return False
-    return bool(views_ligt_left_out(report)) or \
-        first_solve_sigma_px(report) > options.confirm_misfit_sigmas * last_round_sigma_px(report)
+    return bool(views_ligt_left_out(report)) or tracks_misfit(report, options.confirm_misfit_sigmas)
 
 
 def _rotations_bent(run: Run) -> bool:
@@ -374,12 +373,12 @@ def _rotations_bent(run: Run) -> bool:
     left out with the rotations fitting the tracks (a weak link short of tracks) are no sign of a
     pair bending them: an OpenMVG subset of castle-P19 (12 views, 0.71 px) lost a pair 5 deg
     from the others' rotation and three views to it (0.097 -> 0.113 deg)."""
-    from rotonly_cli.stages.translate import first_solve_sigma_px, last_round_sigma_px
+    from rotonly_cli.stages.translate import tracks_misfit
 
     options = run.options.reject
     report = run.reports.get("translate")
     return bool(options.refute_max_edges) and report is not None and \
-        first_solve_sigma_px(report) > options.confirm_misfit_sigmas * last_round_sigma_px(report)
+        tracks_misfit(report, options.confirm_misfit_sigmas)
 
 
 def _leaves_new_bridges(graph, edge: int, bridges: set[int]) -> bool:

@@ -239,19 +239,29 @@ def views_off(report: dict | None) -> dict[str, float]:
     return ((report or {}).get("baselines") or {}).get("views_off") or {}
 
 
+def _round_sigma_px(report: dict | None, which: int) -> float:
+    """The robust sigma (px) of a translate report's robust round ``which`` (nan without any)."""
+    rounds = (report or {}).get("robust_rounds") or []
+    return float(rounds[which]["sigma_px"]) if rounds else float("nan")
+
+
 def first_solve_sigma_px(report: dict | None) -> float:
     """The robust sigma (px) of the reprojection errors of LiGT's first solve, every
     observation of the tracks in (before any robust round drops one): how far the rotations
     are from what the tracks say (nan without robust rounds)."""
-    rounds = (report or {}).get("robust_rounds") or []
-    return float(rounds[0]["sigma_px"]) if rounds else float("nan")
+    return _round_sigma_px(report, 0)
 
 
 def last_round_sigma_px(report: dict | None) -> float:
     """The robust sigma (px) of the reprojection errors of LiGT's last robust round: the noise
     of the observations it kept (nan without robust rounds)."""
-    rounds = (report or {}).get("robust_rounds") or []
-    return float(rounds[-1]["sigma_px"]) if rounds else float("nan")
+    return _round_sigma_px(report, -1)
+
+
+def tracks_misfit(report: dict | None, misfit_sigmas: float) -> bool:
+    """Whether LiGT's first solve misfits the tracks: its sigma beyond ``misfit_sigmas``
+    times its last robust round's (False without robust rounds)."""
+    return first_solve_sigma_px(report) > misfit_sigmas * last_round_sigma_px(report)
 
 
 def views_without_centre(report: dict | None) -> set[int]:
