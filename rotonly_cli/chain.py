@@ -248,7 +248,7 @@ def reject_stage(run: Run) -> None:
     times add up to the run's."""
     from rotonly_cli.scene.view_graph import view_index
     from rotonly_cli.stages.reject import reject_round
-    from rotonly_cli.stages.translate import ligt_centres, views_ligt_left_out, views_off
+    from rotonly_cli.stages.translate import ligt_centres, views_ligt_left_out, views_not_placed, views_off
 
     run.options.reject.validate()
     start = time.perf_counter()
@@ -302,7 +302,7 @@ def reject_stage(run: Run) -> None:
         # tracks' rigid set, and their rotations are the ones those drops spoiled (castle-P19's
         # OpenMVG matches, focal x1.2: resected, the round kept, 0.0945 -> 0.1267 deg)
         lost = sorted(views_ligt_left_out(run.reports.get("translate"))
-                      - views_ligt_left_out(before.reports["translate"]))
+                      - views_not_placed(before.reports["translate"]))
         if len(off_after) > len(views_off(before.reports["translate"])) or lost:
             # LiGT's solve on the cleaned tracks collapsed where the previous one had not (castle-P19,
             # OpenMVG matches, 5 consensus runs, seed 3: 17.6 GT units), or the dropped matches cut
@@ -408,7 +408,7 @@ def _refutation_rounds(run: Run, resolve) -> dict:
     from rotonly_cli.scene.view_graph import active_bridges
     from rotonly_cli.stages.optimize import grrm_inputs
     from rotonly_cli.stages.reject import REFUTE_REASON, refuted_edges
-    from rotonly_cli.stages.translate import first_solve_sigma_px, views_ligt_left_out
+    from rotonly_cli.stages.translate import first_solve_sigma_px, views_ligt_left_out, views_not_placed
 
     options = run.options.reject
     rounds = []
@@ -430,7 +430,7 @@ def _refutation_rounds(run: Run, resolve) -> dict:
         worst = candidates[0]
         before = _snapshot(run)
         misfit_before = first_solve_sigma_px(before.reports["translate"])
-        left_before = views_ligt_left_out(before.reports["translate"])
+        left_before = views_not_placed(before.reports["translate"])
         run.graph.edges[worst["edge_index"]].filter(f"{REFUTE_REASON}: its matches fit the others' rotation "
                                                     f"{worst['fit_ratio']:.3g}x worse than its own")
         _ensure_two_views(run.graph, "leave-one-out refutation")

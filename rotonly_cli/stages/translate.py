@@ -285,6 +285,13 @@ def views_ligt_left_out(report: dict | None) -> set[int]:
                                            + (report.get("shared_centres") or [])}
 
 
+def views_not_placed(report: dict | None) -> set[int]:
+    """The registered views a translate report's LiGT solve did not place on their pairs'
+    baselines: left without a centre (positioned afterwards or not) or put off them (a
+    collapsed centre is no position to lose)."""
+    return views_ligt_left_out(report) | {int(view_id) for view_id in views_off(report)}
+
+
 def ligt_centres(centers: np.ndarray, report: dict | None, index: dict[int, int]) -> np.ndarray:
     """``centers`` with the views the translate ``report`` positioned other than by LiGT set
     to NaN: LiGT's own centres (``index``: view id -> row)."""
