@@ -1,16 +1,18 @@
 #!/usr/bin/env python
 """Probe: does rotonly hold on the OpenMVG projects a default user makes? The shared projects
 were made with ComputeFeatures' HIGH preset; OpenMVG's default is NORMAL (3-4 times fewer
-matches per pair, so the wrong matches of repeated structure weigh more). For each Strecha
-scene this builds a project from the scene's images with OpenMVG 2.1's own tools and the given
-preset (kept under --work and reused), then scores on its E-verified matches (and, with
+matches per pair, so the wrong matches of repeated structure weigh more). ``--describer``
+picks another of ComputeFeatures' describers (AKAZE_FLOAT: noisier keypoints, less
+distinctive descriptors). For each Strecha scene this builds a project from the scene's
+images with OpenMVG 2.1's own tools and the given preset (kept under --work and reused), then
+scores on its E-verified matches (and, with
 ``--filters e f``, on the F-verified ones a user without the intrinsics makes): rotonly (per
 seed, with and without the reject stage's confirmation by tracks), OpenMVG's global SfM (E
 only: its global engine needs them), and pycolmap's global mapper on the same matches written
 as a COLMAP database.
 
     LD_LIBRARY_PATH=OPENMVG/lib python scripts/research/probe_openmvg_preset.py --root DATA/strecha \
-        --openmvg-bin OPENMVG/bin --work WORK [--preset NORMAL] [--seeds 0 1 2] [--filters e f]
+        --openmvg-bin OPENMVG/bin --work WORK [--preset NORMAL] [--describer SIFT] [--seeds 0 1 2] [--filters e f]
 """
 
 from __future__ import annotations
@@ -25,12 +27,13 @@ from dataclasses import replace
 from pathlib import Path
 
 
-def project_commands(openmvg_bin: Path, images: Path, project: Path, K: str, preset: str) -> list[list[str]]:
+def project_commands(openmvg_bin: Path, images: Path, project: Path, K: str, preset: str,
+                     describer: str = "SIFT") -> list[list[str]]:
     """OpenMVG 2.1's commands from images to E-verified matches (one camera of the given K)."""
     tool = lambda name: str(openmvg_bin / f"openMVG_main_{name}")  # noqa: E731
     sfm_data, pairs = str(project / "sfm_data.json"), str(project / "pairs.bin")
     return [[tool("SfMInit_ImageListing"), "-i", str(images), "-o", str(project), "-k", K, "-c", "1"],
-            [tool("ComputeFeatures"), "-i", sfm_data, "-o", str(project), "-m", "SIFT", "-p", preset],
+            [tool("ComputeFeatures"), "-i", sfm_data, "-o", str(project), "-m", describer, "-p", preset],
             [tool("PairGenerator"), "-i", sfm_data, "-o", pairs],
             [tool("ComputeMatches"), "-i", sfm_data, "-p", pairs, "-o", str(project / "matches.putative.bin")],
             [tool("GeometricFilter"), "-i", sfm_data, "-m", str(project / "matches.putative.bin"), "-g", "e",
@@ -45,10 +48,11 @@ def shared_K(scene_dir: Path) -> str:
     return f"{f};0;{cx};0;{f};{cy};0;0;1"
 
 
-def build_project(openmvg_bin: Path, scene_dir: Path, project: Path, preset: str, filters: list[str]) -> None:
+def build_project(openmvg_bin: Path, scene_dir: Path, project: Path, preset: str, filters: list[str],
+                  describer: str = "SIFT") -> None:
     """The project, with matches.<model>.bin for every geometric filter of ``filters``; a step
     whose product is there already is not run again (a kept project is reused)."""
-    commands = project_commands(openmvg_bin, scene_dir / "images", project, shared_K(scene_dir), preset)
+    commands = project_commands(openmvg_bin, scene_dir / "images", project, shared_K(scene_dir), preset, describer)
     filtered = commands[-1]
     commands += [[*filtered[:filtered.index("-g") + 1], model, "-o", str(project / f"matches.{model}.bin")]
                  for model in filters if model != "e"]
@@ -86,6 +90,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--openmvg-bin", type=Path, required=True)
     parser.add_argument("--work", type=Path, required=True, help="where the projects are built (and reused)")
     parser.add_argument("--preset", default="NORMAL", choices=("NORMAL", "HIGH", "ULTRA"))
+    parser.add_argument("--describer", default="SIFT", choices=("SIFT", "SIFT_ANATOMY", "AKAZE_FLOAT", "AKAZE_MLDB"),
+                        help="ComputeFeatures' -m (projects: SCENE-DESCRIBER-PRESET, SIFT's SCENE-PRESET)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--filters", nargs="+", default=["e"], choices=("e", "f"),
                         help="GeometricFilter's models whose matches are scored")
@@ -95,8 +101,9 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|---|---|---|---|---|")
     for name in args.scenes:
         scene_dir = args.root / name
-        project = args.work / f"{name}-{args.preset}"
-        build_project(args.openmvg_bin, scene_dir, project, args.preset, args.filters)
+        describer = "" if args.describer == "SIFT" else f"-{args.describer}"
+        project = args.work / f"{name}{describer}-{args.preset}"
+        build_project(args.openmvg_bin, scene_dir, project, args.preset, args.filters, args.describer)
         gt = read_ground_truth(scene_dir)
         sfm_data = project / "sfm_data.json"
         for model in args.filters:
