@@ -843,7 +843,8 @@ def warnings_for(given: dict[int, Intrinsics], final: dict[int, Intrinsics], cal
     warnings = []
     if reprojection_px is not None and reprojection_px > options.warn_reprojection_px:
         warnings.append(f"mean reprojection error {reprojection_px:.2f} px (> {options.warn_reprojection_px:g} px): "
-                        f"the intrinsics do not fit the matches (--intrinsics {options.mode})")
+                        f"the reconstruction does not fit the matches (intrinsics that --intrinsics {options.mode} "
+                        f"did not put right, or poses bent by wrong matches)")
     for camera_id in sorted(final):
         if camera_id in calibrated and given[camera_id].prior_focal is False:
             continue  # a guess, expected to move

@@ -12,7 +12,8 @@ only: its global engine needs them), and pycolmap's global mapper on the same ma
 as a COLMAP database.
 
     LD_LIBRARY_PATH=OPENMVG/lib python scripts/research/probe_openmvg_preset.py --root DATA/strecha \
-        --openmvg-bin OPENMVG/bin --work WORK [--preset NORMAL] [--describer SIFT] [--seeds 0 1 2] [--filters e f]
+        --openmvg-bin OPENMVG/bin --work WORK [--preset NORMAL] [--describer SIFT] [--focal-factor F] \
+        [--seeds 0 1 2] [--filters e f]
 """
 
 from __future__ import annotations
@@ -29,10 +30,13 @@ from pathlib import Path
 
 def project_commands(openmvg_bin: Path, images: Path, project: Path, K: str, preset: str,
                      describer: str = "SIFT") -> list[list[str]]:
-    """OpenMVG 2.1's commands from images to E-verified matches (one camera of the given K)."""
+    """OpenMVG 2.1's commands from images to E-verified matches (one camera: ``K`` as
+    SfMInit_ImageListing's -k "f;0;cx;0;f;cy;0;0;1", or a bare focal length for its -f, which
+    puts the principal point at the image centre as for an EXIF focal)."""
     tool = lambda name: str(openmvg_bin / f"openMVG_main_{name}")  # noqa: E731
     sfm_data, pairs = str(project / "sfm_data.json"), str(project / "pairs.bin")
-    return [[tool("SfMInit_ImageListing"), "-i", str(images), "-o", str(project), "-k", K, "-c", "1"],
+    camera = ["-k", K] if ";" in K else ["-f", K]
+    return [[tool("SfMInit_ImageListing"), "-i", str(images), "-o", str(project), *camera, "-c", "1"],
             [tool("ComputeFeatures"), "-i", sfm_data, "-o", str(project), "-m", describer, "-p", preset],
             [tool("PairGenerator"), "-i", sfm_data, "-o", pairs],
             [tool("ComputeMatches"), "-i", sfm_data, "-p", pairs, "-o", str(project / "matches.putative.bin")],
@@ -49,10 +53,15 @@ def shared_K(scene_dir: Path) -> str:
 
 
 def build_project(openmvg_bin: Path, scene_dir: Path, project: Path, preset: str, filters: list[str],
-                  describer: str = "SIFT") -> None:
+                  describer: str = "SIFT", focal_factor: float | None = None) -> None:
     """The project, with matches.<model>.bin for every geometric filter of ``filters``; a step
-    whose product is there already is not run again (a kept project is reused)."""
-    commands = project_commands(openmvg_bin, scene_dir / "images", project, shared_K(scene_dir), preset, describer)
+    whose product is there already is not run again (a kept project is reused). With
+    ``focal_factor`` the camera is that factor times the GT focal, the principal point at the
+    image centre, and every step (the E filter too) runs with it."""
+    K = shared_K(scene_dir)
+    if focal_factor is not None:
+        K = f"{focal_factor * float(K.split(';')[0]):.2f}"
+    commands = project_commands(openmvg_bin, scene_dir / "images", project, K, preset, describer)
     filtered = commands[-1]
     commands += [[*filtered[:filtered.index("-g") + 1], model, "-o", str(project / f"matches.{model}.bin")]
                  for model in filters if model != "e"]
@@ -92,6 +101,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--preset", default="NORMAL", choices=("NORMAL", "HIGH", "ULTRA"))
     parser.add_argument("--describer", default="SIFT", choices=("SIFT", "SIFT_ANATOMY", "AKAZE_FLOAT", "AKAZE_MLDB"),
                         help="ComputeFeatures' -m (projects: SCENE-DESCRIBER-PRESET, SIFT's SCENE-PRESET)")
+    parser.add_argument("--focal-factor", type=float, default=None,
+                        help="list the images with this factor x the GT focal and the principal point at the centre "
+                             "(SfMInit_ImageListing -f, as for an EXIF focal; projects SCENE...-fF)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--filters", nargs="+", default=["e"], choices=("e", "f"),
                         help="GeometricFilter's models whose matches are scored")
@@ -102,8 +114,10 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.scenes:
         scene_dir = args.root / name
         describer = "" if args.describer == "SIFT" else f"-{args.describer}"
-        project = args.work / f"{name}{describer}-{args.preset}"
-        build_project(args.openmvg_bin, scene_dir, project, args.preset, args.filters, args.describer)
+        focal = "" if args.focal_factor is None else f"-f{args.focal_factor:g}"
+        project = args.work / f"{name}{describer}-{args.preset}{focal}"
+        build_project(args.openmvg_bin, scene_dir, project, args.preset, args.filters, args.describer,
+                      args.focal_factor)
         gt = read_ground_truth(scene_dir)
         sfm_data = project / "sfm_data.json"
         for model in args.filters:
