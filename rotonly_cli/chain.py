@@ -589,25 +589,18 @@ ESTIMATION_STAGES = ("identify", "average", "translate", "triangulate")
 ESTIMATION_LOAD = {"consensus_runs": 1, "ransac_max_trials": 500}
 
 
-def _rerun(loaded: Run, scene: SfMScene, template: Run, estimation: bool = False, chain=_chain,
-           stages: tuple[str, ...] | None = None) -> Run:
+def _rerun(loaded: Run, scene: SfMScene, template: Run, estimation: bool = False, chain=_chain) -> Run:
     """The stages after load on ``scene`` (new intrinsics) from a copy of ``loaded``'s view
     graph: the edges, inlier matches and relative poses of its load stage, as the TRRM starts.
     ``template``: the run of the load stage (keypoint colours, calibration, load report).
-    ``estimation``: only ESTIMATION_STAGES, with plain LiGT; ``stages``: these instead."""
+    ``estimation``: only ESTIMATION_STAGES, with plain LiGT."""
     report = {**template.reports["load"], **loaded.reports["load"]}
     options = loaded.options
     if estimation:
         options = replace(options, translate=replace(options.translate, robust_rounds=0))
     run = Run(loaded.input_path, loaded.input_kind, scene, copy.deepcopy(loaded.graph), options,
               reports={"load": report}, keypoint_rgb=template.keypoint_rgb, calibration=template.calibration)
-    return chain(run, stages or (ESTIMATION_STAGES if estimation else STAGES[1:]))
-
-
-#: the passes of the intrinsics' fit search (IntrinsicsOptions.fit_search_levels): every stage
-#: that the intrinsics move the rotations or the points through, without the reject stage's
-#: re-solves
-FIT_SEARCH_STAGES = STAGES[1:]
+    return chain(run, ESTIMATION_STAGES if estimation else STAGES[1:])
 
 
 def calibrated_chain(loaded: Run, chain=_chain) -> Run:
@@ -674,11 +667,9 @@ def calibrated_chain(loaded: Run, chain=_chain) -> Run:
             graph_run, full_load = reload(True), False
         run = _rerun(graph_run, calibration.scene, loaded, estimation=True, chain=chain)
         round_ += 1
+    calibration.time_s += time.perf_counter() - started
     if not full_load or calibration.moved_from(graph_run.scene):
         graph_run = reload(False)
-    calibration.search_fit(lambda scene: _rerun(graph_run, scene, loaded, stages=FIT_SEARCH_STAGES)
-                           .reports["triangulate"]["outlier_sigma_px"])
-    calibration.time_s += time.perf_counter() - started
     return _rerun(graph_run, calibration.scene, loaded, chain=chain)
 
 

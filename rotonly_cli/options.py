@@ -526,25 +526,6 @@ class IntrinsicsOptions:
     zoom_min_images: int = 4
     zoom_min_gap: float = 0.02
     zoom_gap_to_spread: float = 3.0
-    #: after the rounds, the calibrated cameras' focal length and principal point are searched
-    #: for the values under which rotonly's own reconstruction (TRRM, averaging, GRRM, LiGT,
-    #: triangulation) reprojects best: a coordinate search of one relative focal change and one
-    #: principal-point shift common to the calibrated cameras, minimising the triangulation's
-    #: robust reprojection sigma. The adjustment's estimate lets the cameras turn with the
-    #: principal point (a shift of it is, to first order, a rotation), and it lands 3-9 px
-    #: from the GT's on the Strecha scenes listed with the focal and the principal point at the
-    #: centre (OpenMVG's -f); the rotation-only reconstruction has no such freedom (docs/tuning.md
-    #: "Intrinsics: the fit search"). Steps start at ``fit_search_focal_step`` (relative) and
-    #: ``fit_search_shift_px`` and halve ``fit_search_levels`` - 1 times; at most
-    #: ``fit_search_max_passes`` reconstructions. 0 levels: no search
-    fit_search_levels: int = 3
-    fit_search_focal_step: float = 0.005
-    fit_search_shift_px: float = 4.0
-    fit_search_max_passes: int = 30
-    #: the searched intrinsics are kept only when they lower the sigma by this fraction: below,
-    #: the differences are those of the reconstruction's noise (fountain-P11's phone database:
-    #: 0.4 % lower, 0.0344 -> 0.0396 deg)
-    fit_search_min_gain: float = 0.01
     #: warnings: final mean reprojection error above this (px) ...
     warn_reprojection_px: float = 1.0
     #: ... or the focal of a camera not marked as a guess moved by more than this fraction
@@ -564,10 +545,6 @@ class IntrinsicsOptions:
             raise InputError("min_shift_noise_px > 0 needed", field="intrinsics")
         if self.max_points < 100 or self.max_rounds < 1:
             raise InputError("max_points >= 100 and max_rounds >= 1 needed", field="intrinsics")
-        if self.fit_search_levels < 0 or self.fit_search_max_passes < 1 or not (
-                self.fit_search_focal_step > 0 and self.fit_search_shift_px > 0 and 0 <= self.fit_search_min_gain < 1):
-            raise InputError("fit_search_levels >= 0, fit_search_max_passes >= 1 and positive steps needed",
-                             field="intrinsics")
         if not 0 <= self.ba_function_tolerance < 1:
             raise InputError("ba_function_tolerance must be in [0, 1)", field="intrinsics")
         if self.ba_huber_px is not None and not self.ba_huber_px > 0:

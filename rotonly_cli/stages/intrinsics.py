@@ -855,45 +855,6 @@ def warnings_for(given: dict[int, Intrinsics], final: dict[int, Intrinsics], cal
     return warnings
 
 
-def coordinate_search(cost: Callable[[np.ndarray], float], steps: np.ndarray, levels: int,
-                      max_evaluations: int) -> tuple[np.ndarray, float, int]:
-    """Minimise ``cost`` over offsets x (len(steps),) from x = 0 by a coordinate search: each
-    coordinate in turn tries +step and -step and takes the first that lowers the cost; when
-    no coordinate does, the steps halve, ``levels`` times in all. Returns (x, its cost, the
-    number of evaluations), at most ``max_evaluations`` of them."""
-    steps = np.asarray(steps, dtype=float).copy()
-    x = np.zeros_like(steps)
-    best, evaluations = cost(x), 1
-    for _ in range(levels):
-        improved = True
-        while improved and evaluations < max_evaluations:
-            improved = False
-            for axis in range(len(steps)):
-                for sign in (1.0, -1.0):
-                    if evaluations >= max_evaluations:
-                        break
-                    trial = x.copy()
-                    trial[axis] += sign * steps[axis]
-                    value, evaluations = cost(trial), evaluations + 1
-                    if value < best:
-                        x, best, improved = trial, value, True
-                        break
-        steps = steps / 2.0
-    return x, best, evaluations
-
-
-def _offset_intrinsics(intrinsics: Intrinsics, focal_change: float, shift_px: np.ndarray,
-                       principal_point: bool) -> Intrinsics:
-    """``intrinsics`` with the focal length(s) x (1 + ``focal_change``) and, if
-    ``principal_point``, the principal point moved by ``shift_px``."""
-    groups = cameras.parameter_groups(intrinsics)
-    params = np.array(intrinsics.params, dtype=np.float64, copy=True)
-    params[groups["focal"]] *= 1.0 + focal_change
-    if principal_point:
-        params[groups["principal_point"]] += shift_px
-    return replace(intrinsics, params=params)
-
-
 # ============================================================================ the calibration of a run
 
 def with_intrinsics(scene: SfMScene, changed: dict[int, Intrinsics]) -> SfMScene:
@@ -956,8 +917,6 @@ class Calibration:
     splits: dict[int, dict] = field(default_factory=dict)
     #: the report of :meth:`check_zoom` (None: not made)
     zoom_check: dict | None = None
-    #: the report of :meth:`search_fit` (None: not made)
-    search: dict | None = None
 
     def shift_limit_px(self, camera_id: int) -> float:
         """:func:`shift_limit_px` of a given camera at the matches' measured noise."""
@@ -1180,50 +1139,6 @@ class Calibration:
         self.settled = moved <= self.options.converged_shift
         return self.settled
 
-    def search_fit(self, reprojection_sigma_px: Callable[[SfMScene], float]) -> None:
-        """After the rounds: the calibrated cameras' focal length and principal point moved
-        (one relative focal change and one shift common to them all; the principal point only
-        of cameras seen in ``min_images_principal_point`` images) to where
-        ``reprojection_sigma_px`` (rotonly's reconstruction with those intrinsics: the robust
-        sigma of its reprojection errors) is least (:func:`coordinate_search`); ``scene``
-        takes them (IntrinsicsOptions.fit_search_levels)."""
-        options = self.options
-        if not options.fit_search_levels or not self.calibrate:
-            return
-        start = time.perf_counter()
-        images = {c: 0 for c in self.calibrate}
-        for view in self.scene.views.values():
-            if view.intrinsics_id in images:
-                images[view.intrinsics_id] += 1
-        base = {c: self.scene.intrinsics[c] for c in sorted(self.calibrate)}
-        with_pp = {c for c, count in images.items() if count >= options.min_images_principal_point}
-
-        def scene_at(x: np.ndarray) -> SfMScene:
-            return with_intrinsics(self.scene, {c: _offset_intrinsics(k, x[0], x[1:], c in with_pp)
-                                                for c, k in base.items()})
-
-        trials = {}
-
-        def cost(x: np.ndarray) -> float:
-            sigma = float(reprojection_sigma_px(scene_at(x)))
-            trials[tuple(np.round(x, 6))] = sigma
-            return sigma if np.isfinite(sigma) else np.inf
-
-        steps = np.array([options.fit_search_focal_step] + [options.fit_search_shift_px] * (2 if with_pp else 0))
-        x, best, passes = coordinate_search(cost, steps, options.fit_search_levels, options.fit_search_max_passes)
-        x = np.concatenate([x, np.zeros(3 - len(x))])
-        before = trials[(0.0,) * len(steps)]
-        kept = bool(best < (1.0 - options.fit_search_min_gain) * before)
-        if kept:
-            self.scene = scene_at(x)
-        self.search = {"focal_change": float(x[0]), "principal_point_shift_px": x[1:].tolist(),
-                       "sigma_px": [before, best], "kept": kept, "passes": passes,
-                       "time_s": time.perf_counter() - start,
-                       "result": {str(c): describe(self.scene.intrinsics[c]) for c in sorted(self.calibrate)}}
-        logger.info("intrinsics: fit search (%d passes, %.2f s): focal %+.2f %%, principal point %+.1f, %+.1f px; "
-                    "reprojection sigma %.4f -> %.4f px: %s", passes, self.search["time_s"], 100 * x[0], x[1], x[2],
-                    before, best, "kept" if kept else f"not kept (less than {100 * options.fit_search_min_gain:g} % lower)")
-
     def moved_from(self, scene: SfMScene) -> bool:
         """True if the current intrinsics moved the image of some camera by more than
         ``converged_shift`` from ``scene``'s (whose load stage then no longer fits)."""
@@ -1261,7 +1176,7 @@ class Calibration:
             "settled": self.settled, "suspect_threshold_px": self.suspect_threshold_px,
             "centred_principal_point_check": self.centred_check, "suspect_check": self.suspect_check,
             "noise_sigma_px": self.noise_sigma_px,
-            "zoom_check": self.zoom_check, "fit_search": self.search, "split_cameras": {str(c): split for c, split in self.splits.items()},
+            "zoom_check": self.zoom_check, "split_cameras": {str(c): split for c, split in self.splits.items()},
             "kept_given_intrinsics": all(_same(final[c], k) for c, k in self.given.items()),
             "warnings": warnings, "time_s": self.time_s}
         return self.result

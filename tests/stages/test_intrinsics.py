@@ -554,62 +554,6 @@ def test_views_of_one_camera_change_together():
     np.testing.assert_allclose(scene.normalized[1], [[0.1, 0.0]])  # the original is untouched
 
 
-def test_coordinate_search_finds_the_minimum_to_its_last_step():
-    target = np.array([0.011, -7.3, 5.2])
-    scale = np.array([0.005, 4.0, 4.0])
-    calls = []
-
-    def cost(x):
-        calls.append(x.copy())
-        return float(np.sum(((x - target) / scale) ** 2))
-
-    x, best, evaluations = stage.coordinate_search(cost, scale, levels=4, max_evaluations=200)
-    assert evaluations == len(calls) and np.all(calls[0] == 0)
-    assert np.all(np.abs(x - target) <= scale / 2 ** 3 / 2 + 1e-12)  # within half the last step
-    assert best == pytest.approx(cost(x))
-    calls.clear()
-    x, best, evaluations = stage.coordinate_search(cost, scale, levels=4, max_evaluations=5)
-    tried = list(calls)
-    assert evaluations == len(tried) == 5 and best == min(cost(c) for c in tried)
-
-
-def _searched_calibration(views: int, target: np.ndarray, min_gain: float = 0.01):
-    """A Calibration of one camera (CAMERA) seen in ``views`` images, searched against a
-    sigma that is least at intrinsics ``target`` (f, cx, cy)."""
-    scene = SfMScene(intrinsics={1: CAMERA})
-    for view_id in range(1, views + 1):
-        scene.views[view_id] = View(view_id, f"{view_id}.jpg", 1)
-        scene.keypoints[view_id] = np.array([[900.0, 600.0]])
-        scene.normalized[view_id] = np.array([[0.1, 0.05]])
-    options = IntrinsicsOptions(fit_search_min_gain=min_gain, fit_search_levels=4, fit_search_max_passes=200)
-    calibration = stage.Calibration(options, {1: CAMERA}, scene, calibrate={1: "guess"})
-    calibration.search_fit(lambda s: 0.2 + float(np.sum(((s.intrinsics[1].params[:3] - target) / [10.0, 5.0, 5.0]) ** 2)))
-    return calibration
-
-
-def test_the_fit_search_moves_focal_and_principal_point_to_the_least_sigma():
-    calibration = _searched_calibration(3, np.array([1380.0 * 1.004, 761.0, 505.0]))
-    params = calibration.scene.intrinsics[1].params
-    assert abs(params[0] / 1380.0 - 1.004) <= 0.005 / 4 / 2 + 1e-9
-    assert abs(params[1] - 761.0) <= 0.5 and abs(params[2] - 505.0) <= 0.5 and params[3] == 0.0
-    assert calibration.search["kept"] and calibration.search["sigma_px"][1] < calibration.search["sigma_px"][0]
-    assert calibration.scene.normalized[1] is not None and CAMERA.params[1] == 768.0  # the given camera untouched
-
-
-def test_the_fit_search_keeps_the_principal_point_of_one_image_and_small_gains():
-    one_image = _searched_calibration(1, np.array([1380.0 * 1.004, 761.0, 505.0]))
-    assert np.all(one_image.scene.intrinsics[1].params[1:3] == [768.0, 512.0])  # a rotation of that camera
-    small = _searched_calibration(3, np.array([1380.0, 768.0, 513.0]), min_gain=0.5)
-    assert not small.search["kept"] and small.scene.intrinsics[1] is CAMERA
-
-
-def test_options_reject_a_fit_search_that_cannot_run():
-    for bad in ({"fit_search_levels": -1}, {"fit_search_max_passes": 0}, {"fit_search_shift_px": 0.0},
-                {"fit_search_min_gain": 1.0}):
-        with pytest.raises(InputError, match="fit_search"):
-            IntrinsicsOptions(**bad).validate()
-
-
 def test_a_failed_quick_estimation_pass_falls_back_to_the_full_chain(user_inputs, tmp_path, monkeypatch):
     """The quick pass runs on intrinsics that may be far off; if it finds no reconstruction,
     the run goes on as without it (the full chain with the given intrinsics decides)."""
