@@ -917,6 +917,8 @@ class Calibration:
     splits: dict[int, dict] = field(default_factory=dict)
     #: the report of :meth:`check_zoom` (None: not made)
     zoom_check: dict | None = None
+    #: the report of :meth:`take_best_round` (None: the rounds settled)
+    unsettled: dict | None = None
 
     def shift_limit_px(self, camera_id: int) -> float:
         """:func:`shift_limit_px` of a given camera at the matches' measured noise."""
@@ -1127,17 +1129,49 @@ class Calibration:
     def estimate(self, posed: SfMScene) -> bool:
         """One round: the intrinsics estimated from the reconstruction ``posed``, each change
         kept when significant (:func:`gate`); ``scene`` takes the new intrinsics. True when
-        they moved the image by no more than ``converged_shift`` (settled)."""
+        they moved the image by no more than ``converged_shift`` and the focal lengths by no
+        more than ``converged_focal_change`` (settled)."""
         gated, report = self._gated_estimates(posed, set(self.calibrate), self.reference,
                                               frozenset(c for c, why in self.calibrate.items() if why == "guess"))
         changed, moved = self._changes(self.scene.intrinsics, gated)
+        focal_change = max((abs(k.focal_px / self.scene.intrinsics[c].focal_px - 1.0) for c, k in changed.items()),
+                           default=0.0)
         self.scene = with_intrinsics(self.scene, changed) if changed else self.scene
-        report.update(moved=moved, result={str(c): describe(self.scene.intrinsics[c]) for c in sorted(self.calibrate)})
+        report.update(moved=moved, focal_change=focal_change,
+                      result={str(c): describe(self.scene.intrinsics[c]) for c in sorted(self.calibrate)})
         self.rounds.append(report)
-        logger.info("intrinsics: round %d (%.2f s): %s", len(self.rounds), report["time_s"], "; ".join(
-            f"camera {c} {np.round(self.scene.intrinsics[c].params, 4).tolist()}" for c in sorted(self.calibrate)))
-        self.settled = moved <= self.options.converged_shift
+        logger.info("intrinsics: round %d (%.2f s): %s", len(self.rounds), report["time_s"], self._calibrated_text())
+        self.settled = moved <= self.options.converged_shift and focal_change <= self.options.converged_focal_change
         return self.settled
+
+    def take_best_round(self, estimates: list[tuple[dict, SfMScene]]) -> None:
+        """Rounds that did not settle (``estimates``: each round's report and the scene with
+        its estimate): the calibrated cameras take the estimate of the round whose adjustment
+        converged on the most points (the least bent reconstruction keeps the most tracks),
+        else of the round with the most points; the report's ``unsettled`` names it."""
+        def rank(entry: tuple[dict, SfMScene]) -> tuple[bool, int]:
+            report = entry[0]
+            return report.get("termination") == "CONVERGENCE", int(report.get("num_points") or 0)
+
+        best = max(range(len(estimates)), key=lambda k: rank(estimates[k]))
+        chosen = estimates[best][1]
+        changed = {c: chosen.intrinsics[c] for c in self.calibrate
+                   if c in chosen.intrinsics and not _same(chosen.intrinsics[c], self.scene.intrinsics[c])}
+        if changed:
+            self.scene = with_intrinsics(self.scene, changed)
+        self.unsettled = {"taken_round": best + 1,
+                          "rounds": [{"num_points": report.get("num_points"), "termination": report.get("termination")}
+                                     for report, _ in estimates],
+                          "result": {str(c): describe(self.scene.intrinsics[c]) for c in sorted(self.calibrate)}}
+        converged, points = rank(estimates[best])
+        logger.info("intrinsics: the rounds did not settle; round %d's estimate, its adjustment %s on %d points, is "
+                    "taken: %s", best + 1, "converged" if converged else "not converged", points,
+                    self._calibrated_text())
+
+    def _calibrated_text(self) -> str:
+        """The calibrated cameras' current parameters, for the log."""
+        return "; ".join(f"camera {c} {np.round(self.scene.intrinsics[c].params, 4).tolist()}"
+                         for c in sorted(self.calibrate))
 
     def moved_from(self, scene: SfMScene) -> bool:
         """True if the current intrinsics moved the image of some camera by more than
@@ -1176,7 +1210,8 @@ class Calibration:
             "settled": self.settled, "suspect_threshold_px": self.suspect_threshold_px,
             "centred_principal_point_check": self.centred_check, "suspect_check": self.suspect_check,
             "noise_sigma_px": self.noise_sigma_px,
-            "zoom_check": self.zoom_check, "split_cameras": {str(c): split for c, split in self.splits.items()},
+            "zoom_check": self.zoom_check, "unsettled": self.unsettled,
+            "split_cameras": {str(c): split for c, split in self.splits.items()},
             "kept_given_intrinsics": all(_same(final[c], k) for c, k in self.given.items()),
             "warnings": warnings, "time_s": self.time_s}
         return self.result

@@ -554,6 +554,49 @@ def test_views_of_one_camera_change_together():
     np.testing.assert_allclose(scene.normalized[1], [[0.1, 0.0]])  # the original is untouched
 
 
+@pytest.mark.parametrize("focal_factor, settled", [(1.018, False), (1.01, True)])
+def test_a_round_that_moves_the_focal_by_more_than_one_and_a_half_percent_has_not_settled(focal_factor, settled):
+    """A focal 1.8 % longer shifts the image by 1.8 % of its half diagonal, below
+    converged_shift (2 %), and still leaves the rounds going: castle-P19 listed with the
+    focal 15 % short stopped after a first round 8.7 % short (4.05 deg)."""
+    scene = SfMScene(intrinsics={1: CAMERA})
+    for view_id in (1, 2):
+        scene.views[view_id] = View(view_id, f"{view_id}.jpg", 1)
+        scene.keypoints[view_id] = np.array([[900.0, 600.0]])
+        scene.normalized[view_id] = np.array([[0.1, 0.05]])
+    calibration = stage.Calibration(IntrinsicsOptions(), {1: CAMERA}, scene, calibrate={1: "guess"})
+    estimate = stage.with_focal(CAMERA, focal_factor * CAMERA.focal_px)
+    calibration._gated_estimates = lambda *args: ({1: estimate}, {"time_s": 0.0})
+    assert calibration.estimate(scene) is settled
+    report = calibration.rounds[-1]
+    assert report["moved"] < IntrinsicsOptions().converged_shift
+    assert report["focal_change"] == pytest.approx(focal_factor - 1.0)
+
+
+def test_rounds_that_do_not_settle_take_the_round_converged_on_the_most_points():
+    """castle-P19's default-preset E matches with the focal x0.85: rounds 1480.6 -> 1380.7 ->
+    1427.5 -> 1568.5 px on 229 / 1547 / 148 / 285 points, only the second converged; the last
+    was written (7.2 deg), the second is right (0.149 deg)."""
+    scene = SfMScene(intrinsics={1: CAMERA})
+    scene.views[1] = View(1, "1.jpg", 1)
+    scene.keypoints[1] = np.array([[900.0, 600.0]])
+    scene.normalized[1] = np.array([[0.1, 0.05]])
+    calibration = stage.Calibration(IntrinsicsOptions(), {1: CAMERA}, scene, calibrate={1: "suspect"})
+    rounds = [(1480.6, 229, "NO_CONVERGENCE"), (1380.7, 1547, "CONVERGENCE"), (1427.5, 3000, "NO_CONVERGENCE"),
+              (1568.5, 285, "NO_CONVERGENCE")]
+    estimates = [({"num_points": points, "termination": termination},
+                  stage.with_intrinsics(scene, {1: stage.with_focal(CAMERA, focal)}))
+                 for focal, points, termination in rounds]
+    calibration.scene = estimates[-1][1]
+    calibration.take_best_round(estimates)
+    assert calibration.scene.intrinsics[1].focal_px == pytest.approx(1380.7)
+    assert calibration.unsettled["taken_round"] == 2
+    assert calibration.finish(calibration.scene)["unsettled"]["taken_round"] == 2
+    # none converged: the most points
+    calibration.take_best_round([(dict(report, termination="NO_CONVERGENCE"), s) for report, s in estimates])
+    assert calibration.scene.intrinsics[1].focal_px == pytest.approx(1427.5)
+
+
 def test_a_failed_quick_estimation_pass_falls_back_to_the_full_chain(user_inputs, tmp_path, monkeypatch):
     """The quick pass runs on intrinsics that may be far off; if it finds no reconstruction,
     the run goes on as without it (the full chain with the given intrinsics decides)."""
