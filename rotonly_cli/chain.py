@@ -682,7 +682,6 @@ def calibrated_chain(loaded: Run, chain=_chain) -> Run:
     return _rerun(graph_run, calibration.scene, loaded, chain=chain)
 
 
-
 def output_scene(run: Run) -> SfMScene:
     """The input scene with the estimated poses (views with rotation and centre) and points."""
     from rotonly_cli.stages.export import posed_scene
