@@ -248,7 +248,7 @@ def reject_stage(run: Run) -> None:
     times add up to the run's."""
     from rotonly_cli.scene.view_graph import view_index
     from rotonly_cli.stages.reject import reject_round
-    from rotonly_cli.stages.translate import ligt_centres, views_ligt_left_out, views_not_placed, views_off
+    from rotonly_cli.stages.translate import ligt_centres, views_lost, views_off
 
     run.options.reject.validate()
     start = time.perf_counter()
@@ -301,8 +301,7 @@ def reject_stage(run: Run) -> None:
         # views resected after the solve count as lost: the round's drops cut them out of the
         # tracks' rigid set, and their rotations are the ones those drops spoiled (castle-P19's
         # OpenMVG matches, focal x1.2: resected, the round kept, 0.0945 -> 0.1267 deg)
-        lost = sorted(views_ligt_left_out(run.reports.get("translate"))
-                      - views_not_placed(before.reports["translate"]))
+        lost = views_lost(before.reports["translate"], run.reports.get("translate"))
         if len(off_after) > len(views_off(before.reports["translate"])) or lost:
             # LiGT's solve on the cleaned tracks collapsed where the previous one had not (castle-P19,
             # OpenMVG matches, 5 consensus runs, seed 3: 17.6 GT units), or the dropped matches cut
@@ -408,7 +407,7 @@ def _refutation_rounds(run: Run, resolve) -> dict:
     from rotonly_cli.scene.view_graph import active_bridges
     from rotonly_cli.stages.optimize import grrm_inputs
     from rotonly_cli.stages.reject import REFUTE_REASON, refuted_edges
-    from rotonly_cli.stages.translate import first_solve_sigma_px, views_ligt_left_out, views_not_placed
+    from rotonly_cli.stages.translate import first_solve_sigma_px, views_lost
 
     options = run.options.reject
     rounds = []
@@ -430,13 +429,12 @@ def _refutation_rounds(run: Run, resolve) -> dict:
         worst = candidates[0]
         before = _snapshot(run)
         misfit_before = first_solve_sigma_px(before.reports["translate"])
-        left_before = views_not_placed(before.reports["translate"])
         run.graph.edges[worst["edge_index"]].filter(f"{REFUTE_REASON}: its matches fit the others' rotation "
                                                     f"{worst['fit_ratio']:.3g}x worse than its own")
         _ensure_two_views(run.graph, "leave-one-out refutation")
         resolve()
         misfit = first_solve_sigma_px(run.reports.get("translate"))
-        lost = sorted(views_ligt_left_out(run.reports.get("translate")) - left_before)
+        lost = views_lost(before.reports["translate"], run.reports.get("translate"))
         kept = not lost and not misfit > options.refute_max_misfit_growth * misfit_before  # nan: no test
         entry = {"edge": worst["edge"], "fit_ratio": worst["fit_ratio"],
                  "rotation_change_deg": worst["rotation_change_deg"], "first_solve_sigma_px": [misfit_before, misfit],
@@ -649,11 +647,9 @@ def calibrated_chain(loaded: Run, chain=_chain) -> Run:
         graph_run, full_load = reload(True), False
     if calibration.scene is not run.scene:
         run = _rerun(graph_run, calibration.scene, loaded, estimation=True, chain=chain)
-    estimates = []  # (the round's report, the scene with its estimate)
     round_, last_round = 0, options.max_rounds - 1
     while True:
         settled = calibration.estimate(output_scene(run))
-        estimates.append((calibration.rounds[-1], calibration.scene))
         if calibration.back_to_given():
             calibration.time_s += time.perf_counter() - started
             return calibration.fallback
@@ -669,13 +665,13 @@ def calibrated_chain(loaded: Run, chain=_chain) -> Run:
             graph_run, full_load = reload(True), False
         run = _rerun(graph_run, calibration.scene, loaded, estimation=True, chain=chain)
         round_ += 1
-    if not settled and len(estimates) > 1 and not calibration.splits:
+    if not settled and len(calibration.rounds) > 1 and not calibration.splits:
         # the rounds ran out without settling: they oscillate about intrinsics that
         # reconstructions bent by wrong matches cannot fix (castle-P19 listed with the focal 15 %
         # short, its default-preset E matches: 1394.8 -> 1480.6 -> 1380.7 -> 1427.5 -> 1568.5 px,
         # true 1380.9; the last one written, 7.2 deg). The estimate of the round whose
         # adjustment converged on the most points is taken
-        calibration.take_best_round(estimates)
+        calibration.take_best_round()
     calibration.time_s += time.perf_counter() - started
     if not full_load or calibration.moved_from(graph_run.scene):
         graph_run = reload(False)

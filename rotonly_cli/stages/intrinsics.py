@@ -919,6 +919,8 @@ class Calibration:
     zoom_check: dict | None = None
     #: the report of :meth:`take_best_round` (None: the rounds settled)
     unsettled: dict | None = None
+    #: per round (``rounds``), the scene with that round's estimate
+    round_scenes: list = field(default_factory=list)
 
     def shift_limit_px(self, camera_id: int) -> float:
         """:func:`shift_limit_px` of a given camera at the matches' measured noise."""
@@ -1140,30 +1142,30 @@ class Calibration:
         report.update(moved=moved, focal_change=focal_change,
                       result={str(c): describe(self.scene.intrinsics[c]) for c in sorted(self.calibrate)})
         self.rounds.append(report)
+        self.round_scenes.append(self.scene)
         logger.info("intrinsics: round %d (%.2f s): %s", len(self.rounds), report["time_s"], self._calibrated_text())
         self.settled = moved <= self.options.converged_shift and focal_change <= self.options.converged_focal_change
         return self.settled
 
-    def take_best_round(self, estimates: list[tuple[dict, SfMScene]]) -> None:
-        """Rounds that did not settle (``estimates``: each round's report and the scene with
-        its estimate): the calibrated cameras take the estimate of the round whose adjustment
-        converged on the most points (the least bent reconstruction keeps the most tracks),
-        else of the round with the most points; the report's ``unsettled`` names it."""
-        def rank(entry: tuple[dict, SfMScene]) -> tuple[bool, int]:
-            report = entry[0]
+    def take_best_round(self) -> None:
+        """Rounds that did not settle: the calibrated cameras take the estimate of the round
+        whose adjustment converged on the most points (the least bent reconstruction keeps the
+        most tracks), else of the round with the most points; the report's ``unsettled`` names
+        it."""
+        def rank(report: dict) -> tuple[bool, int]:
             return report.get("termination") == "CONVERGENCE", int(report.get("num_points") or 0)
 
-        best = max(range(len(estimates)), key=lambda k: rank(estimates[k]))
-        chosen = estimates[best][1]
+        best = max(range(len(self.rounds)), key=lambda k: rank(self.rounds[k]))
+        chosen = self.round_scenes[best]
         changed = {c: chosen.intrinsics[c] for c in self.calibrate
                    if c in chosen.intrinsics and not _same(chosen.intrinsics[c], self.scene.intrinsics[c])}
         if changed:
             self.scene = with_intrinsics(self.scene, changed)
         self.unsettled = {"taken_round": best + 1,
                           "rounds": [{"num_points": report.get("num_points"), "termination": report.get("termination")}
-                                     for report, _ in estimates],
+                                     for report in self.rounds],
                           "result": {str(c): describe(self.scene.intrinsics[c]) for c in sorted(self.calibrate)}}
-        converged, points = rank(estimates[best])
+        converged, points = rank(self.rounds[best])
         logger.info("intrinsics: the rounds did not settle; round %d's estimate, its adjustment %s on %d points, is "
                     "taken: %s", best + 1, "converged" if converged else "not converged", points,
                     self._calibrated_text())

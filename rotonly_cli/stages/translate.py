@@ -285,11 +285,12 @@ def views_ligt_left_out(report: dict | None) -> set[int]:
                                            + (report.get("shared_centres") or [])}
 
 
-def views_not_placed(report: dict | None) -> set[int]:
-    """The registered views a translate report's LiGT solve did not place on their pairs'
-    baselines: left without a centre (positioned afterwards or not) or put off them (a
-    collapsed centre is no position to lose)."""
-    return views_ligt_left_out(report) | {int(view_id) for view_id in views_off(report)}
+def views_lost(before: dict | None, after: dict | None) -> list[int]:
+    """The views the LiGT solve of translate report ``after`` left without a centre (positioned
+    afterwards or not) that the solve of ``before`` had placed on their pairs' baselines: a
+    view it left out or put off them (a collapsed centre) had no position to lose."""
+    placed_not = views_ligt_left_out(before) | {int(view_id) for view_id in views_off(before)}
+    return sorted(views_ligt_left_out(after) - placed_not)
 
 
 def ligt_centres(centers: np.ndarray, report: dict | None, index: dict[int, int]) -> np.ndarray:

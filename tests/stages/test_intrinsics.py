@@ -584,16 +584,17 @@ def test_rounds_that_do_not_settle_take_the_round_converged_on_the_most_points()
     calibration = stage.Calibration(IntrinsicsOptions(), {1: CAMERA}, scene, calibrate={1: "suspect"})
     rounds = [(1480.6, 229, "NO_CONVERGENCE"), (1380.7, 1547, "CONVERGENCE"), (1427.5, 3000, "NO_CONVERGENCE"),
               (1568.5, 285, "NO_CONVERGENCE")]
-    estimates = [({"num_points": points, "termination": termination},
-                  stage.with_intrinsics(scene, {1: stage.with_focal(CAMERA, focal)}))
-                 for focal, points, termination in rounds]
-    calibration.scene = estimates[-1][1]
-    calibration.take_best_round(estimates)
+    calibration.rounds = [{"num_points": points, "termination": termination} for _, points, termination in rounds]
+    calibration.round_scenes = [stage.with_intrinsics(scene, {1: stage.with_focal(CAMERA, focal)})
+                                for focal, _, _ in rounds]
+    calibration.scene = calibration.round_scenes[-1]
+    calibration.take_best_round()
     assert calibration.scene.intrinsics[1].focal_px == pytest.approx(1380.7)
     assert calibration.unsettled["taken_round"] == 2
     assert calibration.finish(calibration.scene)["unsettled"]["taken_round"] == 2
     # none converged: the most points
-    calibration.take_best_round([(dict(report, termination="NO_CONVERGENCE"), s) for report, s in estimates])
+    calibration.rounds = [dict(report, termination="NO_CONVERGENCE") for report in calibration.rounds]
+    calibration.take_best_round()
     assert calibration.scene.intrinsics[1].focal_px == pytest.approx(1427.5)
 
 
