@@ -90,8 +90,8 @@ def fixed_translation_system(translations: np.ndarray) -> type[GRRMSystem]:
     """A GRRMSystem whose edges use ``translations`` (E, 3), unit, instead of Pˢ's null vectors."""
 
     class FixedTranslationSystem(GRRMSystem):
-        def chunk_terms(self, R_ij, e0, e1, cnt, starts, xi, xj, with_jacobian, wk):
-            return fixed_translation_terms(R_ij[e0:e1], cnt, starts, xi, xj, with_jacobian, translations[e0:e1])
+        def chunk_terms(self, R_ij, edges, cnt, starts, xi, xj, with_jacobian, wk):
+            return fixed_translation_terms(R_ij, cnt, starts, xi, xj, with_jacobian, translations[edges])
 
     return FixedTranslationSystem
 

@@ -186,9 +186,9 @@ def test_public_api_and_bad_input():
 
 
 def test_linearisation_in_two_processes_equals_one_process_bit_for_bit(monkeypatch):
-    """GRRMSystem.parallel: the forked child evaluates the second part (its edges' rows of the
-    shared table, its blocks' sums); cost, JᵀWJ, JᵀWV and the remainder are the same bits as
-    in one process, also after the batch's weights change (the child gets the new batch)."""
+    """GRRMSystem.parallel: the forked child evaluates the second share of the parts (their
+    match tables and sums); cost, JᵀWJ, JᵀWV and the remainder are the same bits as in one
+    process, also after the batch's weights change (the child gets the new batch)."""
     from rotonly_cli.runtime import parallel
 
     monkeypatch.setattr(grrm.problem, "_CHUNK", 301)  # several blocks per part
@@ -205,7 +205,7 @@ def test_linearisation_in_two_processes_equals_one_process_bit_for_bit(monkeypat
         return out
 
     one = grrm.GRRMSystem(8, prob.edge_views, prob.batch, prob.obs_ids)
-    assert len(one.edge_parts) == 2 and len(one.block_parts) == 2
+    assert len(one.shares) == 2
     serial = evaluations(one)
     two = grrm.GRRMSystem(8, prob.edge_views, prob.batch, prob.obs_ids)
     with two.parallel(parallel.ForkedPeer):

@@ -29,14 +29,21 @@ def setup():
 @pytest.mark.parametrize("chunk", [1 << 15, 97])
 @pytest.mark.parametrize("dense", [True, False])
 @pytest.mark.parametrize("loss", ["cauchy", "geman_mcclure"])
-def test_linearize_equals_explicit_jacobian(setup, chunk, dense, loss, monkeypatch):
+@pytest.mark.parametrize("parts", ["two", "many"])
+def test_linearize_equals_explicit_jacobian(setup, chunk, dense, loss, parts, monkeypatch):
     """Cost, JᵀWJ (with Triggs' clamped radial term), JᵀWV and the exact-curvature remainder
     from the block-by-block linearisation equal the products of the explicit Jacobian, for the
-    dense and the sparse view-block assembly and blocks cut every 97 contributions."""
+    dense and the sparse view-block assembly, blocks cut every 97 contributions, and ("many")
+    parts of ~300 incident matches (edges between parts computed in both) with the pair blocks
+    addressed through the table of the blocks that occur (layout.DENSE_PAIR_BLOCKS exceeded)."""
     monkeypatch.setattr(grrm.problem, "_CHUNK", chunk)
     monkeypatch.setattr(grrm.problem, "_DENSE_MAX_VIEWS", 200 if dense else 0)
+    if parts == "many":
+        monkeypatch.setattr(grrm.layout, "PART_MATCHES", 300)
+        monkeypatch.setattr(grrm.layout, "DENSE_PAIR_BLOCKS", 0)
     p, prob, R, V, J, sq, scale = setup
     problem = grrm.GRRMSystem(8, prob.edge_views, prob.batch, prob.obs_ids)
+    assert (len(problem.layout.parts) > 4) == (parts == "many")
     cost, H, g, remainder = problem.linearize(R, loss, scale, True, True, exact_radial_curvature=True)
     assert isinstance(H, np.ndarray) == dense
     rho, drho = robust.robust_rho(sq, loss, scale)

@@ -336,8 +336,8 @@ def grrm_residuals(R_cam_from_world, edge_views, batch: pg.EdgeBatch, obs_ids, w
         return V, None
     nc = B.shape[1]
     blocks = B.T.reshape(nc, 3, 3)
-    rows = (3 * problem.group_sorted)[:, None, None] + np.arange(3)[None, :, None]
-    cols = (3 * problem.edge_sorted)[:, None, None] + np.arange(3)[None, None, :]
+    rows = (3 * problem.contribution_groups())[:, None, None] + np.arange(3)[None, :, None]
+    cols = (3 * problem.contribution_edges())[:, None, None] + np.arange(3)[None, None, :]
     J_e = sp.csr_matrix((blocks.ravel(), (np.broadcast_to(rows, (nc, 3, 3)).ravel(),
                                           np.broadcast_to(cols, (nc, 3, 3)).ravel())),
                         shape=(3 * problem.num_groups, 3 * problem.E))
