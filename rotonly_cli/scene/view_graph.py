@@ -255,10 +255,17 @@ def edge_batch(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: list[
     """EdgeBatch (z = 1 normalized coordinates) of the matches of ``edges``, in that order."""
     if not edges:
         return pg.EdgeBatch(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(1, dtype=np.int64))
-    x_i = np.concatenate([normalized[graph.edges[k].i][graph.edges[k].matches[:, 0]] for k in edges])
-    x_j = np.concatenate([normalized[graph.edges[k].j][graph.edges[k].matches[:, 1]] for k in edges])
     counts = np.array([graph.edges[k].num_inliers for k in edges], dtype=np.int64)
-    return pg.pack_flat(x_i, x_j, np.concatenate([[0], np.cumsum(counts)]))
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    # filled edge by edge: no list of per-edge copies beside the result (memory at scale)
+    first = normalized[graph.edges[edges[0]].i]
+    x_i = np.empty((int(offsets[-1]), first.shape[1]), dtype=first.dtype)
+    x_j = np.empty_like(x_i)
+    for k, m0, m1 in zip(edges, offsets[:-1], offsets[1:]):
+        edge = graph.edges[k]
+        np.take(normalized[edge.i], edge.matches[:, 0], axis=0, out=x_i[m0:m1])
+        np.take(normalized[edge.j], edge.matches[:, 1], axis=0, out=x_j[m0:m1])
+    return pg.pack_flat(x_i, x_j, offsets)
 
 
 def edge_residuals_deg(edges: list[Edge], R_cam_from_world: dict[int, np.ndarray]) -> np.ndarray:

@@ -52,9 +52,12 @@ def grrm_inputs(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_
     edge_views = np.array([[local[graph.edges[k].i], local[graph.edges[k].j]] for k in edges], dtype=np.int64)
     sizes_kp = np.array([len(normalized[v]) for v in views], dtype=np.int64)
     offset = np.concatenate([[0], np.cumsum(sizes_kp)])
-    obs_ids = np.concatenate([np.stack([offset[local[graph.edges[k].i]] + graph.edges[k].matches[:, 0],
-                                        offset[local[graph.edges[k].j]] + graph.edges[k].matches[:, 1]], axis=1)
-                              for k in edges])
+    counts = np.array([graph.edges[k].num_inliers for k in edges], dtype=np.int64)
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    obs_ids = np.empty((int(bounds[-1]), 2), dtype=np.int64)  # filled edge by edge (no list of copies)
+    for k, m0, m1 in zip(edges, bounds[:-1], bounds[1:]):
+        obs_ids[m0:m1, 0] = offset[local[graph.edges[k].i]] + graph.edges[k].matches[:, 0]
+        obs_ids[m0:m1, 1] = offset[local[graph.edges[k].j]] + graph.edges[k].matches[:, 1]
     return GRRMInputs(views, edges, edge_views, edge_batch(graph, normalized, edges), obs_ids)
 
 
