@@ -26,6 +26,10 @@ class StageMonitor:
         self.run = None
         self._bar = None
         self._stack = ExitStack()
+        #: per stage: wall time (s, summed over the calibration's passes) and the process's peak
+        #: resident memory during it (MB, the kernel's high-water mark reset at the stage's
+        #: start; None where the reset is not allowed): reports/resources.json
+        self.resources: dict[str, dict] = {}
 
     def __enter__(self) -> StageMonitor:
         if self.progress:
@@ -46,13 +50,43 @@ class StageMonitor:
     def stage(self, name: str) -> Iterator[None]:
         if self._bar is not None:
             self._bar.set_description_str(name, refresh=True)
+        resettable = reset_peak_rss()
         start = time.perf_counter()
         yield
+        seconds = time.perf_counter() - start
+        entry = self.resources.setdefault(name, {"time_s": 0.0, "peak_rss_mb": None})
+        entry["time_s"] += seconds
+        peak = peak_rss_mb() if resettable else None
+        if peak is not None:
+            entry["peak_rss_mb"] = max(entry["peak_rss_mb"] or 0.0, peak)
         if self._bar is not None:
             self._bar.update(1)
         if self.run is not None and logger.isEnabledFor(logging.DEBUG):
             for line in stage_detail(name, self.run, time.perf_counter() - start):
                 logger.debug(line)
+
+
+def reset_peak_rss() -> bool:
+    """Reset the kernel's resident high-water mark of this process (Linux: VmHWM); False where
+    that is not allowed."""
+    try:
+        with open("/proc/self/clear_refs", "w") as clear_refs:
+            clear_refs.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def peak_rss_mb() -> float | None:
+    """The process's resident high-water mark (MB) since the last :func:`reset_peak_rss`."""
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        return None
+    return None
 
 
 def _short(value) -> str | None:

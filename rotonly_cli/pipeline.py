@@ -272,6 +272,7 @@ def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptio
             run = calibrated_chain(run, chain)
         else:
             chain(run, stages[1:])
+    run.reports["resources"] = monitor.resources
     return run
 
 

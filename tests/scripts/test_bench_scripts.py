@@ -150,36 +150,34 @@ def test_bench_strecha_refuses_results_inside_root(tmp_path):
 # ============================================================================ bench_scale pieces
 
 def test_peak_rss_probe_sees_a_200_mb_buffer_after_reset():
-    resettable = bench_scale.reset_peak_rss()
-    base = bench_scale.peak_rss_mb(resettable)
+    from rotonly_cli import monitor
+
+    resettable = monitor.reset_peak_rss()
+    base = monitor.peak_rss_mb()
     buffer = np.ones(25_000_000)  # 200 MB, touched
-    assert bench_scale.peak_rss_mb(resettable) > base + 150
+    assert monitor.peak_rss_mb() > base + 150
     del buffer
     if resettable:
-        bench_scale.reset_peak_rss()
-        assert bench_scale.peak_rss_mb(resettable) < base + 150
+        monitor.reset_peak_rss()
+        assert monitor.peak_rss_mb() < base + 150
 
 
-def test_bench_scale_measure_on_small_simulated_scene(tmp_path):
-    scene_dir = tmp_path / "sim"
-    bench_scale.simulate_to(scene_dir, num_views=10, num_points=800, setup="linear", window=3, max_height=100.0,
-                            seed=1)
-    info = json.loads((scene_dir / "simulation.json").read_text())
-    assert info["num_views"] == 10 and info["num_pairs"] > 9 and info["num_matches"] > 1000
-    bench_scale.measure(scene_dir, tmp_path / "measure.json")
-    measured = json.loads((tmp_path / "measure.json").read_text())
-    assert list(measured["stages"]) == list(bench_scale.STAGES)
-    assert all(row["time_s"] > 0 and row["cpu_s"] > 0 and row["peak_rss_mb"] > 10
-               for row in measured["stages"].values())
-    assert measured["grrm"]["num_views"] == 10
-    for key in ("rotation_error_averaged_deg", "rotation_error_grrm_deg"):
-        assert measured[key]["registered"] == 10
-        assert 0.0 < measured[key]["mean"] < 0.5  # 1 px noise, 0.5° perturbed starts
-
-    table = bench_scale.tables([{"simulation": info, "measure": measured},
-                                {"simulation": info, "error": "timeout 10 s"}])
-    assert "| 10 | 800 |" in table and "failed: timeout 10 s" in table
-    assert "| met |" in table  # a 10-view GRRM is far inside 60 s / 4 GB
+def test_bench_scale_on_a_small_simulated_collection(tmp_path, monkeypatch):
+    """The whole `rotonly run` and the global mapper as processes on one simulated database:
+    both register every view, rotonly's per-stage figures come from its resources.json."""
+    monkeypatch.setitem(bench_scale.RECIPES, "tiny", "--setup circular --views 8 --points 500 --window 3 --seed 1")
+    md = tmp_path / "results.md"
+    assert bench_scale.main(["--recipes", "tiny", "--cache", str(tmp_path / "in"), "-o", str(tmp_path / "out"),
+                             "--results-md", str(md)]) == 0
+    row = json.loads((tmp_path / "out" / "results.json").read_text())[0]
+    assert row["counts"]["images"] == 8 and row["counts"]["matches"] > 1000
+    for method in ("rotonly", "mapper"):
+        assert row[method]["exit"] == 0 and row[method]["registered"] == 8, row[method]
+        assert 0.0 < row[method]["rotation_mean_deg"] < 0.5 and row[method]["peak_rss_mb"] > 50
+    assert set(row["rotonly"]["stages"]) == set(bench_scale.STAGES)
+    assert all(stage["time_s"] > 0 and stage["peak_rss_mb"] > 50 for stage in row["rotonly"]["stages"].values())
+    text = md.read_text()
+    assert "| tiny | 8 |" in text and "rotonly run" in text and "pycolmap global mapper" in text
 
 
 def _fake_openmvg_tools(folder: Path, result_json: Path) -> Path:
