@@ -59,6 +59,9 @@ class StageMonitor:
         peak = peak_rss_mb() if resettable else None
         if peak is not None:
             entry["peak_rss_mb"] = max(entry["peak_rss_mb"] or 0.0, peak)
+        from rotonly_cli.runtime.startup import release_freed_heap
+
+        release_freed_heap()  # the stage's transients leave the resident memory before the next stage
         if self._bar is not None:
             self._bar.update(1)
         if self.run is not None and logger.isEnabledFor(logging.DEBUG):

@@ -17,8 +17,8 @@ import numpy as np
 
 from rotonly_cli.errors import AlgorithmError
 from rotonly_cli.geometry.grrm import GRRMOptions, optimize_global_rotations
-from rotonly_cli.geometry.pairwise import EdgeBatch
-from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, largest_component_of, regular_edges, view_index
+from rotonly_cli.geometry.pairwise import EdgeBatch, ObservedMatches
+from rotonly_cli.scene.view_graph import ViewGraph, largest_component_of, regular_edges, view_index
 
 logger = logging.getLogger(__name__)
 
@@ -31,8 +31,16 @@ class GRRMInputs:
     views: list[int]  #: view ids, in GRRM's row order
     edges: list[int]  #: graph edge indices, in GRRM's edge order
     edge_views: np.ndarray  #: (E, 2) rows of ``views``
-    batch: EdgeBatch
+    #: the matches: every keypoint of ``views`` once (their normalized coordinates, view by
+    #: view) and each match's two rows there, which are also its observation ids
+    matches: ObservedMatches
     obs_ids: np.ndarray  #: (M, 2) observation ids (per-view keypoint offset + keypoint)
+
+    @property
+    def batch(self) -> EdgeBatch:
+        """The matches as an EdgeBatch (48 bytes per match more than ``matches``: for the
+        small problems of the refutation test and the research probes)."""
+        return self.matches.subset(np.arange(self.matches.num_edges))
 
 
 def grrm_inputs(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_world: np.ndarray
@@ -58,7 +66,10 @@ def grrm_inputs(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_
     for k, m0, m1 in zip(edges, bounds[:-1], bounds[1:]):
         obs_ids[m0:m1, 0] = offset[local[graph.edges[k].i]] + graph.edges[k].matches[:, 0]
         obs_ids[m0:m1, 1] = offset[local[graph.edges[k].j]] + graph.edges[k].matches[:, 1]
-    return GRRMInputs(views, edges, edge_views, edge_batch(graph, normalized, edges), obs_ids)
+    coords = np.concatenate([normalized[v] for v in views])
+    if coords.shape[1] == 2:  # z = 1 coordinates
+        coords = np.hstack([coords, np.ones((len(coords), 1))])
+    return GRRMInputs(views, edges, edge_views, ObservedMatches(coords.astype(float), obs_ids, bounds), obs_ids)
 
 
 def optimize_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_world: np.ndarray,
@@ -74,12 +85,12 @@ def optimize_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_fr
     inputs = grrm_inputs(graph, normalized, R_out)
     if inputs is None:
         return R_out, {"skipped": "no REGULAR edge", "time_s": time.perf_counter() - start}
-    views, edges, batch = inputs.views, inputs.edges, inputs.batch
+    views, edges, batch = inputs.views, inputs.edges, inputs.matches
     R0 = np.stack([R_out[index[v]] for v in views])
     from rotonly_cli.runtime.parallel import helper_class
 
     # half of every linearisation in a forked child where that is safe and pays (same numbers)
-    peer_class = helper_class(batch.x_i.shape[0], jobs)
+    peer_class = helper_class(batch.num_matches, jobs)
     try:
         with np.errstate(all="ignore"):
             result = optimize_global_rotations(R0, inputs.edge_views, batch, inputs.obs_ids, fixed_view=0,
@@ -91,7 +102,7 @@ def optimize_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_fr
     change = np.degrees(so3.geodesic_angle(result.R_cam_from_world, R0))
     for r, v in enumerate(views):
         R_out[index[v]] = result.R_cam_from_world[r]
-    report = {"num_views": len(views), "num_edges": len(edges), "num_matches": int(batch.x_i.shape[0]),
+    report = {"num_views": len(views), "num_edges": len(edges), "num_matches": batch.num_matches,
               "cost_before": float(result.initial_cost), "cost_after": float(result.cost),
               "iterations": int(result.iterations), "converged": bool(result.converged),
               "rotation_change_deg": {"mean": float(change.mean()), "max": float(change.max())},

@@ -63,7 +63,7 @@ class GRRMSystem:
     product is 27 elementwise multiply-adds.
     """
 
-    def __init__(self, n: int, edge_views: np.ndarray, batch: pg.EdgeBatch, obs_ids: np.ndarray,
+    def __init__(self, n: int, edge_views: np.ndarray, batch: pg.EdgeBatch | pg.ObservedMatches, obs_ids: np.ndarray,
                  residual_form: str = "bearing"):
         self.n = n
         self.image_plane = residual_form == "image"
@@ -73,7 +73,7 @@ class GRRMSystem:
         self.processes = 1  # processes the last :meth:`parallel` ran in
         self._peer_batch = None  # the batch the peer has
         self.batch = batch
-        self.M = batch.x_i.shape[0]
+        self.M = pg.num_matches(batch)
         self.layout = Layout(n, edge_views, batch.offsets, obs_ids, chunk=_CHUNK)
         self.num_groups = self.layout.num_groups
         # the parts of this process and of the helper (EVALUATION_PARTS shares of about equal contributions)
@@ -134,7 +134,7 @@ class GRRMSystem:
         width = 16 if with_jacobian else 4
         Mp = part.num_matches
         table = np.empty((2 * Mp, width))
-        if len(part.edges) == self.E:
+        if len(part.edges) == self.E and isinstance(self.batch, pg.EdgeBatch):
             batch = self.batch
         else:
             batch = self.batch.subset(part.edges)

@@ -40,7 +40,7 @@ class GRRMResult:
     descents: int = 1  #: LM descents run (2 when the λ_min phase's start was taken)
 
 
-def validate_inputs(R_cam_from_world, edge_views, batch: pg.EdgeBatch,
+def validate_inputs(R_cam_from_world, edge_views, batch: pg.EdgeBatch | pg.ObservedMatches,
                     obs_ids) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     R = pg.as_rotations(R_cam_from_world, "R_cam_from_world").reshape(-1, 3, 3).astype(float)
     n = R.shape[0]
@@ -53,8 +53,9 @@ def validate_inputs(R_cam_from_world, edge_views, batch: pg.EdgeBatch,
                             or np.any(edge_views[:, 0] == edge_views[:, 1])):
         raise ValueError(f"edge_views: view indices must be distinct and in [0, {n})")
     obs_ids = np.asarray(obs_ids)
-    if obs_ids.shape != (batch.x_i.shape[0], 2) or not np.issubdtype(obs_ids.dtype, np.integer):
-        raise ValueError(f"obs_ids: expected an integer array of shape ({batch.x_i.shape[0]}, 2), got {obs_ids.shape}")
+    M = pg.num_matches(batch)
+    if obs_ids.shape != (M, 2) or not np.issubdtype(obs_ids.dtype, np.integer):
+        raise ValueError(f"obs_ids: expected an integer array of shape ({M}, 2), got {obs_ids.shape}")
     return R, edge_views.astype(np.int64), obs_ids.astype(np.int64)
 
 
@@ -96,13 +97,38 @@ def _solve_damped(JtJ, grad, mu, remainder=None):
     return delta if np.all(np.isfinite(delta)) else None
 
 
-def epipolar_phase(R: np.ndarray, edge_views: np.ndarray, batch: pg.EdgeBatch, free: np.ndarray,
-                   max_iterations: int, step_tolerance: float) -> tuple[np.ndarray, int]:
+def _epipolar_terms(R_ij: np.ndarray, batch: pg.EdgeBatch | pg.ObservedMatches) -> pg.ResidualEvaluation:
+    """kernels.epipolar_normal_equations of every edge; of ObservedMatches group by group of
+    edges (per-edge numbers: the same)."""
+    if isinstance(batch, pg.EdgeBatch):
+        return kernels.epipolar_normal_equations(R_ij, batch)
+    groups = [kernels.epipolar_normal_equations(R_ij[e0:e1], sub) for e0, e1, sub in pg.edge_group_batches(batch)]
+    return pg.ResidualEvaluation(residuals=None, cost=np.concatenate([g.cost for g in groups]),
+                                 t=np.concatenate([g.t for g in groups]), JtJ=np.concatenate([g.JtJ for g in groups]),
+                                 Jtr=np.concatenate([g.Jtr for g in groups]))
+
+
+def translation_weights(R_ij: np.ndarray, batch: pg.EdgeBatch | pg.ObservedMatches) -> np.ndarray:
+    """(M,) each match's weight in its edge's t (Σ w θθᵀ): two Huber IRLS rounds of its TRRM
+    residual (geometry/trrm.robust_match_weights, per edge), group by group of edges so that
+    no per-match table of all the matches is made at once (the numbers are per edge)."""
+    from rotonly_cli.geometry.trrm import TRRMOptions, robust_match_weights
+
+    w = np.empty(pg.num_matches(batch))
+    for e0, e1, sub in pg.edge_group_batches(batch):
+        m0, m1 = int(batch.offsets[e0]), int(batch.offsets[e1])
+        first = robust_match_weights(R_ij[e0:e1], sub, None, TRRMOptions(), kind="huber")
+        w[m0:m1] = robust_match_weights(R_ij[e0:e1], sub, first, TRRMOptions(), kind="huber")
+    return w
+
+
+def epipolar_phase(R: np.ndarray, edge_views: np.ndarray, batch: pg.EdgeBatch | pg.ObservedMatches,
+                   free: np.ndarray, max_iterations: int, step_tolerance: float) -> tuple[np.ndarray, int]:
     """LM on Σ_e λ_min(Pˢ_e(R_j R_i^T)) (bearing-normalised θ): per-edge normal equations
     from kernels.epipolar_normal_equations chained to the cameras, JᵀJ = Cᵀ diag(JᵀJ_e) C."""
     n = R.shape[0]
     R_ij = R[edge_views[:, 1]] @ np.swapaxes(R[edge_views[:, 0]], 1, 2)
-    ev = kernels.epipolar_normal_equations(R_ij, batch)
+    ev = _epipolar_terms(R_ij, batch)
     cost = float(ev.cost.sum())
     mu = 1e-4
     it = 0
@@ -117,7 +143,7 @@ def epipolar_phase(R: np.ndarray, edge_views: np.ndarray, batch: pg.EdgeBatch, f
                 delta[free] = delta_free
                 R_cand = so3.exp(delta.reshape(n, 3)) @ R
                 R_ij = R_cand[edge_views[:, 1]] @ np.swapaxes(R_cand[edge_views[:, 0]], 1, 2)
-                ev_c = kernels.epipolar_normal_equations(R_ij, batch)
+                ev_c = _epipolar_terms(R_ij, batch)
                 if ev_c.cost.sum() <= cost:
                     break
             mu *= 10.0
@@ -131,10 +157,13 @@ def epipolar_phase(R: np.ndarray, edge_views: np.ndarray, batch: pg.EdgeBatch, f
     return R, it
 
 
-def optimize_global_rotations(R_cam_from_world, edge_views, batch: pg.EdgeBatch, obs_ids, fixed_view: int = 0,
+def optimize_global_rotations(R_cam_from_world, edge_views, batch: pg.EdgeBatch | pg.ObservedMatches, obs_ids,
+                              fixed_view: int = 0,
                               options: GRRMOptions = GRRMOptions(),
                               on_iteration: Callable[[dict], None] | None = None, peer_class=None) -> GRRMResult:
     """Alg. 4: minimise Σ_ik ρ(‖V_ik‖²) (eq:GRRMerror) over the rotations, one view fixed.
+    ``batch``: the matches as an EdgeBatch, or as ObservedMatches (16 bytes per match; the
+    same numbers);
     ``on_iteration``: called with each LM iteration's history entry (progress bars);
     ``peer_class``: a helper process for half the evaluation (GRRMSystem.parallel, e.g.
     runtime.parallel.ForkedPeer; the numbers do not depend on it), None: one process."""
@@ -177,12 +206,8 @@ def _levenberg_marquardt(problem: GRRMSystem, R: np.ndarray, edge_views: np.ndar
         # phase (weights from a start far off would down-weight good matches).
         if not (options.robust_translation and batch.num_edges):
             return batch
-        from rotonly_cli.geometry.trrm import TRRMOptions, robust_match_weights
-
         R_ij = R_at[edge_views[:, 1]] @ np.swapaxes(R_at[edge_views[:, 0]], 1, 2)
-        w = robust_match_weights(R_ij, batch, None, TRRMOptions(), kind="huber")
-        w = robust_match_weights(R_ij, batch, w, TRRMOptions(), kind="huber")
-        return batch.with_weights(w)
+        return batch.with_weights(translation_weights(R_ij, batch))
 
     def restrict(H):  # the free parameters' rows and columns
         if H is None:
