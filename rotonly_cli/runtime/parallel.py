@@ -7,7 +7,8 @@ side by side. Threads do not pay: the lean kernels issue many small numpy calls 
 edges and hold the GIL between them (two threads on edge halves: 1.16-1.6x on 2 cores,
 scripts/bench/throughput.py), while two processes reach 1.8x. The parts go to forked
 children (they inherit the match arrays; only the small per-edge results come back through
-a pipe) and the first part runs in this process.
+a pipe) and the first part runs in this process. The stages build each part's matches chunk
+by chunk (:func:`map_edge_chunks`), so their memory is that of one chunk, not of every match.
 
 Forking is only used where it is safe and pays: on Linux, when this process runs no other
 Python thread (a fork copies only the calling thread; the point colours are decoded by a
@@ -211,7 +212,12 @@ def concat_results(parts: Sequence):
 def plan(batch, jobs: int) -> list[tuple[int, int]]:
     """The edge ranges to run as separate processes, for :func:`map_edges`: up to ``jobs``
     of them where forking is safe and pays (module docstring), else one (in-process)."""
-    return edge_parts(batch.counts, jobs) if jobs > 1 and fork_safe() else [(0, batch.num_edges)]
+    return plan_counts(batch.counts, jobs)
+
+
+def plan_counts(counts: np.ndarray, jobs: int) -> list[tuple[int, int]]:
+    """:func:`plan` from the edges' match counts alone (no batch needed yet)."""
+    return edge_parts(counts, jobs) if jobs > 1 and fork_safe() else [(0, len(counts))]
 
 
 def map_edges(fn: Callable, R: np.ndarray, batch, ranges: Sequence[tuple[int, int]]):
@@ -220,6 +226,46 @@ def map_edges(fn: Callable, R: np.ndarray, batch, ranges: Sequence[tuple[int, in
     if len(ranges) == 1:
         return fn(R, batch)
     return concat_results(fork_map(lambda r: fn(R[r[0]:r[1]], batch.edge_range(*r)), ranges))
+
+
+#: matches per chunk of :func:`map_edge_chunks`: a chunk's EdgeBatch (48 B per match), TRRM's
+#: MatchTable (104 B) and its per-match temporaries (a few hundred B per match in all) exist for
+#: one chunk at a time in each process, so a stage's transient memory no longer grows with the
+#: collection's matches (issue 49); 2^19 matches is ~30 edge groups of the lean kernels, whose
+#: per-call overhead it keeps amortised
+STAGE_CHUNK_MATCHES = 1 << 19
+
+
+def chunk_ranges(counts: np.ndarray, e0: int, e1: int, chunk: int) -> list[tuple[int, int]]:
+    """Consecutive edge ranges covering [e0, e1), each of at most ``chunk`` matches unless a
+    single edge has more (kernels.soa.edge_groups' rule)."""
+    cum = np.cumsum(np.asarray(counts[e0:e1], dtype=np.int64))
+    ranges = []
+    a = 0
+    while a < e1 - e0:
+        base = cum[a - 1] if a else 0
+        b = max(int(np.searchsorted(cum, base + chunk, side="right")), a + 1)
+        ranges.append((e0 + a, e0 + b))
+        a = b
+    return ranges
+
+
+def map_edge_chunks(fn: Callable, R: np.ndarray, counts: np.ndarray, make_batch: Callable,
+                    ranges: Sequence[tuple[int, int]], chunk: int | None = None):
+    """``fn(R, batch)`` (a per-edge dataclass result) over all edges, batch by batch: each
+    of the ``ranges`` (:func:`plan_counts`) in its own process (the first in this one), and
+    within it consecutive chunks of about ``chunk`` matches (default ``STAGE_CHUNK_MATCHES``)
+    whose batch ``make_batch(e0, e1)`` (edges [e0, e1)) is built, used and released in turn;
+    concatenated in edge order. Per-edge results do not depend on the other edges of their
+    batch (module docstring), so the chunks change no number."""
+    chunk = STAGE_CHUNK_MATCHES if chunk is None else chunk
+
+    def run_range(edge_range: tuple[int, int]):
+        parts = [fn(R[a:b], make_batch(a, b)) for a, b in chunk_ranges(counts, *edge_range, chunk)]
+        return parts[0] if len(parts) == 1 else concat_results(parts)
+
+    results = fork_map(run_range, ranges) if len(ranges) > 1 else [run_range(ranges[0])]
+    return results[0] if len(results) == 1 else concat_results(results)
 
 
 def shared_array(shape: tuple[int, ...], dtype=np.float64) -> np.ndarray:

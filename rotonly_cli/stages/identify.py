@@ -1,6 +1,7 @@
 """Stage `identify`: scene identification of every active edge (paper §"Scene Identification").
 
-Batched over all edges (``geometry.identification.identify``). Filter: ROTATION_SINGULAR edges
+Batched over the edges (``geometry.identification.identify``), one chunk of about
+runtime.parallel.STAGE_CHUNK_MATCHES matches at a time (every number is per edge). Filter: ROTATION_SINGULAR edges
 (Holoplane / RankRegular-line) are excluded, as the paper says — their rotation is not
 determined by the matches. PURE_ROTATION edges stay active: they keep their rotation for
 averaging but give no translation constraint (``stages.translate`` uses REGULAR edges only).
@@ -15,7 +16,7 @@ from functools import partial
 import numpy as np
 
 from rotonly_cli.geometry.identification import IdentificationOptions, identify
-from rotonly_cli.runtime.parallel import map_edges, plan
+from rotonly_cli.runtime.parallel import map_edge_chunks, plan_counts
 from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, filter_rotation_singular, kind_counts, kinds_text
 
 logger = logging.getLogger(__name__)
@@ -28,12 +29,14 @@ def identify_edges(graph: ViewGraph, normalized: dict[int, np.ndarray],
     edges = graph.active_edges()
     processes = 1
     if edges:
-        batch = edge_batch(graph, normalized, edges)
         R = np.stack([graph.edges[k].R_j_from_i for k in edges])
-        ranges = plan(batch, jobs)
+        counts = np.array([graph.edges[k].num_inliers for k in edges], dtype=np.int64)
+        ranges = plan_counts(counts, jobs)
         processes = len(ranges)
         with np.errstate(all="ignore"):  # handled corner cases (rotonly_cli.twoview._quiet)
-            result = map_edges(partial(identify, options=options), R, batch, ranges)
+            # chunk by chunk: the matches of one chunk of edges at a time (issue 49)
+            result = map_edge_chunks(partial(identify, options=options), R, counts,
+                                     lambda e0, e1: edge_batch(graph, normalized, edges[e0:e1]), ranges)
         for row, k in enumerate(edges):
             edge = graph.edges[k]
             edge.scene_kind = result.kinds[row].value

@@ -1,4 +1,5 @@
-"""Stage `refine`: TRRM (paper Alg. 2) on every active edge at once (lock-step batched LM).
+"""Stage `refine`: TRRM (paper Alg. 2) on every active edge (lock-step batched LM), one chunk
+of edges of about runtime.parallel.STAGE_CHUNK_MATCHES matches at a time (TRRM is per edge).
 
 ``trrm.refine`` also re-identifies each edge at its refined rotation (PR/B/I is decided
 there), so the kind filter (``scene.view_graph.filter_rotation_singular``) is applied again afterwards.
@@ -15,7 +16,7 @@ import numpy as np
 from rotonly_cli.geometry import so3
 from rotonly_cli.geometry.identification import IdentificationOptions
 from rotonly_cli.geometry.trrm import TRRMOptions, refine
-from rotonly_cli.runtime.parallel import map_edges, plan
+from rotonly_cli.runtime.parallel import map_edge_chunks, plan_counts
 from rotonly_cli.scene.view_graph import ViewGraph, edge_batch, filter_rotation_singular, kind_counts, kinds_text
 
 logger = logging.getLogger(__name__)
@@ -30,13 +31,14 @@ def refine_edges(graph: ViewGraph, normalized: dict[int, np.ndarray], options: T
     edges = graph.active_edges()
     report: dict = {"num_edges": len(edges)}
     if edges:
-        batch = edge_batch(graph, normalized, edges)
         R0 = np.stack([graph.edges[k].R_j_from_i for k in edges])
-        ranges = plan(batch, jobs)
+        counts = np.array([graph.edges[k].num_inliers for k in edges], dtype=np.int64)
+        ranges = plan_counts(counts, jobs)
         report["processes"] = len(ranges)
         with np.errstate(all="ignore"):  # handled corner cases (rotonly_cli.twoview._quiet)
-            result = map_edges(partial(refine, options=options, identification_options=identification_options),
-                               R0, batch, ranges)
+            # chunk by chunk: the matches of one chunk of edges at a time (issue 49)
+            result = map_edge_chunks(partial(refine, options=options, identification_options=identification_options),
+                                     R0, counts, lambda e0, e1: edge_batch(graph, normalized, edges[e0:e1]), ranges)
         change = np.degrees(so3.geodesic_angle(result.rotations, R0))
         for row, k in enumerate(edges):
             edge = graph.edges[k]

@@ -289,3 +289,91 @@ def test_forked_call_runs_in_process_without_fork_or_while_a_thread_runs():
     finally:
         release.set()
         thread.join()
+
+
+def test_chunk_ranges_cover_the_range_within_the_chunk_and_leave_a_large_edge_alone():
+    counts = np.array([100, 300, 50, 700, 20, 20])
+    assert parallel.chunk_ranges(counts, 0, 6, 400) == [(0, 2), (2, 3), (3, 4), (4, 6)]
+    assert parallel.chunk_ranges(counts, 1, 5, 400) == [(1, 3), (3, 4), (4, 5)]
+    assert parallel.chunk_ranges(counts, 0, 6, 10_000) == [(0, 6)]
+
+
+def _batch_of(x_i, x_j):
+    from rotonly_cli.geometry import pairwise as pg
+
+    return pg.pack_edges(x_i, x_j)
+
+
+def _stage_like(fn, R0, batch, jobs: int, chunk: int):
+    """map_edge_chunks as the identify / refine stages call it, the batch cut from ``batch``."""
+    ranges = parallel.plan_counts(batch.counts, jobs)
+    return parallel.map_edge_chunks(fn, R0, batch.counts, lambda e0, e1: batch.subset(np.arange(e0, e1)), ranges,
+                                    chunk=chunk)
+
+
+def test_refine_in_chunks_and_processes_equals_one_batch_bit_for_bit(small_parts):
+    from rotonly_cli.geometry.trrm import refine
+
+    R0, x_i, x_j = _edges()
+    batch = _batch_of(x_i, x_j)
+    whole = refine(R0, batch)
+    # chunks of ~700 matches (2-4 edges) in 2 processes; the first edges have 150+ matches
+    chunked = _stage_like(refine, R0, batch, jobs=2, chunk=700)
+    assert small_parts == [2]
+    assert len(parallel.chunk_ranges(batch.counts, 0, batch.num_edges, 700)) >= 8
+    for name in ("rotations", "translation_directions", "initial_cost", "cost", "iterations", "converged"):
+        assert np.array_equal(getattr(whole, name), getattr(chunked, name)), name
+    for name in ("detection_value", "pure_rotation_ratio", "ps_eigenvalues"):
+        assert np.array_equal(getattr(whole.identification, name), getattr(chunked.identification, name)), name
+    assert list(whole.kinds) == list(chunked.kinds)
+    assert {k.value for k in whole.kinds} == {"REGULAR", "PURE_ROTATION", "ROTATION_SINGULAR"}
+
+
+def test_identify_in_chunks_equals_one_batch_bit_for_bit(small_parts):
+    from rotonly_cli.geometry.identification import identify
+
+    R0, x_i, x_j = _edges()
+    batch = _batch_of(x_i, x_j)
+    whole = identify(R0, batch)
+    chunked = _stage_like(identify, R0, batch, jobs=1, chunk=500)
+    assert small_parts == []  # one process: no fork_map call at all
+    for name in ("detection_value", "pure_rotation_ratio", "ps_eigenvalues"):
+        assert np.array_equal(getattr(whole, name), getattr(chunked, name)), name
+    assert list(whole.kinds) == list(chunked.kinds)
+
+
+def test_identify_and_refine_stages_in_small_chunks_write_the_same_files(tmp_path, monkeypatch):
+    """The identify and refine stages of `rotonly run` with the edges cut into chunks of 1000
+    matches write the workspace of one chunk."""
+    from rotonly_cli.io import colmap
+    from rotonly_cli.options import IntrinsicsOptions
+    from rotonly_cli.pipeline import STAGES, RunOptions, run_pipeline
+    from rotonly_cli.simulation.layout_scenes import simulate_multiview
+
+    problem = simulate_multiview("linear", num_views=8, num_points=800, noise_px=0.5, rng=4, init="perturbed",
+                                 init_noise_deg=0.5, window=3, min_shared=30)
+    db = tmp_path / "database.db"
+    colmap.write_database(db, problem.scene)
+    options = RunOptions(jobs=1, intrinsics=IntrinsicsOptions(mode="fixed"))
+    stages = STAGES[:STAGES.index("refine") + 1]
+    run_pipeline(db, tmp_path / "one", options, stages)
+    chunks = []
+    chunk_ranges = parallel.chunk_ranges
+
+    def spy(counts, e0, e1, chunk):
+        chunks.append(len(chunk_ranges(counts, e0, e1, 1000)))
+        return chunk_ranges(counts, e0, e1, 1000)
+
+    monkeypatch.setattr(parallel, "chunk_ranges", spy)
+    run_pipeline(db, tmp_path / "chunked", options, stages)
+    assert len(chunks) == 2 and min(chunks) >= 3  # identify and refine, each in several chunks
+    one, chunked = np.load(tmp_path / "one" / "state.npz"), np.load(tmp_path / "chunked" / "state.npz")
+    for name in ("R_j_from_i", "t_dir"):
+        assert np.array_equal(one[name], chunked[name]), name
+    graph = "view_graph.json"
+    assert (tmp_path / "one" / graph).read_bytes() == (tmp_path / "chunked" / graph).read_bytes()
+    for stage in ("identify", "refine"):
+        one = json.loads((tmp_path / "one" / "reports" / f"{stage}.json").read_text())
+        chunked = json.loads((tmp_path / "chunked" / "reports" / f"{stage}.json").read_text())
+        one.pop("time_s"), chunked.pop("time_s")
+        assert one == chunked
