@@ -364,6 +364,7 @@ def _summary(reports: dict, graph) -> str:
         ["edges active", _num(reports, "run.num_active_edges") + " of " + _num(reports, "load.num_pairs")],
         ["edges filtered", ", ".join(f"{escape(r)}: {n}" for r, n in sorted(reasons.items())) or "none"],
         ["views outside the largest component", escape(", ".join(map(str, counts["unregistered_views"]))) or "none"],
+        ["models (connected parts of the view graph)", _components(reports)],
         ["reprojection error [px]", "median " + _num(reports, "export.reprojection_error_px.median") + ", mean "
          + _num(reports, "export.reprojection_error_px.mean") + ", RMSE "
          + _num(reports, "export.reprojection_error_px.rmse") + ", max "
@@ -374,6 +375,22 @@ def _summary(reports: dict, graph) -> str:
         ["total time", _num(reports, "run.time_s", " s")],
     ]
     return _table(None, rows, "summary")
+
+
+def _components(reports: dict) -> str:
+    """The models written (sparse/ and the other components' sparse/<k>/) and the parts not
+    written, from reports/run.json's ``components``."""
+    lines = []
+    for k, part in enumerate(_get(reports, "run.components") or []):
+        base = f"run.components.{k}"
+        if part.get("model"):
+            lines.append(f"<code>{escape(part['model'])}/</code>, <code>{escape(part['sfm_data'])}</code>: "
+                         + _num(reports, f"{base}.num_registered") + " of " + _num(reports, f"{base}.num_views")
+                         + " views, " + _num(reports, f"{base}.num_points") + " points")
+        else:
+            views = ", ".join(map(str, part.get("views", [])[:MAX_LIST_ITEMS]))
+            lines.append(f"not written: views {escape(views)} ({_num(reports, f'{base}.reason')})")
+    return "<br>".join(lines) or "–"
 
 
 def _timings(reports: dict) -> str:
