@@ -24,13 +24,21 @@ import numpy as np
 
 from rotonly_cli import __version__
 from rotonly_cli.evaluation import svg
+from rotonly_cli.evaluation.run_figures import (  # noqa: F401 - top_view_axes: re-exported
+    figure,
+    per_view_figures,
+    residual_histogram,
+    top_view_axes,
+    top_view_figure,
+    track_histogram,
+    view_graph_figure,
+)
 from rotonly_cli.scene.types import Intrinsics, SfMScene
 
 REPORT_FILE = "report.html"
 #: list items shown of a report value (the JSON file has them all)
 MAX_LIST_ITEMS = 24
 MAX_TABLE_ROWS = 300
-TOP_VIEW_POINTS = 4000
 
 
 # ============================================================================ statistics (reports/export.json)
@@ -181,11 +189,6 @@ def _table(header: list[str] | None, rows: list[list[str]], cls: str = "") -> st
     return f'<table class="{cls}">{head}\n{body}\n</table>'
 
 
-def _figure(uri: str, caption: str, figure_id: str) -> str:
-    return (f'<figure id="{figure_id}"><img src="{uri}" alt="{escape(caption)}">'
-            f"<figcaption>{escape(caption)}</figcaption></figure>")
-
-
 def _value_html(value, path: str) -> str:
     """A report value of any shape: scalars tagged with their path, dicts as nested tables,
     lists of scalars inline (shortened), lists of dicts as tables."""
@@ -206,149 +209,6 @@ def _value_html(value, path: str) -> str:
         more = f", … ({len(value)} items)" if len(value) > MAX_LIST_ITEMS else ""
         return f"[{shown}{more}]"
     return f'<span data-source="{escape(path)}">{escape(_shown(value, path))}</span>'
-
-
-# ============================================================================ figures
-
-def _per_view_figures(per_view: list[dict]) -> list[str]:
-    registered = [v for v in per_view if v["registered"]]
-    if not registered:
-        return []
-    names = [v["name"] or str(v["id"]) for v in registered]
-    x = np.arange(len(registered))
-    width = int(min(1400, max(640, 60 + 18 * len(registered))))
-    median = np.array([(v["reprojection_error_px"] or {}).get("median", np.nan) for v in registered], dtype=float)
-    mean = np.array([(v["reprojection_error_px"] or {}).get("mean", np.nan) for v in registered], dtype=float)
-    top = float(np.nanmax(np.concatenate([mean, median, [0.0]]))) or 1.0
-    chart = svg.Chart(width, 360, (-0.6, len(registered) - 0.4), (0.0, 1.1 * top), categories=names,
-                      title="Reprojection error per image", ylabel="pixels (undistorted)")
-    chart.bars(x, median, width=0.4, offset=-0.2, color=svg.PALETTE[0], label="median")
-    chart.bars(x, mean, width=0.4, offset=0.2, color=svg.PALETTE[1], label="mean")
-    counts = np.array([v["num_observations"] for v in registered], dtype=float)
-    observations = svg.Chart(width, 340, (-0.6, len(registered) - 0.4), (0.0, 1.1 * max(counts.max(), 1.0)),
-                             categories=names, title="Observations per image (3D points seen)", ylabel="observations")
-    observations.bars(x, counts, color=svg.PALETTE[2])
-    return [_figure(svg.data_uri(chart.svg()), "Reprojection error per image (median, mean)", "fig-per-image-error"),
-            _figure(svg.data_uri(observations.svg()), "Observations per image", "fig-per-image-observations")]
-
-
-def _residual_histogram(residuals: np.ndarray) -> str | None:
-    residuals = residuals[np.isfinite(residuals)]
-    if not residuals.size:
-        return None
-    upper = float(np.quantile(residuals, 0.99)) or float(residuals.max()) or 1.0
-    edges = np.linspace(0.0, upper, 41)
-    counts, _ = np.histogram(np.minimum(residuals, upper), bins=edges)
-    chart = svg.Chart(640, 320, (0.0, upper), (0.0, 1.1 * counts.max()), title="Reprojection error of the observations",
-                      xlabel=f"pixels (last bin: >= {upper:.3g}, the 99th percentile)", ylabel="observations")
-    chart.bars((edges[:-1] + edges[1:]) / 2, counts, width=edges[1] - edges[0], color=svg.PALETTE[0])
-    return _figure(svg.data_uri(chart.svg()), "Histogram of the reprojection errors", "fig-residuals")
-
-
-def _track_histogram(track_lengths: dict) -> str | None:
-    if not track_lengths:
-        return None
-    lengths = np.array([int(k) for k in track_lengths])
-    counts = np.array([track_lengths[k] for k in track_lengths], dtype=float)
-    chart = svg.Chart(640, 320, (lengths.min() - 0.6, lengths.max() + 0.6), (0.0, 1.1 * counts.max()),
-                      title="Track lengths of the points", xlabel="views observing the point", ylabel="points")
-    chart.bars(lengths, counts, color=svg.PALETTE[2])
-    return _figure(svg.data_uri(chart.svg()), "Histogram of the track lengths", "fig-track-lengths")
-
-
-def _view_graph_figure(graph) -> str | None:
-    view_ids = graph.view_ids()
-    if len(view_ids) < 2:
-        return None
-    angle = np.pi / 2 - 2 * np.pi * np.arange(len(view_ids)) / len(view_ids)
-    position = {v: (np.cos(a), np.sin(a)) for v, a in zip(view_ids, angle)}
-    chart = svg.Chart(720, 640, (-1.35, 1.35), (-1.25, 1.25), title="View graph: edges by status (filtered: reason)",
-                      equal=True, axes=False, margins=(10, 10, 30, 10))
-    groups: dict[str, list] = {}
-    for edge in graph.edges:
-        if edge.status == "active":
-            key = f"active {edge.scene_kind}" if edge.scene_kind else "active"
-        else:
-            key = edge.reason or "filtered"
-        groups.setdefault(key, []).append(edge)
-    active = sorted(k for k in groups if k.startswith("active"))
-    filtered = sorted((k for k in groups if not k.startswith("active")), key=lambda k: -len(groups[k]))
-    colours = {"active": "#9aa7b8", "active REGULAR": "#9aa7b8", "active PURE_ROTATION": svg.PALETTE[4]}
-    width = 1.2 if len(graph.edges) < 400 else 0.5
-    for k, key in enumerate(active + filtered):
-        edges = groups[key]
-        colour = colours.get(key, svg.PALETTE[[3, 1, 5, 6, 8, 9, 0, 2][k % 8]] if key in filtered else svg.PALETTE[7])
-        x0, y0 = zip(*(position[e.i] for e in edges))
-        x1, y1 = zip(*(position[e.j] for e in edges))
-        chart.segments(x0, y0, x1, y1, color=colour, width=width if key in active else 1.6,
-                       dashed=key in filtered, label=f"{key} ({len(edges)})",
-                       opacity=0.6 if key in active else 0.9)
-    unregistered = set(graph.unregistered_views)
-    names = [graph.views[v].name for v in view_ids]
-    xy = np.array([position[v] for v in view_ids])
-    colour_of = np.array([v in unregistered for v in view_ids])
-    for mask, colour, label in ((~colour_of, svg.PALETTE[0], "view"),
-                                (colour_of, svg.PALETTE[3], "view outside the largest component")):
-        if mask.any():
-            chart.points(xy[mask, 0], xy[mask, 1], color=colour, radius=4 if len(view_ids) < 200 else 2,
-                         label=label, titles=[n for n, m in zip(names, mask) if m])
-    if len(view_ids) <= 60:
-        for (x, y), name in zip(xy, names):
-            chart.text(1.08 * x - (0.12 if x < -0.2 else 0.0), 1.08 * y, name, size=9)
-    return _figure(svg.data_uri(chart.svg()), "View graph (views on a circle in id order)", "fig-view-graph")
-
-
-def top_view_axes(R_cam_from_world: np.ndarray) -> np.ndarray:
-    """(2, 3) world directions of a top view: right and forward of the cameras, on the plane
-    normal to their mean up direction (image y points down, so up is -y)."""
-    R = np.asarray(R_cam_from_world, dtype=float)
-    up = -R[:, 1, :].mean(axis=0)
-    forward = R[:, 2, :].mean(axis=0)
-    up /= np.linalg.norm(up) or 1.0
-    forward = forward - (forward @ up) * up
-    if np.linalg.norm(forward) < 1e-9:
-        forward = np.cross(up, [1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.cross(up, [0.0, 1.0, 0.0])
-    forward /= np.linalg.norm(forward)
-    return np.stack([np.cross(forward, up), forward])
-
-
-def _top_view_figure(scene: SfMScene) -> str | None:
-    posed = sorted(scene.poses)
-    if len(posed) < 2:
-        return None
-    R = np.stack([scene.poses[v].R_cam_from_world for v in posed])
-    centres = np.stack([scene.poses[v].center for v in posed])
-    axes = top_view_axes(R)
-    c2 = centres @ axes.T
-    extent = float(np.ptp(c2, axis=0).max()) or 1.0
-    points2 = np.zeros((0, 2))
-    if scene.structure is not None and len(scene.structure.points):
-        points = np.asarray(scene.structure.points, dtype=float)
-        step = max(1, len(points) // TOP_VIEW_POINTS)
-        points2 = points[::step] @ axes.T
-        # the points' bulk, so that a few far points do not shrink the cameras to a dot
-        low, high = np.quantile(points2, 0.02, axis=0), np.quantile(points2, 0.98, axis=0)
-        points2 = points2[np.all((points2 >= low) & (points2 <= high), axis=1)]
-    both = np.concatenate([c2, points2]) if len(points2) else c2
-    pad = 0.08 * (float(np.ptp(both, axis=0).max()) or 1.0)
-    chart = svg.Chart(720, 620, (both[:, 0].min() - pad, both[:, 0].max() + pad),
-                      (both[:, 1].min() - pad, both[:, 1].max() + pad), title="Cameras and points, top view",
-                      xlabel="right (world units)", ylabel="forward (world units)", equal=True)
-    if len(points2):
-        chart.points(points2[:, 0], points2[:, 1], color="#b0b0b0", radius=1.0, opacity=0.6,
-                     label=f"points (1 in {step})" if step > 1 else "points")
-    direction = (R[:, 2, :] @ axes.T)
-    norm = np.linalg.norm(direction, axis=1, keepdims=True)
-    tips = c2 + 0.08 * extent * direction / np.where(norm > 0, norm, 1.0)
-    chart.segments(c2[:, 0], c2[:, 1], tips[:, 0], tips[:, 1], color=svg.PALETTE[3], width=1.5,
-                   label="viewing direction")
-    names = [scene.views[v].name for v in posed]
-    chart.points(c2[:, 0], c2[:, 1], color=svg.PALETTE[0], radius=3.5, label="camera centres", titles=names)
-    if len(posed) <= 40:
-        for (x, y), name in zip(c2, names):
-            chart.text(x, y, name, size=9)
-    return _figure(svg.data_uri(chart.svg()), "Camera centres and viewing directions, top view (estimated)",
-                   "fig-top-view")
 
 
 # ============================================================================ sections
@@ -475,7 +335,7 @@ def _ground_truth(directory: Path) -> str:
     figures = []
     for name, caption in FIGURES.items():
         if (eval_dir / name).is_file():
-            figures.append(_figure(svg.png_data_uri((eval_dir / name).read_bytes()), caption,
+            figures.append(figure(svg.png_data_uri((eval_dir / name).read_bytes()), caption,
                                    f"fig-gt-{Path(name).stem}"))
     head = (f"<p>Ground truth <code>{escape(str(evaluation.get('gt_path', '')))}</code>: "
             f"{escape(_fmt(evaluation.get('num_matched')))} of {escape(_fmt(evaluation.get('num_gt')))} cameras "
@@ -527,14 +387,14 @@ def build_html(directory: Path, run, scene: SfMScene | None, statistics: Structu
     after = scene.intrinsics if scene is not None else run.scene.intrinsics
     parts += ["<h2>Intrinsics</h2>", _intrinsics(run.input_intrinsics or run.scene.intrinsics, after)]
     if "export" in reports:
-        parts += ["<h2>Per image</h2>", *_per_view_figures(reports["export"].get("per_view") or []),
+        parts += ["<h2>Per image</h2>", *per_view_figures(reports["export"].get("per_view") or []),
                   _per_view_table(reports)]
-        histograms = [f for f in (_residual_histogram(statistics.residuals_px) if statistics else None,
-                                  _track_histogram(reports["export"].get("track_lengths") or {})) if f]
+        histograms = [f for f in (residual_histogram(statistics.residuals_px) if statistics else None,
+                                  track_histogram(reports["export"].get("track_lengths") or {})) if f]
         parts += ["<h2>Residuals and tracks</h2>", *histograms]
-    parts += ["<h2>View graph</h2>", _view_graph_figure(run.graph) or "", _filtered_edges(run.graph)]
+    parts += ["<h2>View graph</h2>", view_graph_figure(run.graph) or "", _filtered_edges(run.graph)]
     if scene is not None:
-        top = _top_view_figure(scene)
+        top = top_view_figure(scene)
         parts += ["<h2>Cameras</h2>", top] if top else []
     parts.append(_ground_truth(directory) if run.options.gt and "triangulate" in stages_done else "")
     parts.append("<h2>Stage reports</h2><p>Every number of <code>reports/&lt;stage&gt;.json</code>.</p>")
