@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import sys
 import time
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -338,8 +338,11 @@ def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: fl
     ``gt``: the ground truth of ``run.options.gt`` (:func:`ground_truth_for`) or None."""
     from rotonly_cli.components import summary_entries, write_models
     from rotonly_cli.evaluation.run_report import structure_statistics, write_run_report
+    from rotonly_cli.runtime.invocation import command_line
 
-    summary: dict = {"input": run.input_path, "stages": done}
+    summary: dict = {"input": run.input_path, "stages": done, "options": asdict(run.options)}
+    if command_line() is not None:
+        summary["command"] = command_line()
     scene = statistics = pending = None
     try:
         if done[-1] == "triangulate":

@@ -16,6 +16,10 @@ from rotonly_cli.evaluation import svg
 from rotonly_cli.scene.types import SfMScene
 
 TOP_VIEW_POINTS = 4000
+#: above this many registered images the per-image bars become histograms over the images
+MAX_BAR_IMAGES = 300
+#: at most this many marks (views, cameras, edges of one kind) are drawn; beyond, one in k
+MAX_MARKS = 1000
 
 
 def figure(uri: str, caption: str, figure_id: str) -> str:
@@ -27,22 +31,45 @@ def per_view_figures(per_view: list[dict]) -> list[str]:
     registered = [v for v in per_view if v["registered"]]
     if not registered:
         return []
+    median = np.array([(v["reprojection_error_px"] or {}).get("median", np.nan) for v in registered], dtype=float)
+    mean = np.array([(v["reprojection_error_px"] or {}).get("mean", np.nan) for v in registered], dtype=float)
+    counts = np.array([v["num_observations"] for v in registered], dtype=float)
+    if len(registered) > MAX_BAR_IMAGES:
+        return _per_view_histograms(median, counts)
     names = [v["name"] or str(v["id"]) for v in registered]
     x = np.arange(len(registered))
     width = int(min(1400, max(640, 60 + 18 * len(registered))))
-    median = np.array([(v["reprojection_error_px"] or {}).get("median", np.nan) for v in registered], dtype=float)
-    mean = np.array([(v["reprojection_error_px"] or {}).get("mean", np.nan) for v in registered], dtype=float)
     top = float(np.nanmax(np.concatenate([mean, median, [0.0]]))) or 1.0
     chart = svg.Chart(width, 360, (-0.6, len(registered) - 0.4), (0.0, 1.1 * top), categories=names,
                       title="Reprojection error per image", ylabel="pixels (undistorted)")
     chart.bars(x, median, width=0.4, offset=-0.2, color=svg.PALETTE[0], label="median")
     chart.bars(x, mean, width=0.4, offset=0.2, color=svg.PALETTE[1], label="mean")
-    counts = np.array([v["num_observations"] for v in registered], dtype=float)
     observations = svg.Chart(width, 340, (-0.6, len(registered) - 0.4), (0.0, 1.1 * max(counts.max(), 1.0)),
                              categories=names, title="Observations per image (3D points seen)", ylabel="observations")
     observations.bars(x, counts, color=svg.PALETTE[2])
     return [figure(svg.data_uri(chart.svg()), "Reprojection error per image (median, mean)", "fig-per-image-error"),
             figure(svg.data_uri(observations.svg()), "Observations per image", "fig-per-image-observations")]
+
+
+def _per_view_histograms(median: np.ndarray, counts: np.ndarray) -> list[str]:
+    """The per-image figures of a collection too large for a bar per image: how many images
+    have each median reprojection error and each number of observations."""
+    charts = []
+    for values, title, xlabel, colour in (
+            (median, "Median reprojection error of the images", "pixels (undistorted)", svg.PALETTE[0]),
+            (counts, "Observations of the images (3D points seen)", "observations", svg.PALETTE[2])):
+        values = values[np.isfinite(values)]
+        upper = float(values.max()) if values.size else 1.0
+        edges = np.linspace(0.0, upper or 1.0, 41)
+        number, _ = np.histogram(values, bins=edges)
+        chart = svg.Chart(640, 320, (0.0, edges[-1]), (0.0, 1.1 * max(number.max(), 1)),
+                          title=f"{title}: {values.size} images", xlabel=xlabel, ylabel="images")
+        chart.bars((edges[:-1] + edges[1:]) / 2, number, width=edges[1] - edges[0], color=colour)
+        charts.append(chart)
+    return [figure(svg.data_uri(charts[0].svg()), "Median reprojection error per image, histogram over the images",
+                   "fig-per-image-error"),
+            figure(svg.data_uri(charts[1].svg()), "Observations per image, histogram over the images",
+                   "fig-per-image-observations")]
 
 
 def residual_histogram(residuals: np.ndarray) -> str | None:
@@ -91,17 +118,25 @@ def view_graph_figure(graph) -> str | None:
     for k, key in enumerate(active + filtered):
         edges = groups[key]
         colour = colours.get(key, svg.PALETTE[[3, 1, 5, 6, 8, 9, 0, 2][k % 8]] if key in filtered else svg.PALETTE[7])
-        x0, y0 = zip(*(position[e.i] for e in edges))
-        x1, y1 = zip(*(position[e.j] for e in edges))
+        step = -(-len(edges) // MAX_MARKS)
+        x0, y0 = zip(*(position[e.i] for e in edges[::step]))
+        x1, y1 = zip(*(position[e.j] for e in edges[::step]))
+        sampled = f", 1 in {step} drawn" if step > 1 else ""
         chart.segments(x0, y0, x1, y1, color=colour, width=width if key in active else 1.6,
-                       dashed=key in filtered, label=f"{key} ({len(edges)})",
+                       dashed=key in filtered, label=f"{key} ({len(edges)}{sampled})",
                        opacity=0.6 if key in active else 0.9)
     unregistered = set(graph.unregistered_views)
     names = [graph.views[v].name for v in view_ids]
     xy = np.array([position[v] for v in view_ids])
     colour_of = np.array([v in unregistered for v in view_ids])
-    for mask, colour, label in ((~colour_of, svg.PALETTE[0], "view"),
-                                (colour_of, svg.PALETTE[3], "view outside the largest component")):
+    if len(view_ids) > MAX_MARKS:  # a dot per view would be a solid ring: the ring, and the views left out
+        ring = np.linspace(0.0, 2 * np.pi, 361)
+        chart.line(np.cos(ring), np.sin(ring), color=svg.PALETTE[0], width=2.0, label=f"{len(view_ids)} views")
+        colour_of_views = ((colour_of, svg.PALETTE[3], "view outside the largest component"),)
+    else:
+        colour_of_views = ((~colour_of, svg.PALETTE[0], "view"),
+                           (colour_of, svg.PALETTE[3], "view outside the largest component"))
+    for mask, colour, label in colour_of_views:
         if mask.any():
             chart.points(xy[mask, 0], xy[mask, 1], color=colour, radius=4 if len(view_ids) < 200 else 2,
                          label=label, titles=[n for n, m in zip(names, mask) if m])
@@ -150,13 +185,17 @@ def top_view_figure(scene: SfMScene) -> str | None:
     if len(points2):
         chart.points(points2[:, 0], points2[:, 1], color="#b0b0b0", radius=1.0, opacity=0.6,
                      label=f"points (1 in {step})" if step > 1 else "points")
-    direction = (R[:, 2, :] @ axes.T)
+    every = -(-len(posed) // MAX_MARKS)  # one camera in ``every`` drawn
+    shown = slice(None, None, every)
+    direction = (R[shown, 2, :] @ axes.T)
     norm = np.linalg.norm(direction, axis=1, keepdims=True)
-    tips = c2 + 0.08 * extent * direction / np.where(norm > 0, norm, 1.0)
-    chart.segments(c2[:, 0], c2[:, 1], tips[:, 0], tips[:, 1], color=svg.PALETTE[3], width=1.5,
+    tips = c2[shown] + 0.08 * extent * direction / np.where(norm > 0, norm, 1.0)
+    chart.segments(c2[shown, 0], c2[shown, 1], tips[:, 0], tips[:, 1], color=svg.PALETTE[3], width=1.5,
                    label="viewing direction")
     names = [scene.views[v].name for v in posed]
-    chart.points(c2[:, 0], c2[:, 1], color=svg.PALETTE[0], radius=3.5, label="camera centres", titles=names)
+    chart.points(c2[shown, 0], c2[shown, 1], color=svg.PALETTE[0], radius=3.5 if every == 1 else 1.5,
+                 label="camera centres" + (f" (1 in {every} of {len(posed)})" if every > 1 else ""),
+                 titles=names[shown])
     if len(posed) <= 40:
         for (x, y), name in zip(c2, names):
             chart.text(x, y, name, size=9)

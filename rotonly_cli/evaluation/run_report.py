@@ -39,6 +39,8 @@ REPORT_FILE = "report.html"
 #: list items shown of a report value (the JSON file has them all)
 MAX_LIST_ITEMS = 24
 MAX_TABLE_ROWS = 300
+#: per-image rows shown before the rest is collapsed
+SHOWN_ROWS = 50
 
 
 # ============================================================================ statistics (reports/export.json)
@@ -230,8 +232,9 @@ def _summary(reports: dict, graph) -> str:
          + _num(reports, "export.reprojection_error_px.rmse") + ", max "
          + _num(reports, "export.reprojection_error_px.max")],
         ["pairs' rotations about the global ones [deg]", "median " + _num(reports, "run.pair_residual_deg_median")],
-        ["rotation error vs ground truth [deg]", "mean " + _num(reports, "run.rotation_error_deg.mean") + ", median "
-         + _num(reports, "run.rotation_error_deg.median") if _get(reports, "run.rotation_error_deg") else "no --gt"],
+        ["rotation error vs ground truth, geodesic [deg]", "mean " + _num(reports, "run.rotation_error_deg.mean")
+         + ", median " + _num(reports, "run.rotation_error_deg.median")
+         if _get(reports, "run.rotation_error_deg") else "no --gt"],
         ["total time", _num(reports, "run.time_s", " s")],
     ]
     return _table(None, rows, "summary")
@@ -287,20 +290,47 @@ def _intrinsics(before: dict, after: dict) -> str:
     return _table(["camera", "before (input)", "after (written to sparse/)", ""], rows, "intrinsics")
 
 
-def _per_view_table(reports: dict) -> str:
+def _per_view_table(reports: dict, evaluation: dict | None) -> str:
+    """Per image: observations, reprojection errors and, with ``evaluation`` (OUT/eval/
+    report.json), the errors against the ground truth. Worst first: by the geodesic rotation
+    error with GT (images without one last), else by the median reprojection error
+    (unregistered images first). The first SHOWN_ROWS rows are shown, the rest in a collapsed
+    <details> (plain cells: 10 000 rows stay ~1.5 MB)."""
     per_view = _get(reports, "export.per_view") or []
-    rows = []
-    for k, view in enumerate(per_view[:MAX_TABLE_ROWS]):
-        base = f"export.per_view.{k}"
-        rows.append([escape(view.get("name", "")), _num(reports, f"{base}.id"), _num(reports, f"{base}.registered"),
-                     _num(reports, f"{base}.num_observations"),
-                     _num(reports, f"{base}.reprojection_error_px.median"),
-                     _num(reports, f"{base}.reprojection_error_px.mean"),
-                     _num(reports, f"{base}.reprojection_error_px.max")])
-    more = (f"<p>… {len(per_view) - MAX_TABLE_ROWS} more images in reports/export.json</p>"
-            if len(per_view) > MAX_TABLE_ROWS else "")
-    return _table(["image", "id", "registered", "observations", "median [px]", "mean [px]", "max [px]"], rows,
-                  "per-view") + more
+    truth = {c.get("name"): c for c in (evaluation or {}).get("per_camera") or []}
+
+    def worst_first(k: int):
+        view = per_view[k]
+        if evaluation is not None:
+            error = (truth.get(view.get("name")) or {}).get("rotation_error_deg")
+            return (error is None, -(error or 0.0), k)
+        median = (view.get("reprojection_error_px") or {}).get("median")
+        return (bool(view.get("registered")), -(median if median is not None else np.inf), k)
+
+    order = sorted(range(len(per_view)), key=worst_first)
+    header = ["image", "id", "registered", "observations", "median [px]", "mean [px]", "max [px]"]
+    if evaluation is not None:
+        header += ["rotation error, geodesic [deg]", "evalQuality angle, acos(trace/3) [deg]",
+                   "position error [GT units]"]
+    gt_keys = ("rotation_error_deg", "evalquality_angular_residual_deg", "position_error")
+
+    def row(k: int, tagged: bool) -> list[str]:
+        view, base = per_view[k], f"export.per_view.{k}"
+        keys = ("id", "registered", "num_observations", "reprojection_error_px.median",
+                "reprojection_error_px.mean", "reprojection_error_px.max")
+        cells = [escape(view.get("name", ""))] + [_num(reports, f"{base}.{key}") if tagged
+                                                  else escape(_fmt(_get(view, key))) for key in keys]
+        if evaluation is not None:
+            camera = truth.get(view.get("name")) or {}
+            cells += [escape(_fmt(camera.get(key))) for key in gt_keys]
+        return cells
+
+    shown = _table(header, [row(k, True) for k in order[:SHOWN_ROWS]], "per-view")
+    if len(order) <= SHOWN_ROWS:
+        return shown
+    rest = _table(header, [row(k, False) for k in order[SHOWN_ROWS:]], "per-view")
+    return (shown + f'<details id="per-view-rest"><summary>the other {len(order) - SHOWN_ROWS} images (worst '
+            f"first; all in reports/export.json)</summary>{rest}</details>")
 
 
 def _filtered_edges(graph) -> str:
@@ -317,39 +347,63 @@ def _filtered_edges(graph) -> str:
     return _table(["view i", "view j", "inliers", "reason"], rows, "edges") + more
 
 
-def _ground_truth(directory: Path) -> str:
-    """The --gt comparison of OUT/eval/ (report.json and its PNG figures)."""
-    eval_dir = directory / "eval"
+def _evaluation(directory: Path) -> dict | None:
+    """OUT/eval/report.json (the --gt comparison), None when absent or unreadable."""
     try:
-        evaluation = json.loads((eval_dir / "report.json").read_text())
+        evaluation = json.loads((directory / "eval" / "report.json").read_text())
     except (OSError, ValueError):
+        return None
+    return evaluation if isinstance(evaluation, dict) else None
+
+
+def _ground_truth(directory: Path, evaluation: dict | None) -> str:
+    """The --gt comparison of OUT/eval/ (report.json and its PNG figures)."""
+    if evaluation is None:
         return ""
     from rotonly_cli.evaluation.report import FIGURES
 
+    eval_dir = directory / "eval"
     rows = []
-    for key, label in (("rotation_error_deg", "rotation error (geodesic) [deg]"),
-                       ("relative_rotation_error_deg", "relative rotation error [deg]"),
-                       ("position_error", "position error [GT units]")):
-        stats = evaluation.get(key) or {}
-        rows.append([escape(label)] + [escape(_fmt(stats.get(s))) for s in ("min", "mean", "median", "max")])
+    evalquality = evaluation.get("evalquality") or {}
+    for stats, label in ((evaluation.get("rotation_error_deg"), "rotation error, geodesic [deg]"),
+                         (evalquality.get("angular_residual_deg"), "evalQuality angular residual, acos(trace/3) [deg]"),
+                         (evaluation.get("relative_rotation_error_deg"), "relative rotation error, geodesic [deg]"),
+                         (evaluation.get("position_error"), "position error [GT units]")):
+        if stats is not None or "geodesic" in label:
+            stats = stats or {}
+            rows.append([escape(label)] + [escape(_fmt(stats.get(k))) for k in ("min", "mean", "median", "max")])
     figures = []
     for name, caption in FIGURES.items():
         if (eval_dir / name).is_file():
             figures.append(figure(svg.png_data_uri((eval_dir / name).read_bytes()), caption,
-                                   f"fig-gt-{Path(name).stem}"))
+                                  f"fig-gt-{Path(name).stem}"))
     head = (f"<p>Ground truth <code>{escape(str(evaluation.get('gt_path', '')))}</code>: "
             f"{escape(_fmt(evaluation.get('num_matched')))} of {escape(_fmt(evaluation.get('num_gt')))} cameras "
             f'matched by image name. Full report: <a href="eval/report.html">eval/report.html</a>.</p>')
+    metrics = ("<p>Geodesic: the angle of R<sub>gt</sub><sup>T</sup> R<sub>est</sub> S<sup>T</sup> after the best "
+               "global rotation S (the paper's metric). evalQuality: <code>openMVG_main_evalQuality</code>'s "
+               "acos(trace/3) after its similarity on the centres, not a geodesic angle "
+               "(about 0.816 of it for small errors).</p>")
     return ("<h2>Ground truth (--gt)</h2>" + head
-            + _table(["metric", "min", "mean", "median", "max"], rows, "gt") + "\n".join(figures))
+            + _table(["metric", "min", "mean", "median", "max"], rows, "gt") + metrics + "\n".join(figures))
+
+
+def _command(reports: dict) -> str:
+    """The command line of the run (reports/run.json ``command``; absent for an API call) and
+    its options, collapsed."""
+    command = _get(reports, "run.command")
+    options = _get(reports, "run.options")
+    line = f"<p>Command: <code>{escape(command)}</code></p>" if command else ""
+    return line + (f'<details id="options"><summary>options</summary>{_value_html(options, "run.options")}'
+                   "</details>" if options else "")
 
 
 def _warnings(reports: dict) -> str:
     """The run's warnings (the summary's, as the terminal and run.log show them), first on
-    the page; empty without any."""
-    warnings = _get(reports, "run.warnings") or []
+    the page; "No warnings." when the run had none; empty before the summary has them."""
+    warnings = _get(reports, "run.warnings")
     if not warnings:
-        return ""
+        return '<p class="no-warnings" id="warnings">No warnings.</p>' if warnings is not None else ""
     items = "".join(f"<li>{escape(str(w))}</li>" for w in warnings)
     return f'<div class="warnings" id="warnings"><h2>Warnings</h2><ul>{items}</ul></div>'
 
@@ -379,16 +433,18 @@ def build_html(directory: Path, run, scene: SfMScene | None, statistics: Structu
                stages_done: list[str]) -> str:
     reports = read_reports(directory / "reports", stages_done)
     load = reports.get("load", {})
-    parts = [f"<h1>rotonly report</h1><p>Input <code>{escape(str(load.get('input', run.input_path)))}</code> "
+    input_path = str(load.get("input", run.input_path))
+    evaluation = _evaluation(directory) if run.options.gt and "triangulate" in stages_done else None
+    parts = [f"<h1>rotonly report</h1><p>Input <code>{escape(input_path)}</code> "
              f"({escape(str(load.get('input_kind', run.input_kind)))}); stages done: "
-             f"{escape(', '.join(stages_done))}; rotonly {escape(__version__)}.</p>",
+             f"{escape(', '.join(stages_done))}; rotonly {escape(__version__)}.</p>", _command(reports),
              _warnings(reports), "<h2>Summary</h2>", _summary(reports, run.graph),
              "<h2>Time per stage</h2>", _timings(reports)]
     after = scene.intrinsics if scene is not None else run.scene.intrinsics
     parts += ["<h2>Intrinsics</h2>", _intrinsics(run.input_intrinsics or run.scene.intrinsics, after)]
     if "export" in reports:
         parts += ["<h2>Per image</h2>", *per_view_figures(reports["export"].get("per_view") or []),
-                  _per_view_table(reports)]
+                  _per_view_table(reports, evaluation)]
         histograms = [f for f in (residual_histogram(statistics.residuals_px) if statistics else None,
                                   track_histogram(reports["export"].get("track_lengths") or {})) if f]
         parts += ["<h2>Residuals and tracks</h2>", *histograms]
@@ -396,13 +452,14 @@ def build_html(directory: Path, run, scene: SfMScene | None, statistics: Structu
     if scene is not None:
         top = top_view_figure(scene)
         parts += ["<h2>Cameras</h2>", top] if top else []
-    parts.append(_ground_truth(directory) if run.options.gt and "triangulate" in stages_done else "")
+    parts.append(_ground_truth(directory, evaluation))
     parts.append("<h2>Stage reports</h2><p>Every number of <code>reports/&lt;stage&gt;.json</code>.</p>")
     for name, report in reports.items():
         parts.append(f'<details id="report-{escape(name)}"><summary>{escape(name)}</summary>'
                      f"{_value_html(report, name)}</details>")
     body = "\n".join(p for p in parts if p)
-    return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>rotonly report</title>'
+    title = "/".join(Path(input_path).parts[-2:])  # the input and its folder: what a tab or bookmark names
+    return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>rotonly: {escape(title)}</title>'
             f"<style>{STYLE}</style></head><body>\n{body}\n</body></html>\n")
 
 
