@@ -80,17 +80,13 @@ def split_off(loaded: Run) -> list[Component]:
     groups: dict[int, list[int]] = {}
     for v in touched:
         groups.setdefault(label[v], []).append(v)
-    parts = []
-    for views in sorted(groups.values(), key=lambda views: (-len(views), views[0])):
-        members = set(views)
-        edges = []
-        for edge in outside:
-            if edge.i in members:
-                copied = copy.deepcopy(edge)
-                copied.status, copied.reason = ACTIVE, ""
-                edges.append(copied)
-        parts.append(Component({v: loaded.graph.views[v] for v in views}, edges))
-    return parts
+    edges_of: dict[int, list[Edge]] = {}
+    for edge in outside:
+        copied = copy.deepcopy(edge)
+        copied.status, copied.reason = ACTIVE, ""
+        edges_of.setdefault(label[edge.i], []).append(copied)
+    order = sorted(groups, key=lambda c: (-len(groups[c]), groups[c][0]))
+    return [Component({v: loaded.graph.views[v] for v in groups[c]}, edges_of[c]) for c in order]
 
 
 def reconstruct(run: Run, parts: list[Component]) -> None:
