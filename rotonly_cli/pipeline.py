@@ -353,10 +353,10 @@ def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: fl
             summary.update(num_views=len(run.scene.views), num_registered=len(scene.poses),
                            num_points=0 if scene.structure is None else len(scene.structure.points))
             write_models(directory, run, run.components)
-            summary["components"] = summary_entries(
-                {"num_views": (run.reports.get("load") or {}).get("largest_component_views"),
-                 "num_registered": len(scene.poses),
-                 "num_points": summary["num_points"]}, run.components)
+            main_views = (run.reports.get("load") or {}).get(  # a stage command: the graph's component
+                "largest_component_views", len(run.graph.views) - len(run.graph.unregistered_views))
+            summary["components"] = summary_entries({"num_views": main_views, "num_registered": len(scene.poses),
+                                                     "num_points": summary["num_points"]}, run.components)
             if gt is not None:
                 evaluation = evaluate_against(run.options.gt, gt, scene, directory / "eval",
                                               str(out_dir / "sfm_data.json"))

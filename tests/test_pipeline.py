@@ -13,7 +13,7 @@ from rotonly_cli.evaluation.quality import evaluate
 from rotonly_cli.geometry import so3
 from rotonly_cli.io import colmap, openmvg
 from rotonly_cli.options import LoadOptions
-from rotonly_cli.pipeline import RunOptions, run_pipeline
+from rotonly_cli.pipeline import RunOptions, resume, run_pipeline
 from rotonly_cli.scene.types import View
 from rotonly_cli.scene.view_graph import Edge, ViewGraph
 from rotonly_cli.simulation.layout_scenes import simulate_multiview
@@ -99,6 +99,11 @@ def test_disconnected_graph_writes_each_component_as_a_model(tmp_path):
     # a second run replaces the workspace with its component files
     run_pipeline(db, out, RunOptions())
     assert (out / "sparse" / "1" / "images.bin").is_file()
+    # a stage command rewrites the main model only: the other models, now stale, go
+    resumed = resume(out, "triangulate")
+    assert [c["model"] for c in resumed["components"]] == ["sparse"] and resumed["components"][0]["num_views"] == 6
+    assert not (out / "sparse" / "1").exists() and not (out / "sfm_data.component1.json").exists()
+    assert pycolmap.Reconstruction(str(out / "sparse")).num_reg_images() == 6
 
 
 def test_component_of_two_views_is_not_written_and_a_warning_says_so(tmp_path):
