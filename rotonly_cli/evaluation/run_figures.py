@@ -115,6 +115,10 @@ def view_graph_figure(graph) -> str | None:
     filtered = sorted((k for k in groups if not k.startswith("active")), key=lambda k: -len(groups[k]))
     colours = {"active": "#9aa7b8", "active REGULAR": "#9aa7b8", "active PURE_ROTATION": svg.PALETTE[4]}
     width = 1.2 if len(graph.edges) < 400 else 0.5
+    ring = len(view_ids) > MAX_MARKS  # a dot per view would be a solid ring: the ring, under the edges
+    if ring:
+        turn = np.linspace(0.0, 2 * np.pi, 361)
+        chart.line(np.cos(turn), np.sin(turn), color=svg.PALETTE[0], width=1.0, label=f"{len(view_ids)} views")
     for k, key in enumerate(active + filtered):
         edges = groups[key]
         colour = colours.get(key, svg.PALETTE[[3, 1, 5, 6, 8, 9, 0, 2][k % 8]] if key in filtered else svg.PALETTE[7])
@@ -129,9 +133,7 @@ def view_graph_figure(graph) -> str | None:
     names = [graph.views[v].name for v in view_ids]
     xy = np.array([position[v] for v in view_ids])
     colour_of = np.array([v in unregistered for v in view_ids])
-    if len(view_ids) > MAX_MARKS:  # a dot per view would be a solid ring: the ring, and the views left out
-        ring = np.linspace(0.0, 2 * np.pi, 361)
-        chart.line(np.cos(ring), np.sin(ring), color=svg.PALETTE[0], width=2.0, label=f"{len(view_ids)} views")
+    if ring:  # the views outside the largest component still marked
         colour_of_views = ((colour_of, svg.PALETTE[3], "view outside the largest component"),)
     else:
         colour_of_views = ((~colour_of, svg.PALETTE[0], "view"),
@@ -189,7 +191,11 @@ def top_view_figure(scene: SfMScene) -> str | None:
     shown = slice(None, None, every)
     direction = (R[shown, 2, :] @ axes.T)
     norm = np.linalg.norm(direction, axis=1, keepdims=True)
-    tips = c2[shown] + 0.08 * extent * direction / np.where(norm > 0, norm, 1.0)
+    length = 0.08 * extent
+    if len(posed) > 40:  # a long capture: arrows of a few camera spacings, not a band of 8 % of its length
+        spacing = float(np.median(np.linalg.norm(np.diff(c2[shown], axis=0), axis=1))) if c2[shown].shape[0] > 1 else 0
+        length = min(length, 3.0 * spacing) or length
+    tips = c2[shown] + length * direction / np.where(norm > 0, norm, 1.0)
     chart.segments(c2[shown, 0], c2[shown, 1], tips[:, 0], tips[:, 1], color=svg.PALETTE[3], width=1.5,
                    label="viewing direction")
     names = [scene.views[v].name for v in posed]
