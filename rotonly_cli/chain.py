@@ -58,13 +58,13 @@ class Run:
     input_intrinsics: dict = field(default_factory=dict)
     #: the camera calibration of this run (stages/intrinsics.Calibration)
     calibration: Calibration | None = None
+    components: list = field(default_factory=list)  #: the graph's other parts (components.Component)
 
 
 # ============================================================================ stages in memory
 
 def _ensure_two_views(graph: ViewGraph, after: str) -> None:
-    component = largest_component(graph)
-    if len(component) < 2:
+    if len(largest_component(graph)) < 2:
         usable = len(graph.views) - len(graph.unregistered_views)
         raise AlgorithmError(f"fewer than two usable images after {after} ({usable} of {len(graph.views)} "
                              f"connected by an edge); nothing to reconstruct")

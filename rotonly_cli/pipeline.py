@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import sys
 import time
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -130,7 +130,9 @@ def evaluate_against(gt_path: str | Path, gt: SfMScene, estimate: SfMScene, repo
 
 def check_out_dir(out_dir: Path) -> None:
     """OUT may be new, empty, or a previous workspace (replaced); anything else: InputError."""
-    check_replaceable(out_dir, WORKSPACE_ENTRIES, "a rotonly workspace")
+    from rotonly_cli.components import model_files
+
+    check_replaceable(out_dir, WORKSPACE_ENTRIES | model_files(out_dir), "a rotonly workspace")
 
 
 def check_input(input_path: Path) -> None:
@@ -200,6 +202,8 @@ def run_into(input_path: str | Path | SfMScene, out_dir: str | Path, options: Ru
              label: str | None = None) -> tuple[dict, Run]:
     """:func:`run_pipeline`, returning the run too; INPUT may be a scene already read (then
     ``kind`` and ``label`` say what it is, as for :func:`run_stages`)."""
+    from rotonly_cli.components import reconstruct
+
     out_dir = Path(out_dir)
     in_memory = isinstance(input_path, SfMScene)
     if in_memory:
@@ -218,6 +222,7 @@ def run_into(input_path: str | Path | SfMScene, out_dir: str | Path, options: Ru
         with _RunLog(staging.new), collector_paused():
             logger.info("rotonly run %s -> %s", label or input_path, out_dir)
             run = run_stages(input_path, options, stages, kind, label, scratch=staging.scratch)
+            reconstruct(run, run.components)  # the view graph's other parts (components.py)
             summary = _written(out_dir, _finish, staging.new, out_dir, run, list(stages), start, gt)
         _written(out_dir, staging.commit, check_out_dir)
     finally:
@@ -240,6 +245,7 @@ def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptio
     """Run ``stages`` (a prefix of STAGES) in memory on INPUT (a path, or a scene already read:
     then ``kind`` and ``label`` say what it is), with the progress bars and -v detail lines.
     ``scratch``: where a database's private copy is made (default: a temporary folder)."""
+    from rotonly_cli.components import split_off
     from rotonly_cli.monitor import StageMonitor
 
     with StageMonitor(stages, options.progress) as monitor:
@@ -269,10 +275,13 @@ def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptio
             return pass_run
 
         if "triangulate" in stages:
+            parts = split_off(loaded)  # before the chain changes the load stage's graph in place
             run = calibrated_chain(run, chain)
         else:
             chain(run, stages[1:])
     run.reports["resources"] = monitor.resources
+    if "triangulate" in stages:
+        run.components = parts  # reconstructed by run_into, which writes them
     return run
 
 
@@ -290,6 +299,7 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
     (the calibration's, those views, the baseline check of the centres, the edges on no cycle,
     the rotations the tracks refuted, the views a rejection round cut loose, the pairs' scatter
     about the final rotations), each also logged."""
+    from rotonly_cli.components import components_warning, views_in_other_models
     from rotonly_cli.stages.average import (
         pair_scatter_deg,
         pair_scatter_warning,
@@ -306,7 +316,9 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
     bridges = unchecked_edges(run.graph, set(scene.poses))
     summary["edges_on_no_cycle"] = [list(pair) for pair in bridges]
     summary["pair_residual_deg_median"] = pair_scatter_deg(run.graph, scene.poses)
-    summary["unregistered_views"] = unregistered = [v for v in run.graph.view_ids() if v not in scene.poses]
+    elsewhere = views_in_other_models(run.components)  # registered in another component's model
+    summary["unregistered_views"] = unregistered = [v for v in run.graph.view_ids()
+                                                    if v not in scene.poses and v not in elsewhere]
     without_camera = {v for v in unregistered if run.scene.views[v].intrinsics_id not in run.scene.intrinsics}
     found = [unprojectable_warning(run.reports.get("load")),
              unregistered_warning(len(run.graph.view_ids()), unregistered, run.reports.get("translate"),
@@ -315,7 +327,7 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
              unchecked_edges_warning(bridges),
              refutation_warning(run.reports.get("reject")), confirmation_warning(run.reports.get("reject")),
              undone_round_warning(run.reports.get("reject")),
-             pair_scatter_warning(summary["pair_residual_deg_median"])]
+             pair_scatter_warning(summary["pair_residual_deg_median"]), components_warning(run.components)]
     summary["warnings"] = summary.get("warnings", []) + [warning for warning in found if warning]
     for warning in summary["warnings"]:
         logger.warning("%s", warning)
@@ -325,9 +337,13 @@ def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: fl
             gt: SfMScene | None) -> dict:
     """Write outputs of a finished chain into ``directory`` (which becomes ``out_dir``);
     ``gt``: the ground truth of ``run.options.gt`` (:func:`ground_truth_for`) or None."""
+    from rotonly_cli.components import summary_entries, write_models
     from rotonly_cli.evaluation.run_report import structure_statistics, write_run_report
+    from rotonly_cli.runtime.invocation import command_line
 
-    summary: dict = {"input": run.input_path, "stages": done}
+    summary: dict = {"input": run.input_path, "stages": done, "options": asdict(run.options)}
+    if command_line() is not None:
+        summary["command"] = command_line()
     scene = statistics = pending = None
     try:
         if done[-1] == "triangulate":
@@ -337,6 +353,11 @@ def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: fl
             run.reports["export"] = {**statistics.report, "time_s": time.perf_counter() - started}
             summary.update(num_views=len(run.scene.views), num_registered=len(scene.poses),
                            num_points=0 if scene.structure is None else len(scene.structure.points))
+            write_models(directory, run, run.components)
+            main_views = (run.reports.get("load") or {}).get(  # a stage command: the graph's component
+                "largest_component_views", len(run.graph.views) - len(run.graph.unregistered_views))
+            summary["components"] = summary_entries({"num_views": main_views, "num_registered": len(scene.poses),
+                                                     "num_points": summary["num_points"]}, run.components)
             if gt is not None:
                 evaluation = evaluate_against(run.options.gt, gt, scene, directory / "eval",
                                               str(out_dir / "sfm_data.json"))

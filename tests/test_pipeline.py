@@ -13,7 +13,7 @@ from rotonly_cli.evaluation.quality import evaluate
 from rotonly_cli.geometry import so3
 from rotonly_cli.io import colmap, openmvg
 from rotonly_cli.options import LoadOptions
-from rotonly_cli.pipeline import RunOptions, run_pipeline
+from rotonly_cli.pipeline import RunOptions, resume, run_pipeline
 from rotonly_cli.scene.types import View
 from rotonly_cli.scene.view_graph import Edge, ViewGraph
 from rotonly_cli.simulation.layout_scenes import simulate_multiview
@@ -58,21 +58,64 @@ def test_synthetic_run_recovers_rotations(tmp_path):
     assert refine["rotation_change_deg"]["median"] > 0.1  # the 0.5° perturbation was undone
 
 
-def test_disconnected_graph_reconstructs_largest_component_and_reports_the_rest(tmp_path):
-    problem = _problem(seed=2)
-    # cut every pair between views 0..5 and 6..9: two components of 6 and 4 views
+def _split_problem(seed: int, first: int):
+    """The street of 10 views with every pair between views 0..first-1 and first..9 cut."""
+    problem = _problem(seed=seed)
     problem.scene.pairs = {key: pair for key, pair in problem.scene.pairs.items()
-                           if (key[0] < 6) == (key[1] < 6)}
+                           if (key[0] < first) == (key[1] < first)}
+    return problem
+
+
+def test_disconnected_graph_writes_each_component_as_a_model(tmp_path):
+    import pycolmap
+
+    problem = _split_problem(seed=2, first=6)  # two components of 6 and 4 views
     db = _write_db(tmp_path, problem)
-    summary = run_pipeline(db, tmp_path / "out", RunOptions())
-    # COLMAP image ids are view ids + 1
+    out = tmp_path / "out"
+    summary = run_pipeline(db, out, RunOptions())
+    # COLMAP image ids are view ids + 1; the largest component is the model of sparse/ as before
     assert summary["num_registered"] == 6
-    assert summary["unregistered_views"] == [7, 8, 9, 10]
-    graph = json.loads((tmp_path / "out" / "view_graph.json").read_text())
-    assert graph["unregistered_views"] == [7, 8, 9, 10]
+    assert summary["unregistered_views"] == []  # the other 4 are in a model of their own
+    graph = json.loads((out / "view_graph.json").read_text())
+    assert graph["unregistered_views"] == [7, 8, 9, 10]  # the largest component's view graph, as before
     outside = [e for e in graph["edges"] if e["i"] >= 7]
     assert outside and all(e["reason"] == "outside largest component" for e in outside)
-    assert _rotation_errors(problem, tmp_path / "out").num_matched == 6
+    main, other = summary["components"]
+    assert (main["model"], main["num_views"], main["num_registered"]) == ("sparse", 6, 6)
+    assert (other["model"], other["sfm_data"]) == ("sparse/1", "sfm_data.component1.json")
+    assert (other["views"], other["num_registered"]) == ([7, 8, 9, 10], 4)
+    assert other["num_points"] > 1000  # measured 1365 (main: 1382)
+    assert json.loads((out / "reports" / "run.json").read_text())["components"] == summary["components"]
+    for model, images, points in (("sparse", [1, 2, 3, 4, 5, 6], main["num_points"]),
+                                  ("sparse/1", [7, 8, 9, 10], other["num_points"])):
+        reconstruction = pycolmap.Reconstruction(str(out / model))
+        assert sorted(reconstruction.reg_image_ids()) == images
+        assert reconstruction.num_points3D() == points
+    assert _rotation_errors(problem, out).num_matched == 6
+    component = evaluate(problem.gt_scene(), openmvg.read_sfm_data(out / "sfm_data.component1.json"))
+    assert component.num_matched == 4
+    assert component.rotation_error_deg.max < 0.05  # measured 0.0095
+    assert "sfm_data.component1.json" in (out / "report.html").read_text()
+    # a second run replaces the workspace with its component files
+    run_pipeline(db, out, RunOptions())
+    assert (out / "sparse" / "1" / "images.bin").is_file()
+    # a stage command rewrites the main model only: the other models, now stale, go
+    resumed = resume(out, "triangulate")
+    assert [c["model"] for c in resumed["components"]] == ["sparse"] and resumed["components"][0]["num_views"] == 6
+    assert not (out / "sparse" / "1").exists() and not (out / "sfm_data.component1.json").exists()
+    assert pycolmap.Reconstruction(str(out / "sparse")).num_reg_images() == 6
+
+
+def test_component_of_two_views_is_not_written_and_a_warning_says_so(tmp_path):
+    problem = _split_problem(seed=2, first=8)  # components of 8 and 2 views
+    out = tmp_path / "out"
+    summary = run_pipeline(_write_db(tmp_path, problem), out, RunOptions())
+    assert summary["num_registered"] == 8 and summary["unregistered_views"] == [9, 10]
+    assert [c["model"] for c in summary["components"]] == ["sparse", None]
+    assert summary["components"][1]["reason"] == "2 views (a model needs 3)"
+    assert any("not written as models: views 9, 10: 2 views" in w for w in summary["warnings"])
+    assert not (out / "sparse" / "1").exists()
+    assert not list(out.glob("sfm_data.component*.json"))
 
 
 def test_fewer_than_two_usable_images_exits_1_and_leaves_nothing(tmp_path):

@@ -183,8 +183,11 @@ def main(argv: list[str] | None = None) -> None:
     """Console-script entry: maps rotonly's typed errors to one line and an exit code
     (architecture.md "Exit codes"); Ctrl-C to one line and 130. Other exceptions are bugs
     and keep their traceback."""
+    from rotonly_cli.runtime.invocation import invoked_with
+
     try:
-        cli.main(args=argv, prog_name="rotonly", standalone_mode=False)
+        with invoked_with(sys.argv[1:] if argv is None else argv):
+            cli.main(args=argv, prog_name="rotonly", standalone_mode=False)
     except click.exceptions.Exit as exc:
         sys.exit(exc.exit_code)
     except click.ClickException as exc:  # usage: one line too (`rotonly CMD -h` has the rest)

@@ -47,6 +47,11 @@ def echo_summary(summary: dict, out_dir: Path) -> None:
     if summary.get("reprojection_error_px") is not None:
         parts.append(f"reprojection error {summary['reprojection_error_px']:.2f} px")
     click.echo(", ".join(parts))
+    for component in summary.get("components", [])[1:]:
+        if component["model"]:  # another part of the view graph, written as its own model
+            click.echo(f"  another component: {component['num_registered']}/{component['num_views']} views, "
+                       f"{component['num_points']} points: {out_dir / component['model']}, "
+                       f"{out_dir / component['sfm_data']}")
     echo_intrinsics(summary)
 
 

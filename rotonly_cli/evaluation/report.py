@@ -24,6 +24,8 @@ FIGURES = {
 }
 
 
+#: per-camera rows of report.html shown before the rest is collapsed
+SHOWN_CAMERAS = 50
 OUTPUT_FILES = frozenset({"report.json", "report.html", *FIGURES})
 
 
@@ -178,17 +180,26 @@ def _html(report: QualityReport) -> str:
         cells = ["n/a"] * 4 if stats is None else [_fmt(v) for v in (stats.min, stats.mean, stats.median, stats.max)]
         rows.append(f"<tr><td>{e(name)}</td>" + "".join(f"<td>{c}</td>" for c in cells) + f"<td>{e(unit)}</td></tr>")
     camera_rows = []
-    for c in report.per_camera:
+    # worst first; the first SHOWN_CAMERAS rows shown, the rest collapsed (10 000 cameras: ~1 MB)
+    for c in sorted(report.per_camera, key=lambda c: -c.rotation_error_deg):
         camera_rows.append(
             f"<tr><td>{e(c.name)}</td><td>{_fmt(c.rotation_error_deg)}</td><td>{_fmt(c.position_error)}</td>"
             f"<td>{_fmt(c.evalquality_angular_residual_deg)}</td><td>{_fmt(c.evalquality_distance_residual)}</td></tr>")
+    camera_header = ("<tr><th>image</th><th>rotation error, geodesic [deg]</th><th>position error [GT]</th>"
+                     "<th>evalQuality angle, acos(trace/3) [deg]</th><th>evalQuality distance [GT]</th></tr>")
+    cameras = f"<table>{camera_header}\n{chr(10).join(camera_rows[:SHOWN_CAMERAS])}\n</table>"
+    if len(camera_rows) > SHOWN_CAMERAS:
+        cameras += (f'<details id="per-camera-rest"><summary>the other {len(camera_rows) - SHOWN_CAMERAS} cameras '
+                    f"(worst first; all in report.json)</summary><table>{camera_header}\n"
+                    f"{chr(10).join(camera_rows[SHOWN_CAMERAS:])}\n</table></details>")
     figures = "\n".join(f'<figure><img src="{f}" alt="{e(t)}"><figcaption>{e(t)}</figcaption></figure>'
                         for f, t in FIGURES.items())
     notes = "".join(f"<li>{e(n)}</li>" for n in report.notes)
+    title = "/".join(Path(report.estimate_path).parts[-2:]) or "estimate vs ground truth"
     missing = ", ".join(report.missing_in_estimate) or "none"
     extra = ", ".join(report.not_in_gt) or "none"
     return f"""<!DOCTYPE html>
-<html lang="en"><head><meta charset="utf-8"><title>rotonly eval report</title>
+<html lang="en"><head><meta charset="utf-8"><title>rotonly eval: {e(title)}</title>
 <style>
 body {{ font-family: sans-serif; margin: 2em; max-width: 1200px; color: #222; }}
 table {{ border-collapse: collapse; margin: 1em 0; }}
@@ -213,11 +224,8 @@ acos(clamp(trace/3)) (not a geodesic angle). Median convention: {e(report.median
 {'<ul>' + notes + '</ul>' if notes else ''}
 <h2>Figures</h2>
 {figures}
-<h2>Per camera</h2>
-<table><tr><th>image</th><th>rotation error [deg]</th><th>position error [GT]</th>
-<th>evalQuality angle [deg]</th><th>evalQuality distance [GT]</th></tr>
-{chr(10).join(camera_rows)}
-</table>
+<h2>Per camera (worst rotation error first)</h2>
+{cameras}
 </body></html>
 """
 

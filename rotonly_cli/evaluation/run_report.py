@@ -24,13 +24,23 @@ import numpy as np
 
 from rotonly_cli import __version__
 from rotonly_cli.evaluation import svg
+from rotonly_cli.evaluation.run_figures import (  # noqa: F401 - top_view_axes: re-exported
+    figure,
+    per_view_figures,
+    residual_histogram,
+    top_view_axes,
+    top_view_figure,
+    track_histogram,
+    view_graph_figure,
+)
 from rotonly_cli.scene.types import Intrinsics, SfMScene
 
 REPORT_FILE = "report.html"
 #: list items shown of a report value (the JSON file has them all)
 MAX_LIST_ITEMS = 24
 MAX_TABLE_ROWS = 300
-TOP_VIEW_POINTS = 4000
+#: per-image rows shown before the rest is collapsed
+SHOWN_ROWS = 50
 
 
 # ============================================================================ statistics (reports/export.json)
@@ -181,11 +191,6 @@ def _table(header: list[str] | None, rows: list[list[str]], cls: str = "") -> st
     return f'<table class="{cls}">{head}\n{body}\n</table>'
 
 
-def _figure(uri: str, caption: str, figure_id: str) -> str:
-    return (f'<figure id="{figure_id}"><img src="{uri}" alt="{escape(caption)}">'
-            f"<figcaption>{escape(caption)}</figcaption></figure>")
-
-
 def _value_html(value, path: str) -> str:
     """A report value of any shape: scalars tagged with their path, dicts as nested tables,
     lists of scalars inline (shortened), lists of dicts as tables."""
@@ -208,149 +213,6 @@ def _value_html(value, path: str) -> str:
     return f'<span data-source="{escape(path)}">{escape(_shown(value, path))}</span>'
 
 
-# ============================================================================ figures
-
-def _per_view_figures(per_view: list[dict]) -> list[str]:
-    registered = [v for v in per_view if v["registered"]]
-    if not registered:
-        return []
-    names = [v["name"] or str(v["id"]) for v in registered]
-    x = np.arange(len(registered))
-    width = int(min(1400, max(640, 60 + 18 * len(registered))))
-    median = np.array([(v["reprojection_error_px"] or {}).get("median", np.nan) for v in registered], dtype=float)
-    mean = np.array([(v["reprojection_error_px"] or {}).get("mean", np.nan) for v in registered], dtype=float)
-    top = float(np.nanmax(np.concatenate([mean, median, [0.0]]))) or 1.0
-    chart = svg.Chart(width, 360, (-0.6, len(registered) - 0.4), (0.0, 1.1 * top), categories=names,
-                      title="Reprojection error per image", ylabel="pixels (undistorted)")
-    chart.bars(x, median, width=0.4, offset=-0.2, color=svg.PALETTE[0], label="median")
-    chart.bars(x, mean, width=0.4, offset=0.2, color=svg.PALETTE[1], label="mean")
-    counts = np.array([v["num_observations"] for v in registered], dtype=float)
-    observations = svg.Chart(width, 340, (-0.6, len(registered) - 0.4), (0.0, 1.1 * max(counts.max(), 1.0)),
-                             categories=names, title="Observations per image (3D points seen)", ylabel="observations")
-    observations.bars(x, counts, color=svg.PALETTE[2])
-    return [_figure(svg.data_uri(chart.svg()), "Reprojection error per image (median, mean)", "fig-per-image-error"),
-            _figure(svg.data_uri(observations.svg()), "Observations per image", "fig-per-image-observations")]
-
-
-def _residual_histogram(residuals: np.ndarray) -> str | None:
-    residuals = residuals[np.isfinite(residuals)]
-    if not residuals.size:
-        return None
-    upper = float(np.quantile(residuals, 0.99)) or float(residuals.max()) or 1.0
-    edges = np.linspace(0.0, upper, 41)
-    counts, _ = np.histogram(np.minimum(residuals, upper), bins=edges)
-    chart = svg.Chart(640, 320, (0.0, upper), (0.0, 1.1 * counts.max()), title="Reprojection error of the observations",
-                      xlabel=f"pixels (last bin: >= {upper:.3g}, the 99th percentile)", ylabel="observations")
-    chart.bars((edges[:-1] + edges[1:]) / 2, counts, width=edges[1] - edges[0], color=svg.PALETTE[0])
-    return _figure(svg.data_uri(chart.svg()), "Histogram of the reprojection errors", "fig-residuals")
-
-
-def _track_histogram(track_lengths: dict) -> str | None:
-    if not track_lengths:
-        return None
-    lengths = np.array([int(k) for k in track_lengths])
-    counts = np.array([track_lengths[k] for k in track_lengths], dtype=float)
-    chart = svg.Chart(640, 320, (lengths.min() - 0.6, lengths.max() + 0.6), (0.0, 1.1 * counts.max()),
-                      title="Track lengths of the points", xlabel="views observing the point", ylabel="points")
-    chart.bars(lengths, counts, color=svg.PALETTE[2])
-    return _figure(svg.data_uri(chart.svg()), "Histogram of the track lengths", "fig-track-lengths")
-
-
-def _view_graph_figure(graph) -> str | None:
-    view_ids = graph.view_ids()
-    if len(view_ids) < 2:
-        return None
-    angle = np.pi / 2 - 2 * np.pi * np.arange(len(view_ids)) / len(view_ids)
-    position = {v: (np.cos(a), np.sin(a)) for v, a in zip(view_ids, angle)}
-    chart = svg.Chart(720, 640, (-1.35, 1.35), (-1.25, 1.25), title="View graph: edges by status (filtered: reason)",
-                      equal=True, axes=False, margins=(10, 10, 30, 10))
-    groups: dict[str, list] = {}
-    for edge in graph.edges:
-        if edge.status == "active":
-            key = f"active {edge.scene_kind}" if edge.scene_kind else "active"
-        else:
-            key = edge.reason or "filtered"
-        groups.setdefault(key, []).append(edge)
-    active = sorted(k for k in groups if k.startswith("active"))
-    filtered = sorted((k for k in groups if not k.startswith("active")), key=lambda k: -len(groups[k]))
-    colours = {"active": "#9aa7b8", "active REGULAR": "#9aa7b8", "active PURE_ROTATION": svg.PALETTE[4]}
-    width = 1.2 if len(graph.edges) < 400 else 0.5
-    for k, key in enumerate(active + filtered):
-        edges = groups[key]
-        colour = colours.get(key, svg.PALETTE[[3, 1, 5, 6, 8, 9, 0, 2][k % 8]] if key in filtered else svg.PALETTE[7])
-        x0, y0 = zip(*(position[e.i] for e in edges))
-        x1, y1 = zip(*(position[e.j] for e in edges))
-        chart.segments(x0, y0, x1, y1, color=colour, width=width if key in active else 1.6,
-                       dashed=key in filtered, label=f"{key} ({len(edges)})",
-                       opacity=0.6 if key in active else 0.9)
-    unregistered = set(graph.unregistered_views)
-    names = [graph.views[v].name for v in view_ids]
-    xy = np.array([position[v] for v in view_ids])
-    colour_of = np.array([v in unregistered for v in view_ids])
-    for mask, colour, label in ((~colour_of, svg.PALETTE[0], "view"),
-                                (colour_of, svg.PALETTE[3], "view outside the largest component")):
-        if mask.any():
-            chart.points(xy[mask, 0], xy[mask, 1], color=colour, radius=4 if len(view_ids) < 200 else 2,
-                         label=label, titles=[n for n, m in zip(names, mask) if m])
-    if len(view_ids) <= 60:
-        for (x, y), name in zip(xy, names):
-            chart.text(1.08 * x - (0.12 if x < -0.2 else 0.0), 1.08 * y, name, size=9)
-    return _figure(svg.data_uri(chart.svg()), "View graph (views on a circle in id order)", "fig-view-graph")
-
-
-def top_view_axes(R_cam_from_world: np.ndarray) -> np.ndarray:
-    """(2, 3) world directions of a top view: right and forward of the cameras, on the plane
-    normal to their mean up direction (image y points down, so up is -y)."""
-    R = np.asarray(R_cam_from_world, dtype=float)
-    up = -R[:, 1, :].mean(axis=0)
-    forward = R[:, 2, :].mean(axis=0)
-    up /= np.linalg.norm(up) or 1.0
-    forward = forward - (forward @ up) * up
-    if np.linalg.norm(forward) < 1e-9:
-        forward = np.cross(up, [1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.cross(up, [0.0, 1.0, 0.0])
-    forward /= np.linalg.norm(forward)
-    return np.stack([np.cross(forward, up), forward])
-
-
-def _top_view_figure(scene: SfMScene) -> str | None:
-    posed = sorted(scene.poses)
-    if len(posed) < 2:
-        return None
-    R = np.stack([scene.poses[v].R_cam_from_world for v in posed])
-    centres = np.stack([scene.poses[v].center for v in posed])
-    axes = top_view_axes(R)
-    c2 = centres @ axes.T
-    extent = float(np.ptp(c2, axis=0).max()) or 1.0
-    points2 = np.zeros((0, 2))
-    if scene.structure is not None and len(scene.structure.points):
-        points = np.asarray(scene.structure.points, dtype=float)
-        step = max(1, len(points) // TOP_VIEW_POINTS)
-        points2 = points[::step] @ axes.T
-        # the points' bulk, so that a few far points do not shrink the cameras to a dot
-        low, high = np.quantile(points2, 0.02, axis=0), np.quantile(points2, 0.98, axis=0)
-        points2 = points2[np.all((points2 >= low) & (points2 <= high), axis=1)]
-    both = np.concatenate([c2, points2]) if len(points2) else c2
-    pad = 0.08 * (float(np.ptp(both, axis=0).max()) or 1.0)
-    chart = svg.Chart(720, 620, (both[:, 0].min() - pad, both[:, 0].max() + pad),
-                      (both[:, 1].min() - pad, both[:, 1].max() + pad), title="Cameras and points, top view",
-                      xlabel="right (world units)", ylabel="forward (world units)", equal=True)
-    if len(points2):
-        chart.points(points2[:, 0], points2[:, 1], color="#b0b0b0", radius=1.0, opacity=0.6,
-                     label=f"points (1 in {step})" if step > 1 else "points")
-    direction = (R[:, 2, :] @ axes.T)
-    norm = np.linalg.norm(direction, axis=1, keepdims=True)
-    tips = c2 + 0.08 * extent * direction / np.where(norm > 0, norm, 1.0)
-    chart.segments(c2[:, 0], c2[:, 1], tips[:, 0], tips[:, 1], color=svg.PALETTE[3], width=1.5,
-                   label="viewing direction")
-    names = [scene.views[v].name for v in posed]
-    chart.points(c2[:, 0], c2[:, 1], color=svg.PALETTE[0], radius=3.5, label="camera centres", titles=names)
-    if len(posed) <= 40:
-        for (x, y), name in zip(c2, names):
-            chart.text(x, y, name, size=9)
-    return _figure(svg.data_uri(chart.svg()), "Camera centres and viewing directions, top view (estimated)",
-                   "fig-top-view")
-
-
 # ============================================================================ sections
 
 def _summary(reports: dict, graph) -> str:
@@ -364,16 +226,34 @@ def _summary(reports: dict, graph) -> str:
         ["edges active", _num(reports, "run.num_active_edges") + " of " + _num(reports, "load.num_pairs")],
         ["edges filtered", ", ".join(f"{escape(r)}: {n}" for r, n in sorted(reasons.items())) or "none"],
         ["views outside the largest component", escape(", ".join(map(str, counts["unregistered_views"]))) or "none"],
+        ["models (connected parts of the view graph)", _components(reports)],
         ["reprojection error [px]", "median " + _num(reports, "export.reprojection_error_px.median") + ", mean "
          + _num(reports, "export.reprojection_error_px.mean") + ", RMSE "
          + _num(reports, "export.reprojection_error_px.rmse") + ", max "
          + _num(reports, "export.reprojection_error_px.max")],
         ["pairs' rotations about the global ones [deg]", "median " + _num(reports, "run.pair_residual_deg_median")],
-        ["rotation error vs ground truth [deg]", "mean " + _num(reports, "run.rotation_error_deg.mean") + ", median "
-         + _num(reports, "run.rotation_error_deg.median") if _get(reports, "run.rotation_error_deg") else "no --gt"],
+        ["rotation error vs ground truth, geodesic [deg]", "mean " + _num(reports, "run.rotation_error_deg.mean")
+         + ", median " + _num(reports, "run.rotation_error_deg.median")
+         if _get(reports, "run.rotation_error_deg") else "no --gt"],
         ["total time", _num(reports, "run.time_s", " s")],
     ]
     return _table(None, rows, "summary")
+
+
+def _components(reports: dict) -> str:
+    """The models written (sparse/ and the other components' sparse/<k>/) and the parts not
+    written, from reports/run.json's ``components``."""
+    lines = []
+    for k, part in enumerate(_get(reports, "run.components") or []):
+        base = f"run.components.{k}"
+        if part.get("model"):
+            lines.append(f"<code>{escape(part['model'])}/</code>, <code>{escape(part['sfm_data'])}</code>: "
+                         + _num(reports, f"{base}.num_registered") + " of " + _num(reports, f"{base}.num_views")
+                         + " views, " + _num(reports, f"{base}.num_points") + " points")
+        else:
+            views = ", ".join(map(str, part.get("views", [])[:MAX_LIST_ITEMS]))
+            lines.append(f"not written: views {escape(views)} ({_num(reports, f'{base}.reason')})")
+    return "<br>".join(lines) or "–"
 
 
 def _timings(reports: dict) -> str:
@@ -410,20 +290,47 @@ def _intrinsics(before: dict, after: dict) -> str:
     return _table(["camera", "before (input)", "after (written to sparse/)", ""], rows, "intrinsics")
 
 
-def _per_view_table(reports: dict) -> str:
+def _per_view_table(reports: dict, evaluation: dict | None) -> str:
+    """Per image: observations, reprojection errors and, with ``evaluation`` (OUT/eval/
+    report.json), the errors against the ground truth. Worst first: by the geodesic rotation
+    error with GT (images without one last), else by the median reprojection error
+    (unregistered images first). The first SHOWN_ROWS rows are shown, the rest in a collapsed
+    <details> (plain cells: 10 000 rows stay ~1.5 MB)."""
     per_view = _get(reports, "export.per_view") or []
-    rows = []
-    for k, view in enumerate(per_view[:MAX_TABLE_ROWS]):
-        base = f"export.per_view.{k}"
-        rows.append([escape(view.get("name", "")), _num(reports, f"{base}.id"), _num(reports, f"{base}.registered"),
-                     _num(reports, f"{base}.num_observations"),
-                     _num(reports, f"{base}.reprojection_error_px.median"),
-                     _num(reports, f"{base}.reprojection_error_px.mean"),
-                     _num(reports, f"{base}.reprojection_error_px.max")])
-    more = (f"<p>… {len(per_view) - MAX_TABLE_ROWS} more images in reports/export.json</p>"
-            if len(per_view) > MAX_TABLE_ROWS else "")
-    return _table(["image", "id", "registered", "observations", "median [px]", "mean [px]", "max [px]"], rows,
-                  "per-view") + more
+    truth = {c.get("name"): c for c in (evaluation or {}).get("per_camera") or []}
+
+    def worst_first(k: int):
+        view = per_view[k]
+        if evaluation is not None:
+            error = (truth.get(view.get("name")) or {}).get("rotation_error_deg")
+            return (error is None, -(error or 0.0), k)
+        median = (view.get("reprojection_error_px") or {}).get("median")
+        return (bool(view.get("registered")), -(median if median is not None else np.inf), k)
+
+    order = sorted(range(len(per_view)), key=worst_first)
+    header = ["image", "id", "registered", "observations", "median [px]", "mean [px]", "max [px]"]
+    if evaluation is not None:
+        header += ["rotation error, geodesic [deg]", "evalQuality angle, acos(trace/3) [deg]",
+                   "position error [GT units]"]
+    gt_keys = ("rotation_error_deg", "evalquality_angular_residual_deg", "position_error")
+
+    def row(k: int, tagged: bool) -> list[str]:
+        view, base = per_view[k], f"export.per_view.{k}"
+        keys = ("id", "registered", "num_observations", "reprojection_error_px.median",
+                "reprojection_error_px.mean", "reprojection_error_px.max")
+        cells = [escape(view.get("name", ""))] + [_num(reports, f"{base}.{key}") if tagged
+                                                  else escape(_fmt(_get(view, key))) for key in keys]
+        if evaluation is not None:
+            camera = truth.get(view.get("name")) or {}
+            cells += [escape(_fmt(camera.get(key))) for key in gt_keys]
+        return cells
+
+    shown = _table(header, [row(k, True) for k in order[:SHOWN_ROWS]], "per-view")
+    if len(order) <= SHOWN_ROWS:
+        return shown
+    rest = _table(header, [row(k, False) for k in order[SHOWN_ROWS:]], "per-view")
+    return (shown + f'<details id="per-view-rest"><summary>the other {len(order) - SHOWN_ROWS} images (worst '
+            f"first; all in reports/export.json)</summary>{rest}</details>")
 
 
 def _filtered_edges(graph) -> str:
@@ -440,39 +347,63 @@ def _filtered_edges(graph) -> str:
     return _table(["view i", "view j", "inliers", "reason"], rows, "edges") + more
 
 
-def _ground_truth(directory: Path) -> str:
-    """The --gt comparison of OUT/eval/ (report.json and its PNG figures)."""
-    eval_dir = directory / "eval"
+def _evaluation(directory: Path) -> dict | None:
+    """OUT/eval/report.json (the --gt comparison), None when absent or unreadable."""
     try:
-        evaluation = json.loads((eval_dir / "report.json").read_text())
+        evaluation = json.loads((directory / "eval" / "report.json").read_text())
     except (OSError, ValueError):
+        return None
+    return evaluation if isinstance(evaluation, dict) else None
+
+
+def _ground_truth(directory: Path, evaluation: dict | None) -> str:
+    """The --gt comparison of OUT/eval/ (report.json and its PNG figures)."""
+    if evaluation is None:
         return ""
     from rotonly_cli.evaluation.report import FIGURES
 
+    eval_dir = directory / "eval"
     rows = []
-    for key, label in (("rotation_error_deg", "rotation error (geodesic) [deg]"),
-                       ("relative_rotation_error_deg", "relative rotation error [deg]"),
-                       ("position_error", "position error [GT units]")):
-        stats = evaluation.get(key) or {}
-        rows.append([escape(label)] + [escape(_fmt(stats.get(s))) for s in ("min", "mean", "median", "max")])
+    evalquality = evaluation.get("evalquality") or {}
+    for stats, label in ((evaluation.get("rotation_error_deg"), "rotation error, geodesic [deg]"),
+                         (evalquality.get("angular_residual_deg"), "evalQuality angular residual, acos(trace/3) [deg]"),
+                         (evaluation.get("relative_rotation_error_deg"), "relative rotation error, geodesic [deg]"),
+                         (evaluation.get("position_error"), "position error [GT units]")):
+        if stats is not None or "geodesic" in label:
+            stats = stats or {}
+            rows.append([escape(label)] + [escape(_fmt(stats.get(k))) for k in ("min", "mean", "median", "max")])
     figures = []
     for name, caption in FIGURES.items():
         if (eval_dir / name).is_file():
-            figures.append(_figure(svg.png_data_uri((eval_dir / name).read_bytes()), caption,
-                                   f"fig-gt-{Path(name).stem}"))
+            figures.append(figure(svg.png_data_uri((eval_dir / name).read_bytes()), caption,
+                                  f"fig-gt-{Path(name).stem}"))
     head = (f"<p>Ground truth <code>{escape(str(evaluation.get('gt_path', '')))}</code>: "
             f"{escape(_fmt(evaluation.get('num_matched')))} of {escape(_fmt(evaluation.get('num_gt')))} cameras "
             f'matched by image name. Full report: <a href="eval/report.html">eval/report.html</a>.</p>')
+    metrics = ("<p>Geodesic: the angle of R<sub>gt</sub><sup>T</sup> R<sub>est</sub> S<sup>T</sup> after the best "
+               "global rotation S (the paper's metric). evalQuality: <code>openMVG_main_evalQuality</code>'s "
+               "acos(trace/3) after its similarity on the centres, not a geodesic angle "
+               "(about 0.816 of it for small errors).</p>")
     return ("<h2>Ground truth (--gt)</h2>" + head
-            + _table(["metric", "min", "mean", "median", "max"], rows, "gt") + "\n".join(figures))
+            + _table(["metric", "min", "mean", "median", "max"], rows, "gt") + metrics + "\n".join(figures))
+
+
+def _command(reports: dict) -> str:
+    """The command line of the run (reports/run.json ``command``; absent for an API call) and
+    its options, collapsed."""
+    command = _get(reports, "run.command")
+    options = _get(reports, "run.options")
+    line = f"<p>Command: <code>{escape(command)}</code></p>" if command else ""
+    return line + (f'<details id="options"><summary>options</summary>{_value_html(options, "run.options")}'
+                   "</details>" if options else "")
 
 
 def _warnings(reports: dict) -> str:
     """The run's warnings (the summary's, as the terminal and run.log show them), first on
-    the page; empty without any."""
-    warnings = _get(reports, "run.warnings") or []
+    the page; "No warnings." when the run had none; empty before the summary has them."""
+    warnings = _get(reports, "run.warnings")
     if not warnings:
-        return ""
+        return '<p class="no-warnings" id="warnings">No warnings.</p>' if warnings is not None else ""
     items = "".join(f"<li>{escape(str(w))}</li>" for w in warnings)
     return f'<div class="warnings" id="warnings"><h2>Warnings</h2><ul>{items}</ul></div>'
 
@@ -502,30 +433,33 @@ def build_html(directory: Path, run, scene: SfMScene | None, statistics: Structu
                stages_done: list[str]) -> str:
     reports = read_reports(directory / "reports", stages_done)
     load = reports.get("load", {})
-    parts = [f"<h1>rotonly report</h1><p>Input <code>{escape(str(load.get('input', run.input_path)))}</code> "
+    input_path = str(load.get("input", run.input_path))
+    evaluation = _evaluation(directory) if run.options.gt and "triangulate" in stages_done else None
+    parts = [f"<h1>rotonly report</h1><p>Input <code>{escape(input_path)}</code> "
              f"({escape(str(load.get('input_kind', run.input_kind)))}); stages done: "
-             f"{escape(', '.join(stages_done))}; rotonly {escape(__version__)}.</p>",
+             f"{escape(', '.join(stages_done))}; rotonly {escape(__version__)}.</p>", _command(reports),
              _warnings(reports), "<h2>Summary</h2>", _summary(reports, run.graph),
              "<h2>Time per stage</h2>", _timings(reports)]
     after = scene.intrinsics if scene is not None else run.scene.intrinsics
     parts += ["<h2>Intrinsics</h2>", _intrinsics(run.input_intrinsics or run.scene.intrinsics, after)]
     if "export" in reports:
-        parts += ["<h2>Per image</h2>", *_per_view_figures(reports["export"].get("per_view") or []),
-                  _per_view_table(reports)]
-        histograms = [f for f in (_residual_histogram(statistics.residuals_px) if statistics else None,
-                                  _track_histogram(reports["export"].get("track_lengths") or {})) if f]
+        parts += ["<h2>Per image</h2>", *per_view_figures(reports["export"].get("per_view") or []),
+                  _per_view_table(reports, evaluation)]
+        histograms = [f for f in (residual_histogram(statistics.residuals_px) if statistics else None,
+                                  track_histogram(reports["export"].get("track_lengths") or {})) if f]
         parts += ["<h2>Residuals and tracks</h2>", *histograms]
-    parts += ["<h2>View graph</h2>", _view_graph_figure(run.graph) or "", _filtered_edges(run.graph)]
+    parts += ["<h2>View graph</h2>", view_graph_figure(run.graph) or "", _filtered_edges(run.graph)]
     if scene is not None:
-        top = _top_view_figure(scene)
+        top = top_view_figure(scene)
         parts += ["<h2>Cameras</h2>", top] if top else []
-    parts.append(_ground_truth(directory) if run.options.gt and "triangulate" in stages_done else "")
+    parts.append(_ground_truth(directory, evaluation))
     parts.append("<h2>Stage reports</h2><p>Every number of <code>reports/&lt;stage&gt;.json</code>.</p>")
     for name, report in reports.items():
         parts.append(f'<details id="report-{escape(name)}"><summary>{escape(name)}</summary>'
                      f"{_value_html(report, name)}</details>")
     body = "\n".join(p for p in parts if p)
-    return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>rotonly report</title>'
+    title = "/".join(Path(input_path).parts[-2:])  # the input and its folder: what a tab or bookmark names
+    return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>rotonly: {escape(title)}</title>'
             f"<style>{STYLE}</style></head><body>\n{body}\n</body></html>\n")
 
 

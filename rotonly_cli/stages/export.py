@@ -26,8 +26,10 @@ def posed_scene(scene: SfMScene, view_ids: list[int], rotations: np.ndarray | No
                    root_path=str(image_root) if image_root is not None else scene.root_path)
 
 
-def write_outputs(out_dir: Path, scene: SfMScene, input_kind: InputKind, jobs: int = 1):
-    """OUT/sfm_data.json and OUT/sparse/ of a :func:`posed_scene`. With ``jobs`` > 1 the
+def write_outputs(out_dir: Path, scene: SfMScene, input_kind: InputKind, jobs: int = 1,
+                  sfm_data_name: str = "sfm_data.json", sparse_name: str = "sparse"):
+    """OUT/sfm_data.json and OUT/sparse/ of a :func:`posed_scene` (``sfm_data_name``,
+    ``sparse_name``: other names inside OUT, for another component's model). With ``jobs`` > 1 the
     sfm_data.json is written by a forked child (runtime.parallel.ForkedCall; the same bytes)
     while this process writes the COLMAP model and goes on: call ``result()`` of the returned
     handle before OUT is complete (it raises the child's error, if any)."""
@@ -43,9 +45,9 @@ def write_outputs(out_dir: Path, scene: SfMScene, input_kind: InputKind, jobs: i
                      if input_kind in (InputKind.COLMAP_DB, InputKind.COLMAP_MODEL) else scene)
     # formatting its ~10 numbers per observation is the export's largest cost (fountain-P11:
     # 0.42 s of 0.58 s)
-    sfm_data = ForkedCall(lambda: openmvg.write_sfm_data(out_dir / "sfm_data.json", openmvg_scene), jobs > 1)
+    sfm_data = ForkedCall(lambda: openmvg.write_sfm_data(out_dir / sfm_data_name, openmvg_scene), jobs > 1)
     try:
-        colmap.write_model(out_dir / "sparse", scene, binary=True)
+        colmap.write_model(out_dir / sparse_name, scene, binary=True)
     except BaseException:
         sfm_data.result()
         raise

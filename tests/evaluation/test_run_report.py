@@ -118,6 +118,24 @@ def test_report_is_self_contained_and_its_numbers_are_the_reports(full_run):
         == reports["run"]["num_points"]
 
 
+def test_report_names_the_input_the_command_and_the_gt_errors_per_image(full_run):
+    html = (full_run / "report.html").read_text()
+    run = _reports(full_run)["run"]
+    assert "<title>rotonly: herzjesu_p8/database.db</title>" in html
+    assert run["command"] == f"rotonly -q run {HERZ_JESU / 'database.db'} -o {full_run} --gt {HERZ_JESU}"
+    assert f"Command: <code>{run['command']}</code>" in html
+    assert run["options"]["gt"] == str(HERZ_JESU) and run["options"]["load"]["min_inliers"] == 30
+    assert '<details id="options">' in html
+    # 8 views, all shown: worst geodesic error first, evalQuality's trace/3 angle labelled beside it
+    evaluation = json.loads((full_run / "eval" / "report.json").read_text())
+    worst = max(evaluation["per_camera"], key=lambda c: c["rotation_error_deg"])
+    table = html.split('<table class="per-view">')[1].split("</table>")[0]
+    assert "rotation error, geodesic [deg]</th><th>evalQuality angle, acos(trace/3) [deg]" in table
+    assert table.split("</tr>")[1].startswith(f"\n<tr><td>{worst['name']}</td>")
+    assert "per-view-rest" not in html  # no more than SHOWN_ROWS images: nothing collapsed
+    assert ("No warnings." in html) == (not run["warnings"])
+
+
 def test_export_statistics_are_the_reprojection_errors(full_run):
     """reports/export.json: the distance between each observation and its point's projection."""
     from rotonly_cli.io import openmvg
