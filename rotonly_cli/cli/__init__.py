@@ -181,8 +181,8 @@ def _interrupted(exc: BaseException) -> bool:
 
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry: maps rotonly's typed errors to one line and an exit code
-    (architecture.md "Exit codes"); Ctrl-C to one line and 130. Other exceptions are bugs
-    and keep their traceback."""
+    (architecture.md "Exit codes"); Ctrl-C to one line and 130; running out of memory to one
+    line and 1 (runtime/memory). Other exceptions are bugs and keep their traceback."""
     try:
         cli.main(args=argv, prog_name="rotonly", standalone_mode=False)
     except click.exceptions.Exit as exc:
@@ -195,6 +195,11 @@ def main(argv: list[str] | None = None) -> None:
     except RotonlyError as exc:
         click.echo(f"error: {exc}", err=True)
         sys.exit(exc.exit_code)
+    except MemoryError as exc:  # numpy's _ArrayMemoryError too; a stage's own is an OutOfMemoryError already
+        from rotonly_cli.runtime.memory import out_of_memory_error
+
+        click.echo(f"error: {out_of_memory_error(None, exc)}", err=True)
+        sys.exit(1)
     except OSError as exc:
         if exc.errno not in DESTINATION_ERRORS or _interrupted(exc):
             raise
