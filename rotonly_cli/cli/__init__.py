@@ -195,10 +195,12 @@ def main(argv: list[str] | None = None) -> None:
     except RotonlyError as exc:
         click.echo(f"error: {exc}", err=True)
         sys.exit(exc.exit_code)
-    except MemoryError as exc:  # numpy's _ArrayMemoryError too; a stage's own is an OutOfMemoryError already
-        from rotonly_cli.runtime.memory import out_of_memory_error
+    except (MemoryError, ImportError) as exc:  # numpy's _ArrayMemoryError too (a stage's: OutOfMemoryError)
+        if isinstance(exc, ImportError) and "failed to map segment" not in str(exc):  # a library's mmap failed
+            raise
+        from rotonly_cli.runtime.memory import LAST_STAGE, out_of_memory_error
 
-        click.echo(f"error: {out_of_memory_error(None, exc)}", err=True)
+        click.echo(f"error: {out_of_memory_error(LAST_STAGE[0], exc, LAST_STAGE[1])}", err=True)
         sys.exit(1)
     except OSError as exc:
         if exc.errno not in DESTINATION_ERRORS or _interrupted(exc):

@@ -111,5 +111,5 @@ jobs = click.option(
 max_memory = click.option(
     "--max-memory", "max_memory_gb", type=FiniteFloatRange(min=0, min_open=True), default=None, metavar="GB",
     help="Stop (exit 1, one line, OUT as it was) before a stage whose predicted peak memory is above this many GB "
-         "(2^30 bytes) or above the memory available (MemAvailable + the run's own, within a cgroup limit), "
+         "(2^30 bytes) or above the memory available (MemAvailable + the run's own, within a cgroup or ulimit -v), "
          "which is the limit without this option. reports/run.json records the predictions and the limit.")

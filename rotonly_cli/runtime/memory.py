@@ -6,7 +6,8 @@ allocates anything, and OUT stays as it was (the run builds it in a staging fold
 
 The limit: the smaller of ``--max-memory`` and the memory this process may still grow to
 (MemAvailable of /proc/meminfo plus its own RSS; inside a cgroup v2 / v1 memory limit, that
-limit less what the group uses besides this process). GB here is 2**30 bytes, as the
+limit less what the group uses besides this process; under an address-space limit, that limit
+less the process's mapped size plus its RSS). GB here is 2**30 bytes, as the
 kernel's and ``free -g``'s figures.
 
 The prediction is the process's whole peak RSS during the stage (what it already holds:
@@ -199,15 +200,25 @@ def _stat_value(path: Path, key: str) -> int:
     return 0
 
 
+def _address_space_headroom(own_rss: int) -> int | None:
+    """What an address-space limit (``ulimit -v``, ``prlimit --as``) leaves the process's RSS
+    (new allocations grow both): the limit less its mapped size, plus its RSS; None without one."""
+    import resource
+
+    soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+    mapped = _status_kb("VmSize")
+    if soft == resource.RLIM_INFINITY or mapped is None:
+        return None
+    return max(0, soft - mapped * 1024 + own_rss)
+
+
 def available_bytes() -> int | None:
     """The memory this process may grow to: MemAvailable + its own RSS, within a cgroup
-    memory limit if one is set; None where neither is known (not Linux)."""
+    memory limit and an address-space limit if set; None where none is known (not Linux)."""
     own = rss_bytes()
     free_kb = _status_kb("MemAvailable", "/proc/meminfo")
     candidates = [] if free_kb is None else [free_kb * 1024 + own]
-    group = _cgroup_headroom(own)
-    if group is not None:
-        candidates.append(group)
+    candidates += [room for room in (_cgroup_headroom(own), _address_space_headroom(own)) if room is not None]
     return min(candidates) if candidates else None
 
 
@@ -305,6 +316,10 @@ def _reset_peak() -> None:
         pass
 
 
+#: [stage, Prediction | None] of the guarded stage in progress, or of the one an error left
+LAST_STAGE: list = [None, None]
+
+
 @dataclass
 class MemoryGuard:
     """One run's guard: ``with guard.stage(name, counts, run_options) as options:`` checks
@@ -315,6 +330,9 @@ class MemoryGuard:
     predictions: list[Prediction] = field(default_factory=list)
     limit: Limit | None = None
     current: Prediction | None = None
+
+    def __post_init__(self) -> None:
+        LAST_STAGE[:] = [None, None]  # a new run: no stage of an earlier one is named
 
     def check(self, stage: str, counts: Counts, options=None):
         """The options ``stage`` runs with (``options``, or with a smaller LiGT chunk); raises
@@ -350,6 +368,8 @@ class MemoryGuard:
             self.current = None
         if MEASURE_PEAKS:
             _reset_peak()
+        previous = LAST_STAGE[:]
+        LAST_STAGE[:] = [stage, self.current]
         try:
             yield options
         except MemoryError as exc:
@@ -357,6 +377,7 @@ class MemoryGuard:
         finally:
             if MEASURE_PEAKS and self.current is not None:
                 self.current.measured_bytes = (_status_kb("VmHWM") or 0) * 1024.0
+        LAST_STAGE[:] = previous  # left as it was on an error: the CLI names the stage of a stray one
 
     def out_of_memory(self, stage: str, exc: MemoryError) -> OutOfMemoryError:
         """The one-line error of a MemoryError raised in ``stage``."""

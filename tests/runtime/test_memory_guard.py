@@ -194,3 +194,30 @@ def test_progress_line_format():
         line = heartbeat.progress_line(now=heartbeat._TASKS[-1].started + 30.0)
     assert re.fullmatch(r"\d\d:\d\d:\d\d reject: 2/5 \(40%\) ETA 00:45", line), line
     assert heartbeat.progress_line() is None
+
+
+def test_address_space_limit_lowers_the_available_memory(monkeypatch):
+    import resource
+
+    mapped = memory._status_kb("VmSize") * 1024
+    monkeypatch.setattr(resource, "getrlimit", lambda which: (mapped + 100 * 1024 * 1024, resource.RLIM_INFINITY))
+    expected = memory.rss_bytes() + 100 * 1024 * 1024
+    assert abs(memory.available_bytes() - expected) < 20 * 1024 * 1024
+
+
+def test_address_space_cap_in_a_child_is_one_line(tmp_path, previous_out):
+    """`prlimit --as` below the run's need (issue 53): exit 1, one error line, OUT as it was."""
+    script = ("import resource, sys; import numpy, scipy.sparse.linalg, pycolmap; import rotonly_cli.pipeline; "
+              "from rotonly_cli.runtime import memory; "
+              "cap = memory._status_kb('VmSize') * 1024 + 10 * 1024 * 1024; "
+              "resource.setrlimit(resource.RLIMIT_AS, (cap, cap)); "
+              "from rotonly_cli.cli import main; main(sys.argv[1:])")
+    before = _snapshot(previous_out)
+    completed = subprocess.run([sys.executable, "-c", script, "-q", "run", str(DATABASE), "-o", str(previous_out)],
+                               capture_output=True, text=True, timeout=60, cwd=REPOSITORY,
+                               env={"PYTHONPATH": str(REPOSITORY), "PATH": "/usr/bin:/bin"})
+    assert completed.returncode == 1, completed.stderr[-2000:]
+    lines = completed.stderr.splitlines()
+    assert len(lines) == 1 and re.fullmatch(r"error: load needs about 0\.16 GB \(26225 matches, .*\), above the limit "
+                                            r"of 0\.1\d GB \(available memory\)", lines[0]), lines
+    assert _snapshot(previous_out) == before
