@@ -220,8 +220,9 @@ def run_into(input_path: str | Path | SfMScene, out_dir: str | Path, options: Ru
         with _RunLog(staging.new), collector_paused():
             logger.info("rotonly run %s -> %s", label or input_path, out_dir)
             run = run_stages(input_path, options, stages, kind, label, scratch=staging.scratch, guard=guard)
-            with guard.stage("export", memory.scene_counts(run.scene, run.graph)
-                             if stages[-1] == "triangulate" else None):
+            with heartbeat.heartbeat(not options.progress), heartbeat.task("export"), \
+                    guard.stage("export", memory.scene_counts(run.scene, run.graph) if stages[-1] == "triangulate"
+                                else None):
                 summary = _written(out_dir, _finish, staging.new, out_dir, run, list(stages), start, gt, guard)
         _written(out_dir, staging.commit, check_out_dir)
     finally:

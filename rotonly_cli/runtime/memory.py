@@ -52,8 +52,10 @@ class Counts:
     stored_matches: int = 0  #: the input's matches the scene keeps (after load; a stage's own are ``matches``)
 
     def text(self) -> str:
-        parts = [f"{self.matches} matches", f"{self.observations} observations", f"{self.views} views",
-                 f"{self.edges} edges"]
+        """What the error line says the need is for: the load stage's counts are the input's
+        (matches, keypoints), the others' the view graph's (observations, pairs too)."""
+        parts = [f"{self.matches} matches", f"{self.observations} observations" if self.observations
+                 else f"{self.keypoints} keypoints", f"{self.views} views", f"{self.edges} edges"]
         return ", ".join(parts + ([f"{self.pairs} pairs within observations"] if self.pairs else []))
 
 
@@ -250,8 +252,11 @@ def graph_counts(graph, normalized: dict[int, np.ndarray], stored_matches: int =
         for column, view in ((0, edge.i), (1, edge.j)):
             size = len(normalized.get(view, ()))
             found = np.bincount(edge.matches[:, column], minlength=size)
-            total = per_view.get(view)
-            per_view[view] = found if total is None or len(total) != len(found) else total + found
+            total = per_view.setdefault(view, found)
+            if total is not found:
+                if len(found) > len(total):  # a keypoint index past the view's keypoints (not checked here)
+                    total = per_view[view] = np.pad(total, (0, len(found) - len(total)))
+                total[:len(found)] += found
     observations = pairs = 0
     for through in per_view.values():
         k = through[through > 0].astype(np.int64)

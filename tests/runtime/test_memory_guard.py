@@ -55,7 +55,7 @@ def test_max_memory_below_the_load_prediction_stops_before_loading(capsys, previ
     assert code == 1
     assert len(err) == 1
     # 26 225 stored matches, 48 403 keypoints: 160 MiB + 34 B x 26 225 + 48 B x 48 403 = 0.159 GiB
-    assert err[0] == ("error: load needs about 0.16 GB (26225 matches, 0 observations, 4 views, 6 edges), above the "
+    assert err[0] == ("error: load needs about 0.16 GB (26225 matches, 48403 keypoints, 4 views, 6 edges), above the "
                       "limit of 0.05 GB (--max-memory)"), err[0]
     assert _snapshot(previous_out) == before
     assert _siblings(previous_out) == siblings  # no staging folder left beside OUT
