@@ -244,19 +244,15 @@ def graph_counts(graph, normalized: dict[int, np.ndarray], stored_matches: int =
     """:class:`Counts` of the active edges of ``graph`` (scene.view_graph.ViewGraph);
     ``stored_matches``: the matches the scene holds besides (:func:`scene_counts`)."""
     active = graph.active_edges()
-    per_view: dict[int, np.ndarray] = {}
+    indices: dict[int, list[np.ndarray]] = {}  # per view, the keypoint of every match side there
     matches = 0
     for k in active:
         edge = graph.edges[k]
         matches += len(edge.matches)
-        for column, view in ((0, edge.i), (1, edge.j)):
-            size = len(normalized.get(view, ()))
-            found = np.bincount(edge.matches[:, column], minlength=size)
-            total = per_view.setdefault(view, found)
-            if total is not found:
-                if len(found) > len(total):  # a keypoint index past the view's keypoints (not checked here)
-                    total = per_view[view] = np.pad(total, (0, len(found) - len(total)))
-                total[:len(found)] += found
+        indices.setdefault(edge.i, []).append(edge.matches[:, 0])
+        indices.setdefault(edge.j, []).append(edge.matches[:, 1])
+    per_view = {view: np.bincount(np.concatenate(parts), minlength=len(normalized.get(view, ())))
+                for view, parts in indices.items()}
     observations = pairs = 0
     for through in per_view.values():
         k = through[through > 0].astype(np.int64)
