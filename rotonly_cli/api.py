@@ -119,7 +119,7 @@ def _options(options: RunOptions | None, settings: dict) -> RunOptions:
              "max_residual_deg": ("average", "max_residual_deg"), "matches": ("top", "matches_file"),
              "matches_dir": ("top", "matches_dir"), "image_path": ("top", "image_path"), "gt": ("top", "gt"),
              "grrm": ("top", "grrm"), "jobs": ("top", "jobs"), "progress": ("top", "progress"),
-             "intrinsics": ("intrinsics", "mode")}
+             "intrinsics": ("intrinsics", "mode"), "max_memory": ("top", "max_memory_gb")}
     for name, value in settings.items():
         if value is None:
             continue
@@ -139,15 +139,15 @@ def run(input, out: str | os.PathLike | None = None, *, gt=None, matches_dir=Non
         min_inliers: int | None = None, reestimate: str | None = None, ransac_max_error: float | None = None,
         seed: int | None = None, intrinsics: str | None = None, max_residual_deg: float | None = None,
         grrm: bool | None = None, jobs: int | None = None, progress: bool | None = None,
-        options: RunOptions | None = None) -> RunResult:
+        max_memory: float | None = None, options: RunOptions | None = None) -> RunResult:
     """`rotonly run` in memory: camera poses and points from feature matches.
 
     ``input``: a COLMAP database or an OpenMVG sfm_data.json (path), a ``pycolmap.Database``,
     a ``pycolmap.Reconstruction`` (its tracks give the matches; its poses are not used) or an
     :class:`~rotonly_cli.scene.types.SfMScene`. The keywords are the CLI options of `rotonly
-    run` (``matches`` is -M, ``grrm=False`` is --no-grrm; defaults as there: ``jobs`` = the
-    usable CPUs) and override ``options`` (all of them, as RunOptions). With ``out`` the
-    workspace is written as `rotonly run INPUT -o OUT` writes it. Errors: InputError
+    run` (``matches`` is -M, ``grrm=False`` is --no-grrm, ``max_memory`` is --max-memory in GB;
+    defaults as there: ``jobs`` = the usable CPUs) and override ``options`` (all of them, as
+    RunOptions). With ``out`` the workspace is written as `rotonly run INPUT -o OUT` writes it. Errors: InputError
     (ValueError) for bad input, AlgorithmError when no result is possible.
     """
     from rotonly_cli import pipeline
@@ -156,8 +156,10 @@ def run(input, out: str | os.PathLike | None = None, *, gt=None, matches_dir=Non
                                  "min_inliers": min_inliers, "reestimate": reestimate,
                                  "ransac_max_error": ransac_max_error, "seed": seed, "intrinsics": intrinsics,
                                  "max_residual_deg": max_residual_deg, "grrm": grrm, "jobs": jobs,
-                                 "progress": progress})
+                                 "progress": progress, "max_memory": max_memory})
     options.load.validate()
+    if options.max_memory_gb is not None and not 0 < options.max_memory_gb < float("inf"):
+        raise InputError(f"{options.max_memory_gb} is not a positive number of GB", field="max_memory")
     options.intrinsics.validate()
     options.reject.validate()
     in_memory = _scene_input(input)

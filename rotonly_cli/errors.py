@@ -59,3 +59,8 @@ def write_error(exc: OSError, path, field: str | None = "-o") -> RotonlyError:
     if exc.errno in _UNUSABLE_DESTINATION:
         return InputError(f"cannot write: {reason}", path=str(path), field=field)
     return OutputError(f"cannot write: {reason}", path=str(path))
+
+
+class OutOfMemoryError(AlgorithmError):
+    """A stage would not fit in the memory limit (predicted before it ran: runtime/memory.py),
+    or ran out of memory: exit code 1, OUT as it was."""

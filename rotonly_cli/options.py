@@ -661,6 +661,5 @@ class RunOptions:
     triangulate: TriangulationOptions = TriangulationOptions()
     grrm: bool = True  #: False: keep the averaged rotations (ablation)
     progress: bool = False
-    #: processes for identification, TRRM, GRRM and the robust LiGT (runtime/parallel); the
-    #: numbers do not depend on it
-    jobs: int = 1
+    jobs: int = 1  #: processes for identification, TRRM, GRRM, robust LiGT (runtime/parallel); same numbers
+    max_memory_gb: float | None = None  #: --max-memory: a stage predicted above it stops the run (runtime/memory)

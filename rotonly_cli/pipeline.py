@@ -59,6 +59,7 @@ from rotonly_cli.io.workspace import (
     write_view_graph_json,
 )
 from rotonly_cli.options import RunOptions
+from rotonly_cli.runtime import heartbeat, memory
 from rotonly_cli.runtime.startup import collector_paused
 from rotonly_cli.scene.types import SfMScene
 
@@ -218,12 +219,16 @@ def run_into(input_path: str | Path | SfMScene, out_dir: str | Path, options: Ru
         check_input(input_path)  # before anything is made: a bad input leaves no folder behind
     staging = atomic.Staging(out_dir)  # parents made here are removed again by discard()
     start = time.perf_counter()
+    guard = memory.MemoryGuard(options.max_memory_gb)
     try:
         with _RunLog(staging.new), collector_paused():
             logger.info("rotonly run %s -> %s", label or input_path, out_dir)
-            run = run_stages(input_path, options, stages, kind, label, scratch=staging.scratch)
+            run = run_stages(input_path, options, stages, kind, label, scratch=staging.scratch, guard=guard)
             reconstruct(run, run.components)  # the view graph's other parts (components.py)
-            summary = _written(out_dir, _finish, staging.new, out_dir, run, list(stages), start, gt)
+            with heartbeat.heartbeat(not options.progress), heartbeat.task("export"), \
+                    guard.stage("export", memory.scene_counts(run.scene, run.graph) if stages[-1] == "triangulate"
+                                else None):
+                summary = _written(out_dir, _finish, staging.new, out_dir, run, list(stages), start, gt, guard)
         _written(out_dir, staging.commit, check_out_dir)
     finally:
         staging.discard()
@@ -236,20 +241,27 @@ def run_in_memory(input_path: str | Path | SfMScene, options: RunOptions = RunOp
     if not isinstance(input_path, SfMScene):
         check_input(Path(input_path))
     with collector_paused():
-        return run_stages(input_path, options, stages, kind, label)
+        return run_stages(input_path, options, stages, kind, label, guard=memory.MemoryGuard(options.max_memory_gb))
 
 
 def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptions(),
                stages: tuple[str, ...] = STAGES, kind: InputKind | None = None, label: str | None = None,
-               scratch: Path | None = None) -> Run:
+               scratch: Path | None = None, guard: memory.MemoryGuard | None = None) -> Run:
     """Run ``stages`` (a prefix of STAGES) in memory on INPUT (a path, or a scene already read:
-    then ``kind`` and ``label`` say what it is), with the progress bars and -v detail lines.
-    ``scratch``: where a database's private copy is made (default: a temporary folder)."""
+    then ``kind`` and ``label`` say what it is), with the progress bars (in a pipe, progress
+    lines: runtime/heartbeat) and -v detail lines. ``scratch``: where a database's private copy
+    is made (default: a temporary folder). ``guard``: the memory guard each stage passes first
+    (runtime/memory; default: one of ``options.max_memory_gb``); its record goes to
+    ``run.reports["memory"]``."""
     from rotonly_cli.components import split_off
     from rotonly_cli.monitor import StageMonitor
 
-    with StageMonitor(stages, options.progress) as monitor:
-        with monitor.stage("load"):
+    guard = guard or memory.MemoryGuard(options.max_memory_gb)
+    with StageMonitor(stages, options.progress) as monitor, heartbeat.heartbeat(not options.progress):
+        counts = None  # an OpenMVG project or a scene: counted once read (the stages after load)
+        if not isinstance(input_path, SfMScene) and detect_input(Path(input_path)) == InputKind.COLMAP_DB:
+            counts = memory.database_counts(input_path)
+        with monitor.stage("load"), heartbeat.task("load"), guard.stage("load", counts):
             if isinstance(input_path, SfMScene):
                 run = load_scene(input_path, kind, label or "<in memory>", options)
             else:
@@ -270,7 +282,11 @@ def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptio
             for stage in pass_stages:
                 if pass_run.keypoint_rgb is None:
                     pass_run.keypoint_rgb = loaded.keypoint_rgb
-                with monitor.stage(stage):
+                counts = memory.scene_counts(pass_run.scene, pass_run.graph)
+                rounds = pass_run.options.reject.max_rounds if stage == "reject" else None  # counted in stages/reject
+                with monitor.stage(stage), heartbeat.task(stage, rounds), \
+                        guard.stage(stage, counts, pass_run.options) as stage_options:
+                    pass_run.options = stage_options  # LiGT's chunks made smaller to fit, or as they were
                     STAGE_FUNCTIONS[stage](pass_run)
             return pass_run
 
@@ -282,6 +298,7 @@ def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptio
     run.reports["resources"] = monitor.resources
     if "triangulate" in stages:
         run.components = parts  # reconstructed by run_into, which writes them
+    run.reports["memory"] = guard.record()
     return run
 
 
@@ -334,9 +351,10 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
 
 
 def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: float,
-            gt: SfMScene | None) -> dict:
+            gt: SfMScene | None, guard: memory.MemoryGuard | None = None) -> dict:
     """Write outputs of a finished chain into ``directory`` (which becomes ``out_dir``);
-    ``gt``: the ground truth of ``run.options.gt`` (:func:`ground_truth_for`) or None."""
+    ``gt``: the ground truth of ``run.options.gt`` (:func:`ground_truth_for`) or None;
+    ``guard``: the run's memory guard, whose predictions and limit go into reports/run.json."""
     from rotonly_cli.components import summary_entries, write_models
     from rotonly_cli.evaluation.run_report import structure_statistics, write_run_report
     from rotonly_cli.runtime.invocation import command_line
@@ -344,6 +362,7 @@ def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: fl
     summary: dict = {"input": run.input_path, "stages": done, "options": asdict(run.options)}
     if command_line() is not None:
         summary["command"] = command_line()
+    recorded = run.reports.pop("memory", None)  # in reports/run.json, not a report of its own
     scene = statistics = pending = None
     try:
         if done[-1] == "triangulate":
@@ -365,6 +384,8 @@ def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: fl
             summarize_outcome(run, scene, summary)
         summary["num_active_edges"] = len(run.graph.active_edges())
         summary["time_s"] = time.perf_counter() - start
+        if guard is not None or recorded is not None:
+            summary["memory"] = guard.record() if guard is not None else recorded
         run.reports["run"] = summary
         write_workspace(directory, run, done)
         write_run_report(directory, run, scene, statistics, done)
@@ -428,9 +449,12 @@ def resume(out_dir: str | Path, stage: str, options: RunOptions | None = None) -
         run.reports.update({name: report for name, report in given.items() if report is not None})
         from rotonly_cli.monitor import StageMonitor
 
-        with StageMonitor([stage], options.progress) as monitor:
+        guard = memory.MemoryGuard(options.max_memory_gb)
+        with StageMonitor([stage], options.progress) as monitor, heartbeat.heartbeat(not options.progress):
             monitor.run = run
-            with monitor.stage(stage):
+            with monitor.stage(stage), heartbeat.task(stage), \
+                    guard.stage(stage, memory.scene_counts(run.scene, run.graph), run.options) as checked:
+                run.options = checked
                 STAGE_FUNCTIONS[stage](run)
         for name, report in given.items():
             if report is not None and run.reports.get(name) is report:
@@ -440,4 +464,4 @@ def resume(out_dir: str | Path, stage: str, options: RunOptions | None = None) -
             run.rotations = None  # stale: computed from the edges before this stage
         if position < STAGES.index("translate"):
             run.centers = None
-        return _written(out_dir, _finish, out_dir, out_dir, run, done, start, gt, field=None)
+        return _written(out_dir, _finish, out_dir, out_dir, run, done, start, gt, guard, field=None)

@@ -181,8 +181,8 @@ def _interrupted(exc: BaseException) -> bool:
 
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry: maps rotonly's typed errors to one line and an exit code
-    (architecture.md "Exit codes"); Ctrl-C to one line and 130. Other exceptions are bugs
-    and keep their traceback."""
+    (architecture.md "Exit codes"); Ctrl-C to one line and 130; running out of memory to one
+    line and 1 (runtime/memory). Other exceptions are bugs and keep their traceback."""
     from rotonly_cli.runtime.invocation import invoked_with
 
     try:
@@ -198,6 +198,13 @@ def main(argv: list[str] | None = None) -> None:
     except RotonlyError as exc:
         click.echo(f"error: {exc}", err=True)
         sys.exit(exc.exit_code)
+    except (MemoryError, ImportError) as exc:  # numpy's _ArrayMemoryError too (a stage's: OutOfMemoryError)
+        if isinstance(exc, ImportError) and "failed to map segment" not in str(exc):  # a library's mmap failed
+            raise
+        from rotonly_cli.runtime.memory import LAST_STAGE, out_of_memory_error
+
+        click.echo(f"error: {out_of_memory_error(LAST_STAGE[0], exc, LAST_STAGE[1])}", err=True)
+        sys.exit(1)
     except OSError as exc:
         if exc.errno not in DESTINATION_ERRORS or _interrupted(exc):
             raise

@@ -15,6 +15,7 @@ option                 commands
 --gt (GT_PATH)         run, triangulate
 --jobs                 run, identify, refine
 --intrinsics           run, identify
+--max-memory           run, identify
 =====================  ==============================================================
 """
 
@@ -107,3 +108,8 @@ jobs = click.option(
          "for GRRM and LiGT's robust rounds (two each) and writing sfm_data.json (a smaller input runs in one "
          "process; reports/refine.json, optimize.json and translate.json record how many ran). The numbers do "
          "not depend on it.")
+max_memory = click.option(
+    "--max-memory", "max_memory_gb", type=FiniteFloatRange(min=0, min_open=True), default=None, metavar="GB",
+    help="Stop (exit 1, one line, OUT as it was) before a stage whose predicted peak memory is above this many GB "
+         "(2^30 bytes) or above the memory available (MemAvailable + the run's own, within a cgroup or ulimit -v), "
+         "which is the limit without this option. reports/run.json records the predictions and the limit.")

@@ -110,4 +110,5 @@ command = chain_command("run", """Reconstruct camera poses and 3D points from fe
     view_graph.json, reports/<stage>.json, run.log and state.npz (for the stage commands).
     Views outside the largest connected view graph component are reported, not registered.
     """, None, cli_options.gt, cli_options.load_options, cli_options.max_residual_deg,
-                        click.option("--no-grrm", is_flag=True, help="Skip GRRM (keep the averaged rotations)."))
+                        click.option("--no-grrm", is_flag=True, help="Skip GRRM (keep the averaged rotations)."),
+                        cli_options.max_memory)

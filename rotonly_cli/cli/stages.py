@@ -22,7 +22,7 @@ from rotonly_cli.cli.run import chain_command, echo_summary, show_progress
 
 identify = chain_command("identify", """Load INPUT (COLMAP .db or OpenMVG sfm_data.json), estimate the view graph and
     identify every edge's scene kind (REGULAR / PURE_ROTATION / ROTATION_SINGULAR) into OUT.""",
-                         ("load", "identify"), cli_options.load_options)
+                         ("load", "identify"), cli_options.load_options, cli_options.max_memory)
 
 
 def _stage_command(stage: str, summary: str, *options):

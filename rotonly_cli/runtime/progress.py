@@ -25,8 +25,11 @@ def iteration_bar(show: bool, total: int, desc: str) -> Iterator[Callable[[objec
     """A bar advanced by the callback it yields (None when ``show`` is false), for iterative
     solvers that report each iteration (GRRM's ``on_iteration``); it fills up at the end, as
     the solver may stop before ``total`` iterations."""
-    if not show:
-        yield None
+    if not show:  # in a pipe: the iterations counted for the progress lines (runtime/heartbeat)
+        from rotonly_cli.runtime import heartbeat
+
+        with heartbeat.task(desc, total) as advance:
+            yield (lambda _record: advance()) if heartbeat.running() else None
         return
     with progress_bar(total=total, desc=desc, unit="it", leave=False) as bar:
         yield lambda _record: bar.update(1)

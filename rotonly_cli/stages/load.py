@@ -32,6 +32,7 @@ from rotonly_cli.geometry import so3
 from rotonly_cli.io import cameras
 from rotonly_cli.io.detect import InputKind, detect_input
 from rotonly_cli.options import LoadOptions, Reestimate
+from rotonly_cli.runtime import heartbeat
 from rotonly_cli.scene.types import Intrinsics, SfMScene
 from rotonly_cli.scene.view_graph import Edge, ViewGraph, largest_component
 
@@ -186,8 +187,14 @@ def _pool_map(function, items: list, progress: bool, desc: str, threads: int = 0
         if progress:
             from rotonly_cli.runtime.progress import progress_bar
 
-            results = progress_bar(results, total=len(items), desc=desc, unit="run", leave=False)
-        return list(results)
+            return list(progress_bar(results, total=len(items), desc=desc, unit="run", leave=False))
+        # in a pipe: counted for the progress lines ("relative poses (RANSAC)" -> load/RANSAC)
+        with heartbeat.task(desc[desc.find("(") + 1:].rstrip(")") or "runs", len(items)) as advance:
+            done = []
+            for result in results:
+                done.append(result)
+                advance()
+            return done
 
 
 #: the noise sigma needs this many inlier residuals to be trusted; below, the loose threshold is used

@@ -23,6 +23,7 @@ import numpy as np
 from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry.tracks import Tracks
 from rotonly_cli.options import RejectOptions
+from rotonly_cli.runtime import heartbeat
 from rotonly_cli.scene.view_graph import (
     ViewGraph,
     active_bridges,
@@ -125,6 +126,7 @@ def reject_round(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from
     """One round (module docstring) on the REGULAR edges between posed views, in place.
     Returns the round's report (counts and threshold)."""
     start = time.perf_counter()
+    heartbeat.advance()  # the reject stage's rounds, for the progress lines in a pipe
     index = view_index(graph)
     posed = np.all(np.isfinite(R_cam_from_world.reshape(len(index), -1)), axis=1) & np.all(np.isfinite(centers), axis=1)
     edges = [k for k in regular_edges(graph) if posed[index[graph.edges[k].i]] and posed[index[graph.edges[k].j]]]
