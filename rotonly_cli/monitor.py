@@ -6,11 +6,15 @@ stages when stderr is a terminal (the RANSAC and GRRM stages add their own bars)
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import ExitStack, contextmanager
 
 logger = logging.getLogger(__name__)
+
+#: set to 1: reports/resources.json holds each stage's own peak (scripts/bench/scale.py)
+STAGE_PEAKS_VARIABLE = "ROTONLY_STAGE_PEAKS"
 
 #: longest detail line; longer ones are continued on the next line
 DETAIL_WIDTH = 100
@@ -26,10 +30,14 @@ class StageMonitor:
         self.run = None
         self._bar = None
         self._stack = ExitStack()
-        #: per stage: wall time (s, summed over the calibration's passes) and the process's peak
-        #: resident memory during it (MB, the kernel's high-water mark reset at the stage's
-        #: start; None where the reset is not allowed): reports/resources.json
+        #: per stage: wall time (s, summed over the calibration's passes), the resident memory
+        #: at its end (MB, after the freed heap went back) and the high-water mark (MB): the
+        #: process's so far, or with ROTONLY_STAGE_PEAKS=1 in the environment the stage's own
+        #: (the mark is reset at each stage's start, which also lowers the whole run's peak
+        #: that getrusage and `time -v` report to the last stage's: for benchmarks only):
+        #: reports/resources.json
         self.resources: dict[str, dict] = {}
+        self.stage_peaks = os.environ.get(STAGE_PEAKS_VARIABLE) == "1"
 
     def __enter__(self) -> StageMonitor:
         if self.progress:
@@ -50,18 +58,20 @@ class StageMonitor:
     def stage(self, name: str) -> Iterator[None]:
         if self._bar is not None:
             self._bar.set_description_str(name, refresh=True)
-        resettable = reset_peak_rss()
+        own_peak = self.stage_peaks and reset_peak_rss()
         start = time.perf_counter()
         yield
         seconds = time.perf_counter() - start
-        entry = self.resources.setdefault(name, {"time_s": 0.0, "peak_rss_mb": None})
+        entry = self.resources.setdefault(name, {"time_s": 0.0, "peak_rss_mb": None, "rss_end_mb": None,
+                                                 "peak_is_stage_own": own_peak})
         entry["time_s"] += seconds
-        peak = peak_rss_mb() if resettable else None
+        peak = peak_rss_mb()
         if peak is not None:
             entry["peak_rss_mb"] = max(entry["peak_rss_mb"] or 0.0, peak)
         from rotonly_cli.runtime.startup import release_freed_heap
 
         release_freed_heap()  # the stage's transients leave the resident memory before the next stage
+        entry["rss_end_mb"] = status_mb("VmRSS")
         if self._bar is not None:
             self._bar.update(1)
         if self.run is not None and logger.isEnabledFor(logging.DEBUG):
@@ -82,10 +92,15 @@ def reset_peak_rss() -> bool:
 
 def peak_rss_mb() -> float | None:
     """The process's resident high-water mark (MB) since the last :func:`reset_peak_rss`."""
+    return status_mb("VmHWM")
+
+
+def status_mb(key: str) -> float | None:
+    """A memory figure of /proc/self/status (VmRSS, VmHWM, ...) in MB; None where unknown."""
     try:
         with open("/proc/self/status") as status:
             for line in status:
-                if line.startswith("VmHWM:"):
+                if line.startswith(key + ":"):
                     return int(line.split()[1]) / 1024.0
     except OSError:
         return None

@@ -74,9 +74,13 @@ class Footprint:
     per_pair: float = 0.0
     per_chunk_row: float = 0.0
     per_stored_match: float = 0.0
+    #: the cost of a stage that works through its matches in groups of at most ``chunk_matches``
+    per_chunk_match: float = 0.0
+    chunk_matches: int = 0
 
     def bytes(self, counts: Counts, chunk: int = 0) -> float:
         return (self.base + self.per_match * counts.matches + self.per_observation * counts.observations
+                + self.per_chunk_match * min(counts.matches, self.chunk_matches)
                 + self.per_keypoint * counts.keypoints + self.per_view * counts.views + self.per_edge * counts.edges
                 + self.per_pair * counts.pairs + self.per_chunk_row * min(chunk, counts.observations or chunk)
                 + self.per_stored_match * counts.stored_matches)
@@ -97,10 +101,15 @@ HELD = {"per_stored_match": 20.0, "per_keypoint": 48.0}
 #: per_pair goes to 0). docs/tuning.md "Memory guard" has the table of predicted against measured.
 STAGE_FOOTPRINTS: dict[str, Footprint] = {
     "load": Footprint(PROCESS_BASE, per_match=34.0, per_keypoint=48.0),  # matches: every row the database stores
-    "identify": Footprint(PROCESS_BASE, per_match=172.0, **HELD),
-    "refine": Footprint(PROCESS_BASE, per_match=188.0, **HELD),
+    # identify, refine: edges in groups of 2^19 matches (runtime/parallel.STAGE_CHUNK_MATCHES), each a
+    # batch and MatchTable (~210 B per match) freed before the next
+    "identify": Footprint(PROCESS_BASE, per_match=30.0, per_chunk_match=230.0, chunk_matches=1 << 19, **HELD),
+    "refine": Footprint(PROCESS_BASE, per_match=34.0, per_chunk_match=250.0, chunk_matches=1 << 19, **HELD),
     "average": Footprint(PROCESS_BASE, per_match=116.0, **HELD),
-    "optimize": Footprint(PROCESS_BASE, per_match=520.0, per_pair=34.0, **HELD),
+    # GRRM: no pair lists (grrm/layout.py); per match its observation rows, the layout's two int32
+    # per contribution, the weights and the layout's sort; per part (layout.PART_MATCHES incident
+    # matches at most) a table of 16 float64 per side, the gathered coordinates and a block's work
+    "optimize": Footprint(PROCESS_BASE, per_match=110.0, per_chunk_match=420.0, chunk_matches=1 << 20, **HELD),
     "translate": Footprint(PROCESS_BASE, per_match=283.0, per_chunk_row=2000.0, **HELD),
     "reject": Footprint(PROCESS_BASE, per_match=283.0, per_chunk_row=2000.0, **HELD),  # and GRRM's, LiGT's: predict
     "triangulate": Footprint(PROCESS_BASE, per_match=370.0, **HELD),

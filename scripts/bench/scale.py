@@ -7,9 +7,10 @@ Usage: python scripts/bench/scale.py [--recipes circular-200 circular-1000 ...] 
 
 Per recipe (``RECIPES``: `rotonly simulate multiview ... --format colmap` arguments), the input is
 made once (cached under ``--cache``), then in ``--rounds`` rounds, the order alternating:
-* `rotonly -q run DATABASE -o OUT --gt GT --jobs J` as a process: wall time and the process's
-  peak RSS (the kernel's accounting of the finished child, os.wait4), the per-stage time and
-  peak RSS it recorded itself (OUT/reports/resources.json), registered views, points, mean
+* `rotonly -q run DATABASE -o OUT --gt GT --jobs J` as a process, with ROTONLY_STAGE_PEAKS=1:
+  wall time, the per-stage time and peak RSS it recorded itself (OUT/reports/resources.json)
+  and the process's peak RSS (the largest of those and of the kernel's accounting of the
+  finished child, os.wait4, which then covers what follows the last stage), registered views, points, mean
   rotation error and position error (OUT/reports/run.json and eval/);
 * pycolmap's global mapper (GLOMAP, intrinsics fixed; scripts/bench/strecha_tools.py's worker
   process) on a private copy of the database: wall time, peak RSS, registered views, points and
@@ -50,13 +51,13 @@ RECIPES = {
 STAGES = ("load", "identify", "refine", "average", "optimize", "translate", "reject", "triangulate")
 
 
-def timed_process(argv: list[str], log: Path, timeout: float | None = None) -> dict:
+def timed_process(argv: list[str], log: Path, timeout: float | None = None, env: dict | None = None) -> dict:
     """Run ``argv`` (stdout and stderr to ``log``; killed after ``timeout`` s): wall time, exit
     status and the child's peak RSS from the kernel's accounting of it (os.wait4's ru_maxrss, KB
     on Linux: the process alone, not its forked helpers)."""
     with open(log, "w") as out:
         start = time.perf_counter()
-        process = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT)
+        process = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, env=env)
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
             pid, status, usage = os.wait4(process.pid, 0 if deadline is None else os.WNOHANG)
@@ -100,7 +101,9 @@ def run_rotonly(folder: Path, work: Path, jobs: int, timeout: float | None) -> d
         shutil.rmtree(out)
     argv = strecha_tools.rotonly_command() + ["-q", "run", str(folder / "database.db"), "-o", str(out), "--gt",
                                               str(folder / "gt"), "--jobs", str(jobs)]
-    result = timed_process(argv, work / "rotonly.log", timeout)
+    # each stage's own peak in resources.json; the process's peak is then the largest of them
+    # and of what the kernel reports (since the last reset: export and the exit)
+    result = timed_process(argv, work / "rotonly.log", timeout, env={**os.environ, "ROTONLY_STAGE_PEAKS": "1"})
     reports = out / "reports"
     if result["exit"] == 0 and (reports / "run.json").is_file():
         run = json.loads((reports / "run.json").read_text())
@@ -113,6 +116,8 @@ def run_rotonly(folder: Path, work: Path, jobs: int, timeout: float | None) -> d
         resources = reports / "resources.json"
         if resources.is_file():
             result["stages"] = json.loads(resources.read_text())
+            peaks = [s["peak_rss_mb"] for s in result["stages"].values() if s.get("peak_rss_mb")]
+            result["peak_rss_mb"] = max([result["peak_rss_mb"], *peaks])
     return result
 
 
