@@ -7,7 +7,7 @@ Usage: python scripts/bench/scale.py [--recipes circular-200 circular-1000 ...] 
 
 Per recipe (``RECIPES``: `rotonly simulate multiview ... --format colmap` arguments), the input is
 made once (cached under ``--cache``), then in ``--rounds`` rounds, the order alternating:
-* `rotonly -q run DATABASE -o OUT --gt GT --jobs J` as a process, with ROTONLY_STAGE_PEAKS=1:
+* `rotonly -q run DATABASE -o OUT --jobs J` as a process, with ROTONLY_STAGE_PEAKS=1:
   wall time, the per-stage time and peak RSS it recorded itself (OUT/reports/resources.json)
   and the process's peak RSS (the largest of those and of the kernel's accounting of the
   finished child, os.wait4, which then covers what follows the last stage), registered views, points, mean
@@ -37,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import strecha_tools  # noqa: E402
 
 from rotonly_cli.bench import results_md  # noqa: E402
+from rotonly_cli.io import detect  # noqa: E402
 
 #: name -> `rotonly simulate multiview` arguments (COLMAP databases; noise 1 px, f 800 px)
 RECIPES = {
@@ -99,20 +100,20 @@ def run_rotonly(folder: Path, work: Path, jobs: int, timeout: float | None) -> d
     out = work / "rotonly_out"
     if out.exists():
         shutil.rmtree(out)
-    argv = strecha_tools.rotonly_command() + ["-q", "run", str(folder / "database.db"), "-o", str(out), "--gt",
-                                              str(folder / "gt"), "--jobs", str(jobs)]
+    # evaluated here, as the mapper's model is: with --gt the run would also read the simulation's
+    # ground truth (1 GB of JSON with its points at 1000 views) into its own memory
+    argv = strecha_tools.rotonly_command() + ["-q", "run", str(folder / "database.db"), "-o", str(out),
+                                              "--jobs", str(jobs)]
     # each stage's own peak in resources.json; the process's peak is then the largest of them
     # and of what the kernel reports (since the last reset: export and the exit)
     result = timed_process(argv, work / "rotonly.log", timeout, env={**os.environ, "ROTONLY_STAGE_PEAKS": "1"})
     reports = out / "reports"
     if result["exit"] == 0 and (reports / "run.json").is_file():
         run = json.loads((reports / "run.json").read_text())
+        evaluated = strecha_tools.evaluate_scene("rotonly", ground_truth(folder),
+                                                 detect.read_scene(out / "sfm_data.json"), None)
         result.update(registered=run.get("num_registered"), points=run.get("num_points"),
-                      rotation_mean_deg=(run.get("rotation_error_deg") or {}).get("mean"))
-        quality = out / "eval" / "report.json"
-        if quality.is_file():
-            position = json.loads(quality.read_text()).get("position_error") or {}
-            result["position_mean"] = position.get("mean")
+                      rotation_mean_deg=evaluated.rotation_mean_deg, position_mean=evaluated.position_mean)
         resources = reports / "resources.json"
         if resources.is_file():
             result["stages"] = json.loads(resources.read_text())
@@ -121,10 +122,19 @@ def run_rotonly(folder: Path, work: Path, jobs: int, timeout: float | None) -> d
     return result
 
 
+_GT: dict[Path, object] = {}
+
+
+def ground_truth(folder: Path):
+    """The recipe's ground truth (poses; read once per recipe)."""
+    if folder not in _GT:
+        _GT.clear()
+        _GT[folder] = detect.read_scene(folder / "gt" / "sfm_data.json")
+    return _GT[folder]
+
+
 def run_mapper(folder: Path, work: Path, jobs: int, timeout: float | None) -> dict:
     import pycolmap
-
-    from rotonly_cli.io import detect
 
     with tempfile.TemporaryDirectory(prefix="scale_glomap_", dir=work) as tmp:
         db_copy = Path(tmp) / "database.db"
@@ -134,8 +144,8 @@ def run_mapper(folder: Path, work: Path, jobs: int, timeout: float | None) -> di
         best = Path(tmp) / "work" / "best"
         if result["exit"] == 0 and best.is_dir():
             rec = pycolmap.Reconstruction(str(best))
-            gt = detect.read_scene(folder / "gt" / "sfm_data.json")
-            evaluated = strecha_tools.evaluate_scene("mapper", gt, strecha_tools.reconstruction_scene(rec), None)
+            evaluated = strecha_tools.evaluate_scene("mapper", ground_truth(folder),
+                                                     strecha_tools.reconstruction_scene(rec), None)
             result.update(registered=rec.num_reg_images(), points=rec.num_points3D(),
                           rotation_mean_deg=evaluated.rotation_mean_deg, position_mean=evaluated.position_mean)
     return result
