@@ -20,7 +20,7 @@ import numpy as np
 from rotonly_cli.errors import InputError
 
 __all__ = ["Tracks", "build_tracks", "tracks_from_arrays", "gather_observations", "pairs_within_tracks",
-           "segment_sums"]
+           "pairs_in_track_chunks", "segment_sums"]
 
 
 @dataclass(frozen=True)
@@ -196,6 +196,32 @@ def pairs_within_tracks(offsets: np.ndarray, max_pairs: int | None = None) -> tu
     np.cumsum(num_partners, out=first[1:])
     b = a + 1 + (np.arange(total) - np.repeat(first[:-1], num_partners))
     return a, b
+
+
+#: the observation pairs inside tracks are enumerated at most about this many at a time
+#: (pairs_in_track_chunks): a few int64 / float arrays per pair, tens of MB, whatever the
+#: number of tracks (a track of L views has L(L-1)/2 pairs: 400 000 observations in tracks of
+#: ~28 views make 8 M pairs, ~1 GB of index and value arrays in one piece)
+PAIRS_PER_CHUNK = 1 << 19
+
+
+def pairs_in_track_chunks(offsets: np.ndarray, max_pairs: int | None = None):
+    """:func:`pairs_within_tracks` of consecutive track ranges [t0, t1) holding at most
+    ``max_pairs`` pairs each (or a single track, however long): yields ``(t0, t1, a, b)``
+    with flat observation indices in ``offsets``' numbering, the same pairs in the same order
+    as one call over all tracks. ``max_pairs`` None: :data:`PAIRS_PER_CHUNK`."""
+    max_pairs = PAIRS_PER_CHUNK if max_pairs is None else max_pairs
+    offsets = np.asarray(offsets, dtype=np.int64)
+    length = np.diff(offsets)
+    pairs_before = np.zeros(length.size + 1, dtype=np.int64)
+    np.cumsum(length * (length - 1) // 2, out=pairs_before[1:])
+    start = 0
+    while start < length.size:
+        stop = int(np.searchsorted(pairs_before, pairs_before[start] + max_pairs, side="right")) - 1
+        stop = min(max(stop, start + 1), length.size)
+        a, b = pairs_within_tracks(offsets[start:stop + 1] - offsets[start])
+        yield start, stop, a + offsets[start], b + offsets[start]
+        start = stop
 
 
 def segment_sums(components: np.ndarray, segment: np.ndarray, num_segments: int) -> np.ndarray:

@@ -160,7 +160,7 @@ def add_leaf_view(scene, rng, num_points: int = 60, shared_tracks: int = 0):
 
 @pytest.mark.parametrize("max_dense_keys", [4_000_000, 0])  # pair ids by lookup table / by sort
 def test_rigid_views_follow_shared_baselines(monkeypatch, max_dense_keys):
-    monkeypatch.setattr("rotonly_cli.geometry.ligt.MAX_DENSE_KEYS", max_dense_keys)
+    monkeypatch.setattr("rotonly_cli.geometry.rigid_views.MAX_DENSE_KEYS", max_dense_keys)
 
     def rigid(tracks, num_views):
         track = np.repeat(np.arange(len(tracks)), [len(t) for t in tracks])
