@@ -39,13 +39,14 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import LinearOperator, eigsh, splu
 
 from rotonly_cli.errors import AlgorithmError, InputError
+from rotonly_cli.geometry.rigid_views import rigid_views
 from rotonly_cli.geometry.so3 import hat
 from rotonly_cli.geometry.tracks import (
     EVALUATION_PARTS,
     compact_track_ids,
     even_ranges,
     in_tracks_of_two,
-    pairs_within_tracks,
+    pairs_in_track_chunks,
     segment_indices,
     segment_sums,
     track_starts,
@@ -68,35 +69,36 @@ class LiGTResult:
 
 def _select_base_views(world_rays: np.ndarray, offsets: np.ndarray,
                        max_views: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per track the observation indices (l, r) with max ‖θ‖, and that norm."""
+    """Per track the observation indices (l, r) with max ‖θ‖, and that norm (the pairs of
+    the first ``max_views`` observations, a chunk of tracks at a time)."""
     length = np.diff(offsets)
     num_tracks = length.size
-    track_of_obs = np.repeat(np.arange(num_tracks), length)
-    position = np.arange(offsets[-1]) - offsets[track_of_obs]
-    use = np.flatnonzero(position < max_views)
+    capped_length = np.minimum(length, max_views)
+    use = segment_indices(offsets[:-1], capped_length)
     capped = np.zeros(num_tracks + 1, dtype=np.int64)
-    np.cumsum(np.minimum(length, max_views), out=capped[1:])
-    a, b = pairs_within_tracks(capped)
-    a, b = use[a], use[b]
-    theta_norm = np.linalg.norm(np.cross(world_rays[b], world_rays[a]), axis=1)
-    # pairs come grouped by track (pairs_within_tracks order): per-track max by reduceat,
-    # then the first pair reaching it (OpenMVG keeps the first maximum of its a<b scan)
-    capped_length = np.diff(capped)
-    pair_count = capped_length * (capped_length - 1) // 2
-    has_pair = np.flatnonzero(pair_count > 0)
-    pair_start = np.zeros(num_tracks + 1, dtype=np.int64)
-    np.cumsum(pair_count, out=pair_start[1:])
+    np.cumsum(capped_length, out=capped[1:])
     base_l = np.full(num_tracks, -1, dtype=np.int64)
     base_r = np.full(num_tracks, -1, dtype=np.int64)
     best_norm = np.zeros(num_tracks)
-    if has_pair.size == 0:
-        return base_l, base_r, best_norm
-    best_norm[has_pair] = np.maximum.reduceat(theta_norm, pair_start[has_pair])
-    pair_track = np.repeat(np.arange(num_tracks), pair_count)
-    reaching = np.flatnonzero(theta_norm == best_norm[pair_track])
-    first = reaching[np.r_[True, pair_track[reaching][1:] != pair_track[reaching][:-1]]]
-    base_l[pair_track[first]] = a[first]
-    base_r[pair_track[first]] = b[first]
+    for t0, t1, a, b in pairs_in_track_chunks(capped):
+        a, b = use[a], use[b]
+        theta_norm = np.linalg.norm(np.cross(world_rays[b], world_rays[a]), axis=1)
+        # pairs come grouped by track (pairs_within_tracks order): per-track max by reduceat,
+        # then the first pair reaching it (OpenMVG keeps the first maximum of its a<b scan)
+        pair_count = capped_length[t0:t1] * (capped_length[t0:t1] - 1) // 2
+        has_pair = np.flatnonzero(pair_count > 0)
+        if has_pair.size == 0:
+            continue
+        chunk_norm = np.zeros(t1 - t0)
+        chunk_norm[has_pair] = np.maximum.reduceat(theta_norm, (np.cumsum(pair_count) - pair_count)[has_pair])
+        pair_track = np.repeat(np.arange(t1 - t0), pair_count)
+        best_norm[t0:t1] = chunk_norm
+        reaching = np.flatnonzero(theta_norm == chunk_norm[pair_track])
+        if not reaching.size:  # every norm NaN
+            continue
+        first = reaching[np.r_[True, pair_track[reaching][1:] != pair_track[reaching][:-1]]]
+        base_l[t0 + pair_track[first]] = a[first]
+        base_r[t0 + pair_track[first]] = b[first]
     return base_l, base_r, best_norm
 
 
@@ -326,109 +328,6 @@ def _solve_normal_matrix(LTL: sp.csr_matrix, extras: dict, view_mask: np.ndarray
     centers[solved] = solved_centers / mean_distance
     return LiGTResult(centers, solved, np.asarray(eigenvalues), constraints_per_view,
                       int(extras["sign_row"].shape[0]), (positive, negative))
-
-
-#: below this many possible keys :func:`_dense_ids` numbers them with a lookup table, above
-#: with a sort
-MAX_DENSE_KEYS = 4_000_000
-
-
-def _dense_ids(keys: np.ndarray, num_keys: int) -> tuple[np.ndarray, np.ndarray]:
-    """(the distinct ``keys`` ascending, each key's index among them): ``np.unique`` with
-    ``return_inverse``, by a table over ``[0, num_keys)`` when that is small (no sort)."""
-    if num_keys > MAX_DENSE_KEYS:
-        distinct, index = np.unique(keys, return_inverse=True)
-        return distinct, index.ravel()
-    present = np.zeros(num_keys, dtype=bool)
-    present[keys] = True
-    distinct = np.flatnonzero(present)
-    table = np.zeros(num_keys, dtype=np.int64)
-    table[distinct] = np.arange(distinct.size)
-    return distinct, table[keys]
-
-
-def rigid_views(obs_track: np.ndarray, obs_view: np.ndarray, num_views: int,
-                view_mask: np.ndarray | None = None, max_track_views: int = 64) -> np.ndarray:
-    """(n,) bool: the largest set of views whose centres tracks fix up to one common scale.
-
-    A track fixes the distances among its own views up to one scale: its base pair's baseline
-    sets the depth of the point, which places every other view of the track (algorithms.md
-    §1.1). Two such bodies share a scale when they share a baseline, i.e. two views; sharing
-    one view leaves each free to scale about it. So the rigid sets are the connected components
-    of the view pairs co-observed in a track, two pairs joined when a track holds both, and a
-    view reached by two-view tracks only (a leaf of the view graph) or hinged on a single
-    view keeps a distance no constraint decides: LiGT's least-squares solution is free to put
-    it anywhere, and to shrink the rest. Views of ``view_mask`` only; a track's first
-    ``max_track_views`` views stand for it. The largest set counts views, then pairs."""
-    from scipy.sparse.csgraph import connected_components
-
-    obs_track = np.asarray(obs_track, dtype=np.int64)
-    obs_view = np.asarray(obs_view, dtype=np.int64)
-    if view_mask is not None:
-        keep = np.asarray(view_mask, dtype=bool)[obs_view]
-        obs_track, obs_view = obs_track[keep], obs_view[keep]
-    rigid = np.zeros(num_views, dtype=bool)
-    if not obs_track.size:
-        return rigid
-    starts = track_starts(obs_track)
-    length = np.diff(np.append(starts, obs_track.size))
-    # a two-view body {a, b} joins only bodies that hold both a and b already: it adds no view
-    # and links no two bodies that do not share a and b themselves. So the tracks of three or
-    # more views decide, and without any the rigid set is the pair with the most tracks
-    if not (length >= 3).any():
-        two = starts[length == 2]
-        pair = np.sort(np.stack([obs_view[two], obs_view[two + 1]], axis=1), axis=1)
-        if pair.size:
-            keys, counts = np.unique(pair[:, 0] * num_views + pair[:, 1], return_counts=True)
-            best_pair = keys[np.argmax(counts)]
-            rigid[[best_pair // num_views, best_pair % num_views]] = True
-        return rigid
-    starts, length = starts[length >= 3], length[length >= 3]
-    capped = np.minimum(length, max_track_views)
-    first = segment_indices(starts, capped)
-    offsets = np.zeros(capped.size + 1, dtype=np.int64)
-    np.cumsum(capped, out=offsets[1:])
-    a, b = pairs_within_tracks(offsets)
-    view_a, view_b = obs_view[first[a]], obs_view[first[b]]
-    if not view_a.size:
-        return rigid
-    keys, node = _dense_ids(np.minimum(view_a, view_b) * num_views + np.maximum(view_a, view_b),
-                            num_views * num_views)
-    # the pairs of one track are consecutive: chain each to the next of the same track
-    track_of_pair = np.repeat(np.arange(capped.size), capped * (capped - 1) // 2)
-    same = track_of_pair[1:] == track_of_pair[:-1]
-    links = sp.coo_matrix((np.ones(int(same.sum())), (node[:-1][same], node[1:][same])),
-                          shape=(keys.size, keys.size))
-    num_components, component = connected_components(links, directed=False)
-    pair_views = np.stack([keys // num_views, keys % num_views], axis=1)
-    views_of = _views_of(np.repeat(component, 2), pair_views.ravel(), num_components, num_views)
-    pairs = np.bincount(component, minlength=num_components)
-    # Each component is rigid, but two of them can share two views without a track holding
-    # both: (0, 1, 2), (0, 2, 3) and (1, 3, 4) tie 1-3 in the first two bodies and in the
-    # third, so the third shares their baseline. Merge bodies that share two views until none
-    # do (sequential captures: castle-P19 matched to its two neighbours lost views 14-19)
-    while num_components > 1:
-        shared = (views_of @ views_of.T).tocoo()
-        link = (shared.data >= 2) & (shared.row < shared.col)
-        if not link.any():
-            break
-        num_components, merged = connected_components(
-            sp.coo_matrix((np.ones(int(link.sum())), (shared.row[link], shared.col[link])),
-                          shape=views_of.shape[:1] * 2), directed=False)
-        rows, cols = views_of.nonzero()
-        views_of = _views_of(merged[rows], cols, num_components, num_views)
-        pairs = np.bincount(merged, weights=pairs, minlength=num_components)
-    size = np.asarray(views_of.sum(axis=1)).ravel()
-    best = int(np.lexsort((-pairs, -size))[0])
-    return views_of[best].toarray().ravel() > 0
-
-
-def _views_of(body: np.ndarray, view: np.ndarray, num_bodies: int, num_views: int) -> sp.csr_matrix:
-    """(num_bodies, num_views) 0/1 int matrix: which views each body holds (from the
-    ``(body, view)`` incidences, repeats allowed)."""
-    incidence = sp.csr_matrix((np.ones(body.size, dtype=np.int64), (body, view)), shape=(num_bodies, num_views))
-    incidence.data[:] = 1
-    return incidence
 
 
 def ligt_translations(R_cam_from_world: np.ndarray, obs_track: np.ndarray, obs_view: np.ndarray,

@@ -20,7 +20,7 @@ import numpy as np
 from rotonly_cli.errors import InputError
 
 __all__ = ["Tracks", "build_tracks", "tracks_from_arrays", "gather_observations", "pairs_within_tracks",
-           "segment_sums"]
+           "pairs_in_track_chunks", "segment_sums"]
 
 
 @dataclass(frozen=True)
@@ -87,31 +87,38 @@ def build_tracks(pair_keys: Sequence[tuple[int, int]], pair_matches: Sequence[np
 
     if len(pair_keys) != len(pair_matches):
         raise InputError("pair_keys and pair_matches differ in length", field="pair_matches")
-    views_a, feats_a, views_b, feats_b = [], [], [], []
-    for (i, j), matches in zip(pair_keys, pair_matches):
-        matches = np.asarray(matches, dtype=np.int64).reshape(-1, 2)
-        views_a.append(np.full(len(matches), i, dtype=np.int64))
-        views_b.append(np.full(len(matches), j, dtype=np.int64))
-        feats_a.append(matches[:, 0])
-        feats_b.append(matches[:, 1])
-    if not views_a or sum(len(v) for v in views_a) == 0:
+    matches_of = [np.asarray(matches).reshape(-1, 2) for matches in pair_matches]
+    counts = np.array([len(matches) for matches in matches_of], dtype=np.int64)
+    num_edges = int(counts.sum())
+    if num_edges == 0:
         empty = np.zeros(0, dtype=np.int64)
         return Tracks(empty, empty, empty, np.zeros(1, dtype=np.int64), empty, 0)
-    view_end = np.concatenate(views_a + views_b)
-    feat_end = np.concatenate(feats_a + feats_b)
-    if np.any(feat_end < 0) or np.any(view_end < 0):
+    filled = [(i, j, matches) for (i, j), matches in zip(pair_keys, matches_of) if len(matches)]
+    if min(min(i, j, int(matches.min())) for i, j, matches in filled) < 0:
         raise InputError("negative view or keypoint index in matches", field="pair_matches")
-    # one int64 key per (view, feature) node; the node list is sorted by (view, feature)
-    node_key = view_end * (int(feat_end.max()) + 1) + feat_end
-    unique_keys, node_of_end = np.unique(node_key, return_inverse=True)
+    num_feats = max(int(matches.max()) for _, _, matches in filled) + 1
+    # one int64 key per match end and (view, feature) node, filled edge by edge: ends
+    # [0, M) in view i, [M, 2M) in view j (no per-edge lists, no view / feature arrays per end)
+    node_key = np.empty(2 * num_edges, dtype=np.int64)
+    start = 0
+    for (i, j), matches in zip(pair_keys, matches_of):
+        stop = start + len(matches)
+        np.add(matches[:, 0], i * num_feats, out=node_key[start:stop], dtype=np.int64, casting="unsafe")
+        np.add(matches[:, 1], j * num_feats, out=node_key[num_edges + start:num_edges + stop], dtype=np.int64,
+               casting="unsafe")
+        start = stop
+    # the node list is sorted by (view, feature); each end's node by binary search (np.unique's
+    # return_inverse would hold a sorted copy, a permutation and a rank array of all ends)
+    unique_keys = np.unique(node_key)
+    node_of_end = np.searchsorted(unique_keys, node_key)
+    del node_key
     num_nodes = unique_keys.shape[0]
-    num_edges = view_end.shape[0] // 2
     graph = coo_matrix((np.ones(num_edges, dtype=np.int8),
                         (node_of_end[:num_edges], node_of_end[num_edges:])),
                        shape=(num_nodes, num_nodes))
     _, label = connected_components(graph, directed=False)
-    node_view = unique_keys // (int(feat_end.max()) + 1)
-    node_feat = unique_keys % (int(feat_end.max()) + 1)
+    node_view = unique_keys // num_feats
+    node_feat = unique_keys % num_feats
     # inconsistent component: two nodes with one view (duplicates after sorting by label, view)
     order = np.lexsort((node_view, label))
     same = (label[order][1:] == label[order][:-1]) & (node_view[order][1:] == node_view[order][:-1])
@@ -196,6 +203,32 @@ def pairs_within_tracks(offsets: np.ndarray, max_pairs: int | None = None) -> tu
     np.cumsum(num_partners, out=first[1:])
     b = a + 1 + (np.arange(total) - np.repeat(first[:-1], num_partners))
     return a, b
+
+
+#: the observation pairs inside tracks are enumerated at most about this many at a time
+#: (pairs_in_track_chunks): a few int64 / float arrays per pair, tens of MB, whatever the
+#: number of tracks (a track of L views has L(L-1)/2 pairs: 400 000 observations in tracks of
+#: ~28 views make 8 M pairs, ~1 GB of index and value arrays in one piece)
+PAIRS_PER_CHUNK = 1 << 19
+
+
+def pairs_in_track_chunks(offsets: np.ndarray, max_pairs: int | None = None):
+    """:func:`pairs_within_tracks` of consecutive track ranges [t0, t1) holding at most
+    ``max_pairs`` pairs each (or a single track, however long): yields ``(t0, t1, a, b)``
+    with flat observation indices in ``offsets``' numbering, the same pairs in the same order
+    as one call over all tracks. ``max_pairs`` None: :data:`PAIRS_PER_CHUNK`."""
+    max_pairs = PAIRS_PER_CHUNK if max_pairs is None else max_pairs
+    offsets = np.asarray(offsets, dtype=np.int64)
+    length = np.diff(offsets)
+    pairs_before = np.zeros(length.size + 1, dtype=np.int64)
+    np.cumsum(length * (length - 1) // 2, out=pairs_before[1:])
+    start = 0
+    while start < length.size:
+        stop = int(np.searchsorted(pairs_before, pairs_before[start] + max_pairs, side="right")) - 1
+        stop = min(max(stop, start + 1), length.size)
+        a, b = pairs_within_tracks(offsets[start:stop + 1] - offsets[start])
+        yield start, stop, a + offsets[start], b + offsets[start]
+        start = stop
 
 
 def segment_sums(components: np.ndarray, segment: np.ndarray, num_segments: int) -> np.ndarray:

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rotonly_cli.errors import InputError
-from rotonly_cli.geometry.tracks import pairs_within_tracks, segment_sums
+from rotonly_cli.geometry.tracks import pairs_in_track_chunks, segment_indices, segment_sums
 from rotonly_cli.options import TriangulationOptions
 
 __all__ = ["TriangulationOptions", "TriangulationResult", "triangulate_tracks", "max_ray_angle_deg"]
@@ -80,26 +80,24 @@ def _outer_entries(*vectors: np.ndarray) -> np.ndarray:
 
 
 def max_ray_angle_deg(world_rays: np.ndarray, offsets: np.ndarray, max_views: int = 64) -> np.ndarray:
-    """Per track the max angle (deg) between two unit rays; only the first ``max_views`` rays."""
+    """Per track the max angle (deg) between two unit rays; only the first ``max_views`` rays.
+    The pairs of rays are taken a chunk of tracks at a time (tracks.pairs_in_track_chunks)."""
     length = np.diff(offsets)
     num_tracks = length.size
-    track_of_obs = np.repeat(np.arange(num_tracks), length)
-    position = np.arange(offsets[-1]) - offsets[track_of_obs]
-    use = position < max_views
+    capped_length = np.minimum(length, max_views)
     capped_offsets = np.zeros(num_tracks + 1, dtype=np.int64)
-    np.cumsum(np.minimum(length, max_views), out=capped_offsets[1:])
-    rays = world_rays[use]
-    a, b = pairs_within_tracks(capped_offsets)
-    cos_angle = np.clip(np.einsum("ij,ij->i", rays[a], rays[b]), -1.0, 1.0)
-    # pairs are grouped by track: per-track minimum cosine with reduceat
-    capped_length = np.diff(capped_offsets)
-    pair_count = capped_length * (capped_length - 1) // 2
-    pair_start = np.zeros(num_tracks + 1, dtype=np.int64)
-    np.cumsum(pair_count, out=pair_start[1:])
-    has_pair = np.flatnonzero(pair_count > 0)
+    np.cumsum(capped_length, out=capped_offsets[1:])
+    # the first max_views rays of every track
+    rays = world_rays[segment_indices(np.asarray(offsets[:-1], dtype=np.int64), capped_length)]
     min_cos = np.full(num_tracks, 1.0)
-    if has_pair.size:
-        min_cos[has_pair] = np.minimum.reduceat(cos_angle, pair_start[has_pair])
+    for t0, t1, a, b in pairs_in_track_chunks(capped_offsets):
+        cos_angle = np.clip(np.einsum("ij,ij->i", rays[a], rays[b]), -1.0, 1.0)
+        # pairs are grouped by track: per-track minimum cosine with reduceat
+        pair_count = capped_length[t0:t1] * (capped_length[t0:t1] - 1) // 2
+        pair_start = np.cumsum(pair_count) - pair_count
+        has_pair = np.flatnonzero(pair_count > 0)
+        if has_pair.size:
+            min_cos[t0 + has_pair] = np.minimum.reduceat(cos_angle, pair_start[has_pair])
     return np.degrees(np.arccos(min_cos))
 
 

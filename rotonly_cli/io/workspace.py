@@ -64,14 +64,30 @@ def save_state(out_dir: str | os.PathLike, state: WorkspaceState) -> Path:
         "R_j_from_i": np.array([e.R_j_from_i for e in graph.edges], dtype=float).reshape(-1, 3, 3),
         "t_dir": np.array([e.t_dir for e in graph.edges], dtype=float).reshape(-1, 3),
         "match_offsets": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
-        "matches": (np.concatenate([e.matches for e in graph.edges]).astype(np.int64) if graph.edges
-                    else np.zeros((0, 2), dtype=np.int64)),
+        "matches": [edge.matches for edge in graph.edges],  # (M, 2) int64, written edge by edge
         "rotations": (np.full((n, 3, 3), np.nan) if state.rotations is None else state.rotations),
         "centers": (np.full((n, 3), np.nan) if state.centers is None else state.centers),
     }
     with atomic.file_path(out_dir / STATE_FILE, suffix=".npz") as temporary:
-        np.savez(temporary, **arrays)
+        _write_npz(temporary, arrays)
     return out_dir / STATE_FILE
+
+
+def _write_npz(path, arrays: dict) -> None:
+    """``np.savez(path, **arrays)``, byte for byte, where a list of (m_k, 2) integer arrays
+    stands for their concatenation as int64: written part by part, so that all matches are
+    never copied at once (np.concatenate(...).astype(np.int64) held two copies)."""
+    with zipfile.ZipFile(os.fspath(path), mode="w", compression=zipfile.ZIP_STORED, allowZip64=True) as archive:
+        for name, value in arrays.items():
+            with archive.open(name + ".npy", "w", force_zip64=True) as stream:
+                if not isinstance(value, list):
+                    np.lib.format.write_array(stream, np.asanyarray(value))
+                    continue
+                rows = sum(part.shape[0] for part in value)
+                np.lib.format.write_array_header_1_0(stream, {"descr": np.lib.format.dtype_to_descr(
+                    np.dtype(np.int64)), "fortran_order": False, "shape": (rows, 2)})
+                for part in value:
+                    stream.write(np.ascontiguousarray(part, dtype="<i8").reshape(-1, 2).data)
 
 
 def _jsonable(value):

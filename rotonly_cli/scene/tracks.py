@@ -44,16 +44,37 @@ def inlier_matches(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: l
     key = {k: (graph.edges[k].i, graph.edges[k].j, hash(graph.edges[k].matches.tobytes()), R_ij[k].tobytes(),
                min_match_weight) for k in edges}
     missing = [k for k in edges if key[k] not in kept]
-    if missing:
-        batch = edge_batch(graph, normalized, missing)
-        R = np.stack([R_ij[k] for k in missing])
+    # the weights of an edge depend on its own matches only: a group of edges at a time keeps
+    # the TRRM tables (~200 B per match) to one group's matches
+    for group in _edge_groups(missing, [graph.edges[k].matches.shape[0] for k in missing]):
+        batch = edge_batch(graph, normalized, group)
+        R = np.stack([R_ij[k] for k in group])
         with np.errstate(all="ignore"):
             w = robust_match_weights(R, batch, None, TRRMOptions())
             w = robust_match_weights(R, batch, w, TRRMOptions())
-        for row, k in enumerate(missing):
+        for row, k in enumerate(group):
             keep = w[batch.offsets[row]:batch.offsets[row + 1]] >= min_match_weight
             kept[key[k]] = keep if keep.sum() >= 6 else np.ones_like(keep)
-    return [m[kept[key[k]]] for k, m in zip(edges, matches)]
+    # an edge that keeps every match is passed as it is: no copy of all matches beside the graph's
+    return [m if kept[key[k]].all() else m[kept[key[k]]] for k, m in zip(edges, matches)]
+
+
+#: inlier_matches weighs the matches of about this many at a time (whole edges)
+MATCHES_PER_GROUP = 1 << 19
+
+
+def _edge_groups(edges: list[int], counts: list[int]) -> list[list[int]]:
+    """``edges`` in order, cut into consecutive groups of at most MATCHES_PER_GROUP matches
+    (``counts`` per edge; an edge with more is a group of its own)."""
+    groups: list[list[int]] = []
+    total = MATCHES_PER_GROUP
+    for k, count in zip(edges, counts):
+        if total + count > MATCHES_PER_GROUP:
+            groups.append([])
+            total = 0
+        groups[-1].append(k)
+        total += count
+    return groups
 
 
 def graph_tracks(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: list[int],

@@ -130,8 +130,12 @@ def reject_round(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from
     index = view_index(graph)
     posed = np.all(np.isfinite(R_cam_from_world.reshape(len(index), -1)), axis=1) & np.all(np.isfinite(centers), axis=1)
     edges = [k for k in regular_edges(graph) if posed[index[graph.edges[k].i]] and posed[index[graph.edges[k].j]]]
-    errors = []
-    for k in edges:
+    # every edge's errors are a slice of one array (no list of per-edge arrays beside their
+    # concatenation)
+    offsets = np.cumsum([0] + [graph.edges[k].matches.shape[0] for k in edges])
+    every = np.empty(int(offsets[-1]))
+    errors = [every[a:b] for a, b in zip(offsets[:-1], offsets[1:])]
+    for k, error in zip(edges, errors):
         edge = graph.edges[k]
         i, j = index[edge.i], index[edge.j]
         R_ij = R_cam_from_world[j] @ R_cam_from_world[i].T
@@ -140,13 +144,11 @@ def reject_round(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from
         x_i = normalized[edge.i][edge.matches[:, 0]]
         x_j = normalized[edge.j][edge.matches[:, 1]]
         scale = 0.5 * (focal_px[i] + focal_px[j])
-        errors.append(pg.sampson_errors(R_ij, t_ij / norm, x_i, x_j) * scale if norm > 0
-                      else np.zeros(len(x_i)))
-    report = {"num_edges": len(edges), "num_matches": int(sum(len(e) for e in errors)), "num_dropped": 0,
+        error[:] = pg.sampson_errors(R_ij, t_ij / norm, x_i, x_j) * scale if norm > 0 else 0.0
+    report = {"num_edges": len(edges), "num_matches": int(every.size), "num_dropped": 0,
               "sigma_px": None, "threshold_px": None, "edges_filtered": {}}
     if not errors or report["num_matches"] == 0:
         return report
-    every = np.concatenate(errors)
     sigma = 1.4826 * float(np.median(every))
     threshold = max(options.outlier_sigmas * sigma, options.min_threshold_px)
     filtered: dict[str, int] = {}
@@ -179,17 +181,23 @@ def confirmed_matches(graph: ViewGraph, tracks: Tracks, edges: list[int], min_vi
     per observation (view row, keypoint), looked up for every match at once."""
     index = view_index(graph)
     long_track = tracks.length[tracks.track_id] >= min_views
-    rows = [np.full(len(graph.edges[k].matches), index[v], dtype=np.int64) for k in edges
-            for v in (graph.edges[k].i, graph.edges[k].j)]
-    keypoints = [graph.edges[k].matches[:, c].astype(np.int64) for k in edges for c in (0, 1)]
-    stride = 1 + max([int(tracks.feature.max(initial=0))] + [int(x.max(initial=0)) for x in keypoints])
+    stride = 1 + max([int(tracks.feature.max(initial=0))]
+                     + [int(graph.edges[k].matches.max(initial=0)) for k in edges])
     keys = tracks.view[long_track] * stride + tracks.feature[long_track]
     order = np.argsort(keys)
     keys, track_ids = keys[order], tracks.track_id[long_track][order]
     if not keys.size:
         return [np.zeros(len(graph.edges[k].matches), dtype=bool) for k in edges]
-    query = np.concatenate(rows + [np.zeros(0, dtype=np.int64)]) * stride + \
-        np.concatenate(keypoints + [np.zeros(0, dtype=np.int64)])
+    # one key per match end, filled edge by edge (no per-edge row / keypoint lists beside it)
+    query = np.empty(2 * sum(len(graph.edges[k].matches) for k in edges), dtype=np.int64)
+    start = 0
+    for k in edges:
+        edge = graph.edges[k]
+        for v, column in ((edge.i, 0), (edge.j, 1)):
+            m = len(edge.matches)
+            np.add(edge.matches[:, column], index[v] * stride, out=query[start:start + m], dtype=np.int64,
+                   casting="unsafe")
+            start += m
     at = np.minimum(np.searchsorted(keys, query), keys.size - 1)
     track_of = np.where(keys[at] == query, track_ids[at], -1)
     confirmed, start = [], 0

@@ -158,9 +158,12 @@ def add_leaf_view(scene, rng, num_points: int = 60, shared_tracks: int = 0):
             track[order], (view[order] + 1) % (n + 1), xy[order])
 
 
-@pytest.mark.parametrize("max_dense_keys", [4_000_000, 0])  # pair ids by lookup table / by sort
-def test_rigid_views_follow_shared_baselines(monkeypatch, max_dense_keys):
-    monkeypatch.setattr("rotonly_cli.geometry.ligt.MAX_DENSE_KEYS", max_dense_keys)
+# pair ids by lookup table / by sort; the pairs inside tracks in one piece / a track or two at a time
+@pytest.mark.parametrize("max_dense_keys", [4_000_000, 0])
+@pytest.mark.parametrize("pairs_per_chunk", [1 << 19, 1, 4])
+def test_rigid_views_follow_shared_baselines(monkeypatch, max_dense_keys, pairs_per_chunk):
+    monkeypatch.setattr("rotonly_cli.geometry.rigid_views.MAX_DENSE_KEYS", max_dense_keys)
+    monkeypatch.setattr("rotonly_cli.geometry.tracks.PAIRS_PER_CHUNK", pairs_per_chunk)
 
     def rigid(tracks, num_views):
         track = np.repeat(np.arange(len(tracks)), [len(t) for t in tracks])
@@ -419,3 +422,16 @@ def test_updated_normal_matrix_is_the_fresh_assembly_up_to_rounding(monkeypatch)
         assert np.array_equal(updated.result.num_constraints_per_view, fresh.result.num_constraints_per_view)
         assert np.nanmax(np.abs(updated.result.centers - fresh.result.centers)) < 1e-12
         assert np.array_equal(np.isnan(updated.result.centers), np.isnan(fresh.result.centers))
+
+
+def test_chunked_pairs_inside_tracks_give_the_same_solve(monkeypatch):
+    # base views, rigid views and the error points' parallax all enumerate the pairs inside
+    # tracks: a few tracks at a time gives the centres of one piece bit for bit
+    scene = make_street_scene(10, 200, seed=3)
+    whole = robust_ligt_translations(scene.R_cam_from_world, scene.obs_point, scene.obs_view, scene.obs_xy, 1000.0)
+    monkeypatch.setattr("rotonly_cli.geometry.tracks.PAIRS_PER_CHUNK", 7)
+    chunked = robust_ligt_translations(scene.R_cam_from_world, scene.obs_point, scene.obs_view, scene.obs_xy, 1000.0)
+    np.testing.assert_array_equal(chunked.result.centers, whole.result.centers)
+    np.testing.assert_array_equal(chunked.keep, whole.keep)
+    error, _ = similarity_align_error(whole.result.centers, scene.centers)
+    assert error < 1e-8

@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from rotonly_cli.errors import InputError
 from rotonly_cli.geometry.tracks import (
     build_tracks,
     compact_track_ids,
     gather_observations,
+    pairs_in_track_chunks,
     pairs_within_tracks,
     ranks_within,
     segment_indices,
@@ -99,6 +102,30 @@ def test_empty_and_gather():
 def test_pairs_within_tracks():
     a, b = pairs_within_tracks(np.array([0, 3, 4, 6]))
     assert list(zip(a.tolist(), b.tolist())) == [(0, 1), (0, 2), (1, 2), (4, 5)]
+
+
+def test_pairs_in_track_chunks_cut_at_tracks_within_the_budget():
+    # tracks of 3, 1, 2, 0 and 4 observations: 3, 0, 1, 0 and 6 pairs
+    offsets = np.array([0, 3, 4, 6, 6, 10])
+    chunks = list(pairs_in_track_chunks(offsets, max_pairs=4))
+    # a track with more pairs than the budget is a chunk of its own
+    assert [(t0, t1) for t0, t1, _, _ in chunks] == [(0, 4), (4, 5)]
+    a, b = pairs_within_tracks(offsets)
+    for max_pairs in (1, 2, 3, 5, 100):
+        parts = list(pairs_in_track_chunks(offsets, max_pairs=max_pairs))
+        assert [t0 for t0, _, _, _ in parts[1:]] == [t1 for _, t1, _, _ in parts[:-1]] and parts[-1][1] == 5
+        assert all(a_k.size <= max_pairs or t1 == t0 + 1 for t0, t1, a_k, _ in parts)
+        np.testing.assert_array_equal(np.concatenate([a_k for _, _, a_k, _ in parts]), a)
+        np.testing.assert_array_equal(np.concatenate([b_k for _, _, _, b_k in parts]), b)
+    assert list(pairs_in_track_chunks(np.array([0]))) == []
+
+
+def test_build_tracks_takes_int32_matches_and_rejects_negative_keypoints():
+    matches = [np.array([[0, 5], [3, 2]], dtype=np.int32), np.array([[5, 7]], dtype=np.int64)]
+    tracks = build_tracks([(0, 1), (1, 2)], matches)
+    assert tracks.view.tolist() == [0, 1, 2, 0, 1] and tracks.feature.tolist() == [0, 5, 7, 3, 2]
+    with pytest.raises(InputError, match="negative"):
+        build_tracks([(0, 1)], [np.array([[0, -1]])])
 
 
 @given(st.lists(st.integers(0, 40), max_size=60))

@@ -89,6 +89,18 @@ def test_max_ray_angle():
     assert np.allclose(angles, [90.0, 45.0])
 
 
+def test_max_ray_angle_a_track_at_a_time_and_capped(monkeypatch):
+    rays = np.array([[0, 0, 1], [0, 1, 1], [1, 0, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1]], dtype=float)
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    offsets = np.array([0, 3, 3, 4, 6])  # tracks of 3, 0, 1 and 2 rays
+    whole = max_ray_angle_deg(rays, offsets)
+    monkeypatch.setattr("rotonly_cli.geometry.tracks.PAIRS_PER_CHUNK", 1)
+    np.testing.assert_array_equal(max_ray_angle_deg(rays, offsets), whole)
+    assert np.allclose(whole, [90.0, 0.0, 0.0, np.degrees(np.arccos(np.sqrt(2 / 3)))])
+    # the first two rays only: 45 degrees apart
+    assert np.allclose(max_ray_angle_deg(rays, offsets, max_views=2), [45.0, 0.0, 0.0, whole[3]])
+
+
 def test_single_observation_track_is_invalid():
     scene = make_street_scene(4, 20, seed=5)
     result = triangulate_tracks(scene.R_cam_from_world, scene.centers, np.array([0, 1, 1]),

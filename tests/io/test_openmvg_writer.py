@@ -86,8 +86,11 @@ def _scene(rng: np.random.Generator, num_points: int, stored_pixels: bool) -> Sf
     return scene
 
 
+# the landmarks in one piece / a few observations (a landmark or two, with empty ones) at a time
+@pytest.mark.parametrize("observations_per_piece", [1 << 16, 1, 5])
 @pytest.mark.parametrize("stored_pixels", [True, False])
-def test_structure_text_equals_json_dumps_of_reference(stored_pixels):
+def test_structure_text_equals_json_dumps_of_reference(monkeypatch, stored_pixels, observations_per_piece):
+    monkeypatch.setattr(openmvg.sfm_data_writer, "OBSERVATIONS_PER_PIECE", observations_per_piece)
     scene = _scene(np.random.default_rng(11), 400, stored_pixels)
     expected = json.dumps(_reference_structure(scene), indent=4)
     # the structure array sits at indent level 1 inside the document

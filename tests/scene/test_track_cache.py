@@ -51,3 +51,28 @@ def test_graph_tracks_without_a_cache_builds_every_time():
     second, _ = graph_tracks(graph, normalized, [0, 1, 2])
     assert second is not first
     np.testing.assert_array_equal(second.track_id, first.track_id)
+
+
+def test_inlier_matches_weigh_edges_a_group_at_a_time(monkeypatch):
+    from rotonly_cli.scene import tracks as scene_tracks
+
+    rng = np.random.default_rng(3)
+    graph = ViewGraph(views={v: View(v, f"{v}.jpg", 1) for v in (2, 4, 7)})
+    centers = {2: np.zeros(3), 4: np.array([1.0, 0, 0]), 7: np.array([0, 1.0, 0])}
+    points = rng.uniform(-2, 2, size=(50, 3)) + [0, 0, 8]
+    normalized = {v: (points - c)[:, :2] / (points - c)[:, 2:] for v, c in centers.items()}
+    for i, j in ((2, 4), (2, 7), (4, 7)):
+        matches = np.stack([np.arange(40), np.arange(40)], axis=1)
+        if (i, j) == (2, 4):
+            matches[:4, 1] = [3, 0, 1, 2]  # 4 wrong matches
+        graph.edges.append(Edge(i, j, np.eye(3), np.zeros(3), matches))
+    rotations = np.stack([np.eye(3)] * 3)
+    whole = scene_tracks.inlier_matches(graph, normalized, [0, 1, 2], rotations)
+    # some wrong match goes (the swapped points that stay near their epipolar line may stay), no right one
+    assert len(whole[0]) < 40 and set(range(4, 40)) <= set(whole[0][:, 0].tolist())
+    assert [len(m) for m in whole[1:]] == [40, 40]
+    monkeypatch.setattr(scene_tracks, "MATCHES_PER_GROUP", 1)
+    grouped = scene_tracks.inlier_matches(graph, normalized, [0, 1, 2], rotations)
+    assert [m.tolist() for m in grouped] == [m.tolist() for m in whole]
+    # an edge that keeps every match hands over its own array, not a copy
+    assert grouped[1] is graph.edges[1].matches and grouped[2] is graph.edges[2].matches

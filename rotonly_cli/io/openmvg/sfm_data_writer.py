@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -196,39 +197,66 @@ def _float_reprs(values: np.ndarray) -> list[str]:
     return list(map(repr, np.ascontiguousarray(values, dtype=np.float64).reshape(-1).tolist()))
 
 
+#: the structure text is made this many observations at a time (whole landmarks): all of it
+#: at once held ~16 Python strings per observation and the text twice (str, then its bytes)
+OBSERVATIONS_PER_PIECE = 1 << 16
+
+
 def _structure_text(scene: SfMScene) -> str:
-    """The ``structure`` array exactly as json.dumps(indent=4) writes it (at indent level
-    1), as one join of literal texts and value texts (ids as integers, coordinates by
-    :func:`_float_reprs`): no Python loop per landmark or observation. (str.join and one
-    encode are ~2x faster than bytes.join over the ~10⁶ pieces.)"""
+    """The ``structure`` array exactly as json.dumps(indent=4) writes it (at indent level 1)."""
+    return "".join(_structure_pieces(scene))
+
+
+def _structure_pieces(scene: SfMScene) -> Iterator[str]:
+    """:func:`_structure_text` in consecutive pieces of whole landmarks, about
+    OBSERVATIONS_PER_PIECE observations each."""
     flat = _flat_structure(scene)
     num_points = flat.point_ids.size
     if not num_points:
-        return "[]"
-    lengths = flat.track_lengths
+        yield "[]"
+        return
+    ends = np.cumsum(flat.track_lengths)
+    start = 0
+    while start < num_points:
+        before = int(ends[start - 1]) if start else 0
+        stop = min(max(int(np.searchsorted(ends, before + OBSERVATIONS_PER_PIECE, side="right")), start + 1),
+                   num_points)
+        yield _landmarks_text(flat, start, stop, before, int(ends[stop - 1]))
+        start = stop
+
+
+def _landmarks_text(flat: _FlatStructure, start: int, stop: int, first_obs: int, end_obs: int) -> str:
+    """Landmarks [start, stop) of the ``structure`` array (observations [first_obs, end_obs)),
+    with the array's opening before the first landmark and its closing after the last one,
+    else a separating comma before: one join of literal texts and value texts (ids as
+    integers, coordinates by :func:`_float_reprs`), no Python loop per landmark or
+    observation. (str.join and one encode are ~2x faster than bytes.join over the pieces.)"""
+    lengths = flat.track_lengths[start:stop]
+    num_points = stop - start
     # Value slots: per landmark id, X (3), then per observation view, id_feat, x (2).
-    num_values = 4 * num_points + 4 * len(flat.view_feature)
+    num_values = 4 * num_points + 4 * (end_obs - first_obs)
     landmark_start = 4 * np.arange(num_points) + 4 * (np.cumsum(lengths) - lengths)
     observation_start = np.repeat(landmark_start + 4, lengths) + 4 * ranks_within(lengths)
     values = np.empty(num_values, dtype=object)
-    values[landmark_start] = _integer_texts(flat.point_ids)
-    values[(landmark_start[:, None] + np.arange(1, 4)).reshape(-1)] = _float_reprs(flat.points)
-    values[(observation_start[:, None] + np.arange(2)).reshape(-1)] = _integer_texts(flat.view_feature)
-    values[(observation_start[:, None] + np.arange(2, 4)).reshape(-1)] = _float_reprs(flat.pixels)
+    values[landmark_start] = _integer_texts(flat.point_ids[start:stop])
+    values[(landmark_start[:, None] + np.arange(1, 4)).reshape(-1)] = _float_reprs(flat.points[start:stop])
+    values[(observation_start[:, None] + np.arange(2)).reshape(-1)] = \
+        _integer_texts(flat.view_feature[first_obs:end_obs])
+    values[(observation_start[:, None] + np.arange(2, 4)).reshape(-1)] = _float_reprs(flat.pixels[first_obs:end_obs])
 
-    # texts[s] precedes value slot s; texts[-1] ends the array.
+    # texts[s] precedes value slot s; texts[-1] ends the piece.
     closing = np.empty(num_points, dtype=object)
     closing[:] = _CLOSE_NO_OBSERVATIONS
     closing[lengths > 0] = _CLOSE_OBSERVATIONS
     texts = np.empty(num_values + 1, dtype=object)
     texts[landmark_start[1:]] = closing[:-1] + (",\n" + _HEAD_TEXTS[0])
-    texts[0] = "[\n" + _HEAD_TEXTS[0]
+    texts[0] = ("[\n" if start == 0 else ",\n") + _HEAD_TEXTS[0]
     for offset in range(1, 4):
         texts[landmark_start + offset] = _HEAD_TEXTS[offset]
         texts[observation_start + offset] = _OBSERVATION_TEXTS[offset]
     texts[observation_start] = _NEXT_OBSERVATION
     texts[landmark_start[lengths > 0] + 4] = _OPEN_OBSERVATIONS
-    texts[-1] = closing[-1] + _indent(1) + "]"
+    texts[-1] = closing[-1] + (_indent(1) + "]" if stop == flat.point_ids.size else "")
     pieces = np.empty(2 * num_values + 1, dtype=object)
     pieces[0::2] = texts
     pieces[1::2] = values
@@ -321,17 +349,23 @@ def sfm_data_document(scene: SfMScene, include_structure: bool = True) -> dict:
     }
 
 
-def _sfm_data_chunks(scene: SfMScene, include_structure: bool) -> list[bytes]:
+def _sfm_data_chunks(scene: SfMScene, include_structure: bool) -> Iterator[bytes]:
     """sfm_data.json in consecutive pieces: the structure array (most of the file) is
-    built apart and not copied into the small document."""
+    built apart, a few landmarks at a time, and not copied into the small document."""
     document = sfm_data_document(scene, include_structure=False)
     text = json.dumps(document, indent=4, ensure_ascii=False, allow_nan=False)
     if not include_structure or scene.structure is None:
-        return [text.encode("utf-8")]
+        yield text.encode("utf-8")
+        return
     marker = '\n    "structure": [],\n'
     head, tail = text.split(marker)  # exactly one occurrence
-    return [(head + '\n    "structure": ').encode("utf-8"), _structure_text(scene).encode("ascii"),
-            (",\n" + tail).encode("utf-8")]
+    pieces = _structure_pieces(scene)
+    first = next(pieces)  # validated before anything is written
+    yield (head + '\n    "structure": ').encode("utf-8")
+    yield first.encode("ascii")
+    for piece in pieces:
+        yield piece.encode("ascii")
+    yield (",\n" + tail).encode("utf-8")
 
 
 def sfm_data_bytes(scene: SfMScene, include_structure: bool = True) -> bytes:
