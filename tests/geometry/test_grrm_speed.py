@@ -127,3 +127,27 @@ def test_epipolar_trigger_skips_the_phase_only_near_the_optimum(caplog):
     assert res.initial_cost == pytest.approx(ref.initial_cost, rel=1e-12)
     with pytest.raises(ValueError, match="epipolar_trigger"):
         grrm.GRRMOptions(epipolar_trigger=-1.0).validate()
+
+
+def test_an_observation_matched_twice_through_one_edge(setup):
+    """Two matches of one edge through the same keypoint (one-to-many matches): the per-view
+    products add the two contributions' blocks (and their cross terms) as the pairs did."""
+    from rotonly_cli.geometry import pairwise as pg
+
+    p, prob, R, *_ = setup
+    batch, obs_ids = prob.batch, prob.obs_ids
+    twice = np.arange(int(batch.offsets[1]))[:5]  # five matches of edge 0, once more
+    x_i = np.concatenate([batch.x_i[:batch.offsets[1]], batch.x_i[twice], batch.x_i[batch.offsets[1]:]])
+    x_j = np.concatenate([batch.x_j[:batch.offsets[1]], batch.x_j[twice], batch.x_j[batch.offsets[1]:]])
+    ids = np.concatenate([obs_ids[:batch.offsets[1]], obs_ids[twice], obs_ids[batch.offsets[1]:]])
+    offsets = batch.offsets + np.r_[0, np.full(len(batch.offsets) - 1, len(twice))]
+    doubled = pg.EdgeBatch(x_i, x_j, offsets)
+    problem = grrm.GRRMSystem(8, prob.edge_views, doubled, ids)
+    assert problem.layout.dense_pair_blocks
+    V, J = grrm.grrm_residuals(R, prob.edge_views, doubled, ids, with_jacobian=True)
+    sq = np.einsum("gk,gk->g", V, V)
+    _, H, g, _ = problem.linearize(R, "cauchy", 1e9, False, True)  # a scale far beyond: weights ~1
+    _, drho = robust.robust_rho(sq, "cauchy", 1e9)
+    W = sp.diags(np.repeat(drho, 3))
+    H_ref = (J.T @ W @ J).toarray()
+    assert np.max(np.abs(H - H_ref)) <= 1e-12 * np.abs(H_ref).max()

@@ -139,6 +139,15 @@ class Layout:
         self.block_row, self.block_col = self._block_edges(blocks)
         self.num_blocks = len(blocks)
 
+    @property
+    def dense_pair_blocks(self) -> bool:
+        """Pair blocks addressed in dense per-view tables (base[v] + a deg[v] + b)."""
+        return self._occurring is None
+
+    def edges_at(self, v: int) -> np.ndarray:
+        """The edges at view v, in their places (inc_pos) there."""
+        return self._inc_edge[self._view_start[v]:self._view_start[v + 1]]
+
     def _block_edges(self, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The edges (row, column) of dense pair blocks ``index``: block base[v] + a deg[v] + b
         pairs the edges at places a and b of view v."""
