@@ -79,6 +79,12 @@ def _outer_entries(*vectors: np.ndarray) -> np.ndarray:
     return np.stack([sum(v[a] * v[b] for v in vectors) for a, b in _SYMMETRIC_ENTRIES])
 
 
+#: the ray pairs of :func:`max_ray_angle_deg` are formed for this many at a time (tracks in
+#: consecutive chunks): ~100 bytes a pair, so its memory stays ~0.2 GB whatever the tracks'
+#: lengths (1000 views, 100 000 tracks of 27 views on average: 36 M pairs in all)
+MAX_RAY_PAIRS_AT_ONCE = 2_000_000
+
+
 def max_ray_angle_deg(world_rays: np.ndarray, offsets: np.ndarray, max_views: int = 64) -> np.ndarray:
     """Per track the max angle (deg) between two unit rays; only the first ``max_views`` rays."""
     length = np.diff(offsets)
@@ -89,17 +95,23 @@ def max_ray_angle_deg(world_rays: np.ndarray, offsets: np.ndarray, max_views: in
     capped_offsets = np.zeros(num_tracks + 1, dtype=np.int64)
     np.cumsum(np.minimum(length, max_views), out=capped_offsets[1:])
     rays = world_rays[use]
-    a, b = pairs_within_tracks(capped_offsets)
-    cos_angle = np.clip(np.einsum("ij,ij->i", rays[a], rays[b]), -1.0, 1.0)
-    # pairs are grouped by track: per-track minimum cosine with reduceat
     capped_length = np.diff(capped_offsets)
     pair_count = capped_length * (capped_length - 1) // 2
-    pair_start = np.zeros(num_tracks + 1, dtype=np.int64)
-    np.cumsum(pair_count, out=pair_start[1:])
-    has_pair = np.flatnonzero(pair_count > 0)
     min_cos = np.full(num_tracks, 1.0)
-    if has_pair.size:
-        min_cos[has_pair] = np.minimum.reduceat(cos_angle, pair_start[has_pair])
+    pairs_before = np.concatenate([[0], np.cumsum(pair_count)])
+    bounds = np.searchsorted(pairs_before, np.arange(0, pairs_before[-1], MAX_RAY_PAIRS_AT_ONCE), side="right") - 1
+    for first, last in zip(bounds, np.r_[bounds[1:], num_tracks]):
+        last = max(int(last), int(first) + 1)  # a track with more pairs than a chunk is one chunk
+        chunk_offsets = capped_offsets[first:last + 1]
+        a, b = pairs_within_tracks(chunk_offsets - chunk_offsets[0])
+        chunk_rays = rays[chunk_offsets[0]:chunk_offsets[-1]]
+        cos_angle = np.clip(np.einsum("ij,ij->i", chunk_rays[a], chunk_rays[b]), -1.0, 1.0)
+        # pairs are grouped by track: per-track minimum cosine with reduceat
+        count = pair_count[first:last]
+        start = np.concatenate([[0], np.cumsum(count)[:-1]])
+        has_pair = np.flatnonzero(count > 0)
+        if has_pair.size:
+            min_cos[first + has_pair] = np.minimum.reduceat(cos_angle, start[has_pair])
     return np.degrees(np.arccos(min_cos))
 
 
