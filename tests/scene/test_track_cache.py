@@ -51,3 +51,16 @@ def test_graph_tracks_without_a_cache_builds_every_time():
     second, _ = graph_tracks(graph, normalized, [0, 1, 2])
     assert second is not first
     np.testing.assert_array_equal(second.track_id, first.track_id)
+
+
+def test_conflicts_are_handed_out_once_and_not_kept_in_the_cache():
+    graph, normalized = _graph(np.random.default_rng(0))  # random matches: components see views twice
+    cache = TrackCache()
+    tracks, _ = graph_tracks(graph, normalized, [0, 1, 2], cache=cache, keep_conflicts=True)
+    assert tracks.num_inconsistent > 0 and tracks.conflicts.num_components == tracks.num_inconsistent
+    assert cache.last[1].conflicts is None  # the run's cache does not hold them
+    again, _ = graph_tracks(graph, normalized, [0, 1, 2], cache=cache)
+    assert again is cache.last[1] and again.conflicts is None
+    np.testing.assert_array_equal(again.track_id, tracks.track_id)
+    rebuilt, _ = graph_tracks(graph, normalized, [0, 1, 2], cache=cache, keep_conflicts=True)
+    assert rebuilt.conflicts is not None and len(rebuilt.conflicts.edges) == len(tracks.conflicts.edges)
