@@ -2,8 +2,10 @@
 
 Pure numpy/scipy. A track is a connected component of the observation graph whose
 nodes are ``(view, keypoint)`` and whose edges are the pairwise matches. Components that
-contain two different keypoints of the same view are inconsistent and dropped (OpenMVG
-``TracksBuilder::Filter`` does the same). The union-find is done in one call to
+contain two different keypoints of the same view are inconsistent and left out (OpenMVG
+``TracksBuilder::Filter`` does the same); on request their nodes and matches are kept
+(:class:`ConflictGraph`), for geometry.track_split to cut into consistent parts once the
+poses are known. The union-find is done in one call to
 ``scipy.sparse.csgraph.connected_components``, not with a Python loop per match.
 
 Layout of :class:`Tracks`: flat observation arrays sorted by ``(track_id, view)``;
@@ -13,14 +15,30 @@ observations of track ``t`` are ``offsets[t]:offsets[t+1]``.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from rotonly_cli.errors import InputError
 
-__all__ = ["Tracks", "build_tracks", "tracks_from_arrays", "gather_observations", "pairs_within_tracks",
-           "pairs_in_track_chunks", "segment_sums"]
+__all__ = ["Tracks", "ConflictGraph", "build_tracks", "tracks_from_arrays", "gather_observations",
+           "pairs_within_tracks", "pairs_in_track_chunks", "segment_sums"]
+
+
+@dataclass(frozen=True)
+class ConflictGraph:
+    """The components :func:`build_tracks` leaves out because they see one view twice (a wrong
+    match hung a second keypoint of a view on a track, or merged two tracks): their
+    ``(view, feature)`` nodes, each node's component (0..K-1) and the matches between them."""
+
+    view: np.ndarray  # (N_nodes,) int64 view index
+    feature: np.ndarray  # (N_nodes,) int64 keypoint index inside that view
+    component: np.ndarray  # (N_nodes,) int64, 0..num_components-1
+    edges: np.ndarray  # (M, 2) int32 (int64 beyond 2^31 nodes) node indices of the matches, both ends in one component
+
+    @property
+    def num_components(self) -> int:
+        return int(self.component.max()) + 1 if self.component.size else 0
 
 
 @dataclass(frozen=True)
@@ -33,6 +51,7 @@ class Tracks:
     offsets: np.ndarray  # (num_tracks + 1,) int64 start of each track in the flat arrays
     length: np.ndarray  # (num_tracks,) int64 number of observations (= distinct views)
     num_inconsistent: int = 0  # components dropped because they saw one view twice
+    conflicts: ConflictGraph | None = None  # those components, when build_tracks was asked to keep them
 
     @property
     def num_tracks(self) -> int:
@@ -69,18 +88,19 @@ def tracks_from_arrays(track_id: np.ndarray, view: np.ndarray, feature: np.ndarr
 
 
 def build_tracks(pair_keys: Sequence[tuple[int, int]], pair_matches: Sequence[np.ndarray],
-                 min_length: int = 2) -> Tracks:
+                 min_length: int = 2, keep_conflicts: bool = False) -> Tracks:
     """Tracks from pairwise matches.
 
     Args:
         pair_keys: ``(i, j)`` view indices per pair (any order; ``matches[:, 0]`` is in view i).
         pair_matches: per pair an ``(m, 2)`` int array of keypoint indices (view i, view j).
         min_length: drop tracks with fewer observations.
+        keep_conflicts: keep the components that see a view twice in ``Tracks.conflicts``.
 
     Returns:
         :class:`Tracks`; track ids are ordered by their smallest (view, feature) node.
-        Components that contain two keypoints of one view are dropped
-        (counted in ``num_inconsistent``).
+        Components that contain two keypoints of one view are left out
+        (counted in ``num_inconsistent``; with ``keep_conflicts`` in ``conflicts``).
     """
     from scipy.sparse import coo_matrix  # lazily, like scene.view_graph
     from scipy.sparse.csgraph import connected_components
@@ -129,12 +149,26 @@ def build_tracks(pair_keys: Sequence[tuple[int, int]], pair_matches: Sequence[np
     keep_node = keep_label[label]
     # dense renumbering in order of first node (labels already follow node order)
     new_id = np.cumsum(keep_label) - 1
-    return tracks_from_arrays(new_id[label[keep_node]], node_view[keep_node], node_feat[keep_node],
-                              num_inconsistent=int(bad_label.size))
+    tracks = tracks_from_arrays(new_id[label[keep_node]], node_view[keep_node], node_feat[keep_node],
+                                num_inconsistent=int(bad_label.size))
+    if not keep_conflicts:
+        return tracks
+    conflicting = np.zeros(component_size.size, dtype=bool)
+    conflicting[bad_label] = True
+    node_conflicting = conflicting[label]
+    node_index = np.cumsum(node_conflicting) - 1  # node -> its row among the conflicting ones
+    end_a, end_b = node_of_end[:num_edges], node_of_end[num_edges:]
+    edge_kept = node_conflicting[end_a]  # both ends share a component
+    component = np.cumsum(conflicting) - 1
+    conflicts = ConflictGraph(node_view[node_conflicting], node_feat[node_conflicting],
+                              component[label[node_conflicting]],
+                              np.stack([node_index[end_a[edge_kept]], node_index[end_b[edge_kept]]],
+                                       axis=1).astype(np.int32 if node_index.size < 2**31 else np.int64))
+    return replace(tracks, conflicts=conflicts)
 
 
-def gather_observations(tracks: Tracks, per_view_points: Sequence[np.ndarray]) -> np.ndarray:
-    """Per observation the row ``per_view_points[view][feature]``, batched: (N_obs, d)."""
+def gather_observations(tracks: Tracks | ConflictGraph, per_view_points: Sequence[np.ndarray]) -> np.ndarray:
+    """Per observation (or conflict node) the row ``per_view_points[view][feature]``, batched: (N_obs, d)."""
     sizes = np.array([len(p) for p in per_view_points], dtype=np.int64)
     start = np.zeros(len(sizes) + 1, dtype=np.int64)
     np.cumsum(sizes, out=start[1:])

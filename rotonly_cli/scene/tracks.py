@@ -7,6 +7,8 @@ the run (``chain.Run.tracks``), builds them once. Without a cache every call bui
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from rotonly_cli.geometry.tracks import Tracks, build_tracks, gather_observations
@@ -78,20 +80,25 @@ def _edge_groups(edges: list[int], counts: list[int]) -> list[list[int]]:
 
 
 def graph_tracks(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: list[int],
-                 R_cam_from_world: np.ndarray | None = None, cache: TrackCache | None = None):
+                 R_cam_from_world: np.ndarray | None = None, cache: TrackCache | None = None,
+                 keep_conflicts: bool = False):
     """(Tracks in sorted-view-id row space, (N_obs, 2) normalized observations) of ``edges``;
-    with the global rotations, gross outlier matches are left out (MIN_MATCH_WEIGHT)."""
+    with the global rotations, gross outlier matches are left out (MIN_MATCH_WEIGHT).
+    ``keep_conflicts``: the components that see a view twice in ``Tracks.conflicts``
+    (geometry.tracks.build_tracks); the tracks themselves are the same either way."""
     index = view_index(graph)
     matches = [graph.edges[k].matches for k in edges] if R_cam_from_world is None else \
         inlier_matches(graph, normalized, edges, R_cam_from_world, cache=cache)
     pair_keys = [(index[graph.edges[k].i], index[graph.edges[k].j]) for k in edges]
     key = (len(index), tuple(pair_keys), tuple(hash(m.tobytes()) for m in matches),
            tuple(m.shape[0] for m in matches))
-    if cache is not None and cache.last is not None and cache.last[0] == key:
+    if cache is not None and cache.last is not None and cache.last[0] == key and not keep_conflicts:
         tracks = cache.last[1]
     else:
-        tracks = build_tracks(pair_keys, matches)
+        tracks = build_tracks(pair_keys, matches, keep_conflicts=keep_conflicts)
         if cache is not None:
-            cache.last = (key, tracks)
+            # the conflicts (nodes and matches of up to all the tracks) are used once, by the
+            # caller that asked for them, and not kept for the rest of the run
+            cache.last = (key, replace(tracks, conflicts=None) if keep_conflicts else tracks)
     per_view = [normalized.get(v, np.zeros((0, 2))) for v in graph.view_ids()]
     return tracks, gather_observations(tracks, per_view)

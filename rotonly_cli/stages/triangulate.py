@@ -14,7 +14,14 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.geometry.ligt import LiGTOptions, observation_errors, outlier_threshold_px
-from rotonly_cli.geometry.tracks import Tracks, compact_track_ids, in_tracks_of_two, tracks_from_arrays
+from rotonly_cli.geometry.track_split import split_conflicts
+from rotonly_cli.geometry.tracks import (
+    Tracks,
+    compact_track_ids,
+    gather_observations,
+    in_tracks_of_two,
+    tracks_from_arrays,
+)
 from rotonly_cli.geometry.triangulation import TriangulationOptions, triangulate_tracks
 from rotonly_cli.io.images import image_file
 from rotonly_cli.scene.ids import observation_lists
@@ -24,6 +31,9 @@ from rotonly_cli.scene.view_graph import ViewGraph
 
 logger = logging.getLogger(__name__)
 GREY = 128
+#: the reprojection threshold (px) that splits tracks merged by a wrong match when no
+#: consistent track gives one: OpenMVG's 4 px outlier rule (TriangulationOptions)
+SPLIT_FALLBACK_THRESHOLD_PX = 4.0
 
 
 def _read_images(paths: list[Path], threads: int) -> Iterator[np.ndarray | None]:
@@ -224,31 +234,69 @@ class TriangulatedTracks:
     outlier_sigma_px: float
     outlier_threshold_px: float
     outlier_sigma_px_by_camera: dict
+    split: dict | None = None  # geometry.track_split's counts, when tracks were split
+
+
+def _with_split_parts(tracks: Tracks, obs_xy: np.ndarray, error_px: np.ndarray, R: np.ndarray, centers: np.ndarray,
+                      per_view: list[np.ndarray], focal: np.ndarray, threshold_px: float):
+    """(tracks, observations, errors in px) with the consistent parts of the components that
+    see a view twice (geometry.track_split, at ``threshold_px``) appended as new tracks, and
+    the split's report."""
+    conflicts = tracks.conflicts
+    xy = gather_observations(conflicts, per_view)
+    C = np.where(np.isfinite(centers), centers, 0.0)
+    split = split_conflicts(R, C, conflicts, xy, threshold_px / focal[conflicts.view])
+    keep = split.part >= 0
+    order = np.lexsort((conflicts.view[keep], split.part[keep]))  # tracks_from_arrays' order
+    part, view = split.part[keep][order], conflicts.view[keep][order]
+    part_xy = xy[keep][order]
+    part_error = observation_errors(R, centers, part, view, part_xy, np.ones(part.size, dtype=bool)) * focal[view]
+    merged = tracks_from_arrays(np.concatenate([tracks.track_id, tracks.num_tracks + part]),
+                                np.concatenate([tracks.view, view]),
+                                np.concatenate([tracks.feature, conflicts.feature[keep][order]]),
+                                tracks.num_inconsistent)
+    return (merged, np.concatenate([obs_xy, part_xy]), np.concatenate([error_px, part_error]),
+            {**split.report(), "num_observations": int(part.size)})
 
 
 def triangulated_tracks(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.ndarray, centers: np.ndarray,
                         options: TriangulationOptions | None = None, track_cache: TrackCache | None = None,
-                        outliers: LiGTOptions | None = None) -> TriangulatedTracks:
+                        outliers: LiGTOptions | None = None, split: bool = True) -> TriangulatedTracks:
     """The tracks of the active edges between posed views (gross outlier matches left out
     under the rotations, scene.tracks.graph_tracks), each observation tested against the
     rest of its track (``outliers``: the robust LiGT rounds' test, once), triangulated; the
-    tracks with a valid point. Shared by :func:`triangulate_graph` and the reject stage's
-    confirmation of matches by their tracks (stages/reject.py)."""
+    tracks with a valid point. ``split``: the components that see a view twice (a wrong
+    match merged them) are cut into their consistent parts (geometry.track_split) at the
+    threshold of that test, and the parts join the tracks; otherwise they are left out.
+    Shared by :func:`triangulate_graph` and the reject stage's confirmation of matches by
+    their tracks (stages/reject.py)."""
     outliers = outliers or LiGTOptions()
     view_ids = graph.view_ids()
     focal = scene.focal_px(view_ids)
     focal = np.where(np.isfinite(focal), focal, 1000.0)
     posed, edges = posed_edges(graph, R_cam_from_world, centers)
     R = np.where(posed[:, None, None], R_cam_from_world, np.eye(3))
-    tracks, obs_xy = graph_tracks(graph, scene.normalized, edges, R, cache=track_cache)
+    tracks, obs_xy = graph_tracks(graph, scene.normalized, edges, R, cache=track_cache, keep_conflicts=split)
     C = np.where(posed[:, None], centers, 0.0)
+    centers_or_nan = np.where(posed[:, None], centers, np.nan)
     # the outlier test of the robust LiGT rounds (stages/translate): observations that
     # reproject badly against the rest of their track leave it before the final solve
-    num_observations = tracks.num_observations
-    error = observation_errors(R, np.where(posed[:, None], centers, np.nan), tracks.track_id, tracks.view,
-                               obs_xy, np.ones(num_observations, dtype=bool)) * focal[tracks.view]
+    error = observation_errors(R, centers_or_nan, tracks.track_id, tracks.view, obs_xy,
+                               np.ones(tracks.num_observations, dtype=bool)) * focal[tracks.view]
     finite = np.isfinite(error)
     sigma, threshold = outlier_threshold_px(error[finite], outliers) if finite.any() else (np.nan, np.inf)
+    split_report = None
+    if split and tracks.conflicts is not None and tracks.conflicts.view.size:
+        # the threshold is the consistent tracks' (their test is the same with or without the
+        # split); when every component saw a view twice, the split's own parts give it
+        per_view = [scene.normalized.get(v, np.zeros((0, 2))) for v in view_ids]
+        tracks, obs_xy, error, split_report = _with_split_parts(
+            tracks, obs_xy, error, R, centers_or_nan, per_view, focal,
+            threshold if np.isfinite(threshold) else SPLIT_FALLBACK_THRESHOLD_PX)
+        finite = np.isfinite(error)
+        if not np.isfinite(threshold) and finite.any():
+            sigma, threshold = outlier_threshold_px(error[finite], outliers)
+    num_observations = tracks.num_observations
     camera_sigma = _sigma_by_camera(scene, view_ids, tracks.view[finite], error[finite])
     tracks, obs_xy = _keep_observations(tracks, obs_xy, error <= threshold)
     result = triangulate_tracks(R, C, tracks.track_id, tracks.view, obs_xy, tracks.num_tracks, options)
@@ -256,7 +304,8 @@ def triangulated_tracks(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.
     return TriangulatedTracks(tracks.subset(valid), result.points_in_world[valid],
                               result.mean_reprojection_error[valid],
                               len(edges), num_observations, int(num_observations - tracks.num_observations),
-                              tracks.num_tracks, int((~result.in_front).sum()), sigma, threshold, camera_sigma)
+                              tracks.num_tracks, int((~result.in_front).sum()), sigma, threshold, camera_sigma,
+                              split_report)
 
 
 def triangulate_graph(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.ndarray, centers: np.ndarray,
@@ -301,6 +350,7 @@ def triangulate_graph(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.nd
               "num_tracks": solved.num_tracks, "num_points": kept.num_tracks,
               "num_rejected": int(solved.num_tracks - kept.num_tracks),
               "num_behind_camera": solved.num_behind_camera,
+              **({"split_tracks": solved.split} if solved.split is not None else {}),
               "track_length_mean": float(kept.length.mean()) if kept.num_tracks else 0.0,
               "reprojection_error_normalized_median": float(np.median(error)) if error.size else None,
               **color_report, "time_s": time.perf_counter() - start}

@@ -101,6 +101,22 @@ def test_max_ray_angle_a_track_at_a_time_and_capped(monkeypatch):
     assert np.allclose(max_ray_angle_deg(rays, offsets, max_views=2), [45.0, 0.0, 0.0, whole[3]])
 
 
+def test_max_ray_angle_in_chunks_of_pairs_is_the_same(monkeypatch):
+    rng = np.random.default_rng(4)
+    length = rng.integers(1, 12, size=300)
+    offsets = np.concatenate([[0], np.cumsum(length)])
+    rays = rng.normal(size=(offsets[-1], 3))
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    whole = max_ray_angle_deg(rays, offsets, max_views=8)
+    monkeypatch.setattr("rotonly_cli.geometry.tracks.PAIRS_PER_CHUNK", 7)  # ~ one track a chunk, some of two
+    np.testing.assert_array_equal(max_ray_angle_deg(rays, offsets, max_views=8), whole)
+    # the python loop: max over all pairs of the first 8 rays
+    expected = [max((np.degrees(np.arccos(np.clip(rays[s + a] @ rays[s + b], -1, 1)))
+                     for a in range(min(n, 8)) for b in range(a + 1, min(n, 8))), default=0.0)
+                for s, n in zip(offsets[:-1], length)]
+    np.testing.assert_allclose(whole, expected, atol=1e-9)
+
+
 def test_single_observation_track_is_invalid():
     scene = make_street_scene(4, 20, seed=5)
     result = triangulate_tracks(scene.R_cam_from_world, scene.centers, np.array([0, 1, 1]),

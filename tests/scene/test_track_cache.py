@@ -76,3 +76,16 @@ def test_inlier_matches_weigh_edges_a_group_at_a_time(monkeypatch):
     assert [m.tolist() for m in grouped] == [m.tolist() for m in whole]
     # an edge that keeps every match hands over its own array, not a copy
     assert grouped[1] is graph.edges[1].matches and grouped[2] is graph.edges[2].matches
+
+
+def test_conflicts_are_handed_out_once_and_not_kept_in_the_cache():
+    graph, normalized = _graph(np.random.default_rng(0))  # random matches: components see views twice
+    cache = TrackCache()
+    tracks, _ = graph_tracks(graph, normalized, [0, 1, 2], cache=cache, keep_conflicts=True)
+    assert tracks.num_inconsistent > 0 and tracks.conflicts.num_components == tracks.num_inconsistent
+    assert cache.last[1].conflicts is None  # the run's cache does not hold them
+    again, _ = graph_tracks(graph, normalized, [0, 1, 2], cache=cache)
+    assert again is cache.last[1] and again.conflicts is None
+    np.testing.assert_array_equal(again.track_id, tracks.track_id)
+    rebuilt, _ = graph_tracks(graph, normalized, [0, 1, 2], cache=cache, keep_conflicts=True)
+    assert rebuilt.conflicts is not None and len(rebuilt.conflicts.edges) == len(tracks.conflicts.edges)
