@@ -322,6 +322,11 @@ class GRRMSystem:
         Bs = B[:, contrib]
         v_c = [np.repeat(scaled[a], sizes_obs) for a in range(3)]
         q = np.stack([v_c[0] * Bs[c] + v_c[1] * Bs[3 + c] + v_c[2] * Bs[6 + c] for c in range(3)])
+        if not len(contrib):
+            return
+        if self.layout.dense_pair_blocks:
+            _view_products(self.layout, q, sizes_obs, edges[contrib], side[contrib], diag, off)
+            return
         diag += _block_products(q, q, edges[contrib], self.E, symmetric=True)
         pa, pb = pairs_in_block(sizes_obs)  # positions in ``contrib``
         if len(pa):
@@ -441,14 +446,16 @@ def _view_products(layout: Layout, Bw: np.ndarray, sizes: np.ndarray, edges: np.
                    diag: np.ndarray, off: np.ndarray) -> None:
     """Adds Σ_g Bw_cᵀ Bw_c' over every pair (c, c') of contributions of each observation of a
     block, per view as one matrix product: the observations g of view v in rows, the d_v edges
-    at v in columns, X[3g + a, 3 pos(e_c) + c] = (Bw_c)_ac, so XᵀX holds in its block (a, b)
-    the sum over the observations of Bw_aᵀ Bw_b of their contributions through the edges at
-    places a and b of view v: its diagonal blocks go to ``diag`` (the edge's own products;
-    two contributions of one observation through one edge add their cross terms there too),
-    its blocks above the diagonal to the dense pair table ``off`` (base[v] + a d_v + b;
-    _assemble adds their transposes). The same sums as the products of the pairs, at the speed
-    of a BLAS product instead of an array pass per pair component (issue 49: 10⁸ pairs and
-    more at 1000 views)."""
+    at v in columns, X[k g + a, 3 pos(e_c) + c] = (Bw_c)_ac (Bw: (3k, s), k x 3 blocks: the
+    Jacobian's 3 x 3, or the remainder's 1 x 3 rows), so XᵀX holds in its block (a, b) the sum
+    over the observations of Bw_aᵀ Bw_b of their contributions through the edges at places a
+    and b of view v: its diagonal blocks go to ``diag`` (the edge's own products; two
+    contributions of one observation through one edge add their cross terms there too), its
+    blocks above the diagonal to the dense pair table ``off`` (base[v] + a d_v + b; _assemble
+    adds their transposes). The same sums as the products of the pairs, at the speed of a BLAS
+    product instead of an array pass per pair component (issue 49: 10⁸ pairs and more at 1000
+    views)."""
+    k = Bw.shape[0] // 3
     slot = 2 * edges.astype(np.int64) + side
     first = np.concatenate([[0], np.cumsum(sizes)[:-1]])
     obs_view = layout.edge_views[edges[first], side[first]]
@@ -461,13 +468,14 @@ def _view_products(layout: Layout, Bw: np.ndarray, sizes: np.ndarray, edges: np.
         c1 = int(first[r1]) if r1 < len(first) else len(edges)
         obs_local = np.repeat(np.arange(r1 - r0), sizes[r0:r1])
         pos = layout.inc_pos[slot[c0:c1]]
-        X = np.zeros((r1 - r0, d, 3, 3))  # [g, place, a, c]
-        blocks = Bw[:, c0:c1].T.reshape(-1, 3, 3)
-        if len(np.unique(obs_local * d + pos)) == len(pos):
+        X = np.zeros((r1 - r0, d, k, 3))  # [g, place, a, c]
+        blocks = Bw[:, c0:c1].T.reshape(-1, k, 3)
+        cell = obs_local * d + pos
+        if np.bincount(cell, minlength=(r1 - r0) * d).max() <= 1:
             X[obs_local, pos] = blocks
         else:  # an observation matched twice through one edge: its two blocks add up
             np.add.at(X, (obs_local, pos), blocks)
-        X = X.transpose(0, 2, 1, 3).reshape(3 * (r1 - r0), 3 * d)
+        X = X.transpose(0, 2, 1, 3).reshape(k * (r1 - r0), 3 * d)
         S = (X.T @ X).reshape(d, 3, d, 3).transpose(0, 2, 1, 3)  # [place a, place b, p, q]
         edges_at_v = layout.edges_at(v)
         diag[edges_at_v] += S[np.arange(d), np.arange(d)].reshape(d, 9)
