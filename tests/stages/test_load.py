@@ -161,7 +161,7 @@ def _simulated_pair(num_inliers: int, num_outliers: int, seed: int = 0):
 def test_the_consensus_runs_make_the_trials_the_first_runs_inlier_ratio_needs(monkeypatch):
     """A pair of 1200 matches, 25 % of them random: the first run has the 20-trial floor and
     the min_inliers bound (30 / 1200: the 2000 cap); it finds the inlier ratio (0.75), and
-    each consensus run is given exactly the trials that ratio needs at 0.9999 (34), no floor."""
+    each consensus run stops at the trials that ratio needs at 0.9999 (34), above the floor."""
     import pycolmap
 
     from rotonly_cli.geometry import pairwise as pg
@@ -184,15 +184,17 @@ def test_the_consensus_runs_make_the_trials_the_first_runs_inlier_ratio_needs(mo
     # 0.75 needs 34 trials; the run's ratio is the 900 within a few matches (35 at 0.745)
     fewest, most = (pg.ransac_trials_needed(r, 5, options.ransac_confidence) for r in (0.76, 0.74))
     assert (fewest, most) == (32, 37)
-    assert len(set(given[1:])) == 1 and given[1][0] == given[1][1] and fewest <= given[1][0] <= most, given
-    assert load.ransac_trials(1200, options, 0.99) == (4, 4)  # pairs of verified matches: 4 trials, not 20
+    assert len(set(given[1:])) == 1 and given[1][0] == 20 and fewest <= given[1][1] <= most, given
+    assert load.ransac_trials(1200, options, 0.99) == (20, 20)  # 4 needed: the floor stays
+    assert load.ransac_trials(1200, options, 0.3) == (20, 2000)  # 4549 needed: the cap
 
 
 def test_runs_that_agree_are_not_repeated_and_runs_that_differ_are():
-    """A clean pair's first two runs keep the same matches: it makes two runs, not four, and
-    keeps the matches both accept. Masks that differ in more than the agreement do not agree."""
+    """consensus_agreement: a clean pair's first two runs keep the same matches, so it makes
+    two runs, not four, and keeps the matches both accept. Masks that differ in more than the agreement do not agree."""
     scene = _simulated_pair(1500, 0)
-    graph, report = load.build_view_graph(scene, LoadOptions(ransac_max_error_px=1.0, jobs=1))
+    graph, report = load.build_view_graph(scene, LoadOptions(ransac_max_error_px=1.0, jobs=1,
+                                                             consensus_agreement=0.01))
     assert report["ransac_runs"] == 2
     assert graph.edges[0].num_inliers >= 1450
     every, _ = load.build_view_graph(scene, LoadOptions(ransac_max_error_px=1.0, jobs=1, consensus_agreement=None))
