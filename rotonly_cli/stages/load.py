@@ -12,8 +12,10 @@ x the noise sigma of the matches (Sampson errors of a loose RANSAC on the larges
 Each edge runs ``consensus_runs`` seeded RANSACs and keeps the stable consensus: the matches
 that every run accepts (:func:`stable_consensus`); an edge whose first run falls short of
 ``min_inliers`` gets no further runs (it would be filtered anyway), and no run goes on beyond
-the trials an inlier ratio of ``min_inliers`` / its matches needs. Dropped matches are counted
-per edge and reason. It is per-edge C++ work, so a loop over edges is fine here.
+the trials an inlier ratio of ``min_inliers`` / its matches needs (a consensus run: beyond
+those its first run's inlier ratio needs). An edge whose first two runs, on a smaller subset,
+agree may keep them (``consensus_agreement``, off by default: :func:`_consensus_runs`).
+Dropped matches are counted per edge and reason. It is per-edge C++ work, so a loop over edges is fine here.
 """
 
 from __future__ import annotations
@@ -134,22 +136,37 @@ def focal_length(intrinsics: Intrinsics) -> float:
     return intrinsics.focal_px
 
 
+def ransac_trials(num_matches: int, options: LoadOptions, inlier_ratio: float | None = None) -> tuple[int, int]:
+    """(min, max) RANSAC trials of an edge of ``num_matches`` matches.
+
+    An edge needs min_inliers of its matches to survive: a RANSAC that has not drawn a model
+    with that many after the trials such an inlier ratio needs has, at this confidence, an
+    edge that is filtered anyway (weak pairs are the ones that run to the trial limit). With
+    the edge's ``inlier_ratio`` known (its first run's), a consensus run stops at the trials
+    that ratio needs, but not below the ``ransac_min_trials`` floor: without it (4 trials at
+    0.99) the 1000-view recipe's consensus runs settled on worse models, dropping 7x more
+    matches as unstable and 3 of its 10 000 edges (docs/tuning.md)."""
+    ceiling = max(options.ransac_max_trials, options.ransac_min_trials)
+    needed = pg.ransac_trials_needed(options.min_inliers / max(num_matches, 1), ESSENTIAL_SAMPLE_SIZE,
+                                     options.ransac_confidence)
+    max_trials = int(np.clip(needed, options.ransac_min_trials, ceiling))
+    if inlier_ratio is not None:
+        known = pg.ransac_trials_needed(inlier_ratio, ESSENTIAL_SAMPLE_SIZE, options.ransac_confidence)
+        max_trials = int(np.clip(known, options.ransac_min_trials, max_trials))
+    return options.ransac_min_trials, max_trials
+
+
 def _relative_pose_ransac(x_i: np.ndarray, x_j: np.ndarray, focal_i: float, focal_j: float, max_error_px: float,
-                          seed: int, options: LoadOptions):
+                          seed: int, options: LoadOptions, inlier_ratio: float | None = None):
     """pycolmap LO-RANSAC on normalized points through SIMPLE_PINHOLE(f, 0, 0) cameras, so
     the threshold is in pixels. Returns (R_j_from_i, unit t, inlier mask) or None.
+    ``inlier_ratio``: the edge's, when known (:func:`ransac_trials`).
 
     Beyond ``options.ransac_max_matches`` matches RANSAC runs on a seeded random subset of
     that size, and the inliers are every match within the threshold of its model (Sampson)."""
     import pycolmap
 
-    # an edge needs min_inliers of its matches to survive: a RANSAC that has not drawn a model
-    # with that many after the trials such an inlier ratio needs has, at this confidence, an
-    # edge that is filtered anyway (weak pairs are the ones that run to the trial limit)
-    trials_needed = pg.ransac_trials_needed(options.min_inliers / max(len(x_i), 1), ESSENTIAL_SAMPLE_SIZE,
-                                            options.ransac_confidence)
-    max_trials = int(np.clip(trials_needed, options.ransac_min_trials,
-                             max(options.ransac_max_trials, options.ransac_min_trials)))
+    min_trials, max_trials = ransac_trials(len(x_i), options, inlier_ratio)
     subset = None
     if options.ransac_max_matches is not None and len(x_i) > options.ransac_max_matches:
         subset = np.sort(np.random.default_rng(seed).choice(len(x_i), options.ransac_max_matches, replace=False))
@@ -157,7 +174,7 @@ def _relative_pose_ransac(x_i: np.ndarray, x_j: np.ndarray, focal_i: float, foca
 
     cameras = [pycolmap.Camera(model=pycolmap.CameraModelId.SIMPLE_PINHOLE, width=2, height=2,
                                params=np.array([f, 0.0, 0.0])) for f in (focal_i, focal_j)]
-    ransac = pycolmap.RANSACOptions(max_error=max_error_px, random_seed=seed, min_num_trials=options.ransac_min_trials,
+    ransac = pycolmap.RANSACOptions(max_error=max_error_px, random_seed=seed, min_num_trials=min_trials,
                                     max_num_trials=max_trials,
                                     confidence=options.ransac_confidence,
                                     dyn_num_trials_multiplier=options.ransac_trials_multiplier)
@@ -177,7 +194,7 @@ def _relative_pose_ransac(x_i: np.ndarray, x_j: np.ndarray, focal_i: float, foca
 def _pool_map(function, items: list, progress: bool, desc: str, threads: int = 0) -> list:
     """``function`` over ``items`` on ``threads`` threads (0: one per usable CPU; pycolmap
     releases the GIL inside RANSAC; every call is seeded, so the results do not depend on the
-    scheduling)."""
+    scheduling). In a pipe the runs are counted for the progress lines (runtime/heartbeat)."""
     from concurrent.futures import ThreadPoolExecutor
 
     from rotonly_cli.runtime.parallel import usable_cpus
@@ -204,12 +221,11 @@ MIN_NOISE_SAMPLES = 50
 MIN_THRESHOLD_PX = 0.05
 
 
-def noise_sigma_px(pairs: list[tuple[np.ndarray, np.ndarray, float, float]], options: LoadOptions) -> float | None:
+def noise_sigma_px(pairs: EdgeCoordinates, options: LoadOptions) -> float | None:
     """Noise sigma (px) of the matches under the essential-matrix model: 1.4826 x the median
     Sampson error of the inliers of a loose RANSAC (``options.noise_ransac_max_error_px``) on
-    the largest ``noise_sample_edges`` pairs ``(x_i, x_j, focal_i, focal_j)``; None with too
-    few inliers."""
-    order = sorted(range(len(pairs)), key=lambda k: -len(pairs[k][0]))[:options.noise_sample_edges]
+    the largest ``noise_sample_edges`` pairs; None with too few inliers."""
+    order = sorted(range(len(pairs)), key=lambda k: -pairs.num_matches(k))[:options.noise_sample_edges]
 
     def residuals(k: int) -> np.ndarray:
         x_i, x_j, focal_i, focal_j = pairs[k]
@@ -224,6 +240,14 @@ def noise_sigma_px(pairs: list[tuple[np.ndarray, np.ndarray, float, float]], opt
     return 1.4826 * float(np.median(errors)) if errors.size >= MIN_NOISE_SAMPLES else None
 
 
+def runs_agree(estimates: list, agreement: float) -> bool:
+    """Whether an edge's RANSAC runs (R, t, inlier mask) keep the same matches: those that
+    some but not all of them accept are at most ``agreement`` x the matches any accepts."""
+    masks = [estimate[2] for estimate in estimates]
+    union, common = np.logical_or.reduce(masks), np.logical_and.reduce(masks)
+    return int(union.sum() - common.sum()) <= agreement * int(union.sum())
+
+
 def stable_consensus(estimates: list) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """One edge's seeded RANSAC results (R, t, inlier mask) -> (R, t, stable mask): the
     matches that are inliers of every run, with the pose of the run whose rotation is closest
@@ -236,13 +260,15 @@ def stable_consensus(estimates: list) -> tuple[np.ndarray, np.ndarray, np.ndarra
     if not estimates or any(estimate is None for estimate in estimates):
         return None
     stable = np.logical_and.reduce([estimate[2] for estimate in estimates])
+    if len(estimates) <= 2:  # the two sums of angles are equal: the first run's pose, as argmin takes it
+        return estimates[0][0], estimates[0][1], stable
     R = np.stack([estimate[0] for estimate in estimates])
     spread = so3.geodesic_angle(R[:, None], R[None, :]).sum(axis=1)
     best = estimates[int(np.argmin(spread))]
     return best[0], best[1], stable
 
 
-def _edges_to_estimate(scene: SfMScene, options: LoadOptions) -> tuple[ViewGraph, list[int], list[tuple]]:
+def _edges_to_estimate(scene: SfMScene, options: LoadOptions) -> tuple[ViewGraph, list[int], EdgeCoordinates]:
     """The view graph of every pair (edges filtered where the input rules them out), the
     edges whose pose is re-estimated and their (x_i, x_j, focal_i, focal_j)."""
     graph = ViewGraph(views=dict(scene.views))
@@ -266,13 +292,84 @@ def _edges_to_estimate(scene: SfMScene, options: LoadOptions) -> tuple[ViewGraph
         elif not has_pose:
             edge.filter("no relative pose")
 
-    def edge_data(k: int) -> tuple[np.ndarray, np.ndarray, float, float]:
-        edge = graph.edges[k]
+    return graph, to_estimate, EdgeCoordinates(scene, graph, to_estimate)
+
+
+class EdgeCoordinates:
+    """The ``(x_i, x_j, focal_i, focal_j)`` of the edges ``to_estimate`` (indices into
+    ``graph.edges``), gathered when a RANSAC run asks for them: all of them at once would hold
+    32 bytes per match (0.7 GB for 21 M matches) for the whole stage."""
+
+    def __init__(self, scene: SfMScene, graph: ViewGraph, to_estimate: list[int]):
+        self._scene, self._edges = scene, [graph.edges[k] for k in to_estimate]
+
+    def __len__(self) -> int:
+        return len(self._edges)
+
+    def num_matches(self, n: int) -> int:
+        return len(self._edges[n].matches)
+
+    def __getitem__(self, n: int) -> tuple[np.ndarray, np.ndarray, float, float]:
+        edge, scene = self._edges[n], self._scene
         return (scene.normalized[edge.i][edge.matches[:, 0]], scene.normalized[edge.j][edge.matches[:, 1]],
                 focal_length(scene.intrinsics[scene.views[edge.i].intrinsics_id]),
                 focal_length(scene.intrinsics[scene.views[edge.j].intrinsics_id]))
 
-    return graph, to_estimate, [edge_data(k) for k in to_estimate]
+
+def _consensus_runs(pairs: EdgeCoordinates, threshold: float, options: LoadOptions) -> list[list]:
+    """Every edge's seeded RANSAC runs (R, t, inlier mask; None where one failed), for
+    :func:`stable_consensus`.
+
+    The first run of every edge, then the other runs only where it found enough inliers: the
+    stable consensus is a subset of every run's inliers, so an edge whose first run falls
+    short of --min-inliers is filtered whatever the others find (weak pairs are also the ones
+    whose RANSAC runs to its trial limit). The consensus runs know the edge's inlier ratio
+    (the first run's) and stop at the trials it needs (:func:`ransac_trials`).
+
+    With ``consensus_agreement``, the first two runs see at most ``agreement_max_matches``
+    matches; an edge whose two runs agree (:func:`runs_agree`) keeps them. The others make
+    their ``consensus_runs`` runs on ``ransac_max_matches`` (those with no more matches than
+    the smaller subset go on from the two runs they made, which are the same)."""
+    def estimate_run(run: tuple[int, int, float | None, LoadOptions]):
+        x_i, x_j, focal_i, focal_j = pairs[run[0]]
+        return _relative_pose_ransac(x_i, x_j, focal_i, focal_j, threshold, run[1], run[3], run[2])
+
+    def make_runs(edges: list[int], r: int, ratio: dict, run_options: LoadOptions, what: str) -> None:
+        runs = [(n, options.seed + r, ratio.get(n), run_options) for n in edges]
+        for (n, *_), estimate in zip(runs, _pool_map(estimate_run, runs, options.progress, what, options.jobs)):
+            runs_of_edge[n].append(estimate)
+
+    def strong(edges: list[int]) -> dict[int, float]:
+        """The edges whose first run found min_inliers, and their inlier ratios."""
+        return {n: float(runs_of_edge[n][0][2].mean()) for n in edges if runs_of_edge[n][0] is not None
+                and int(runs_of_edge[n][0][2].sum()) >= options.min_inliers}
+
+    full = options.ransac_max_matches
+    probing = options.consensus_agreement is not None and options.consensus_runs > 2
+    probe = replace(options, ransac_max_matches=options.agreement_max_matches if full is None
+                    else min(full, options.agreement_max_matches)) if probing else options
+    runs_of_edge: list[list] = [[] for _ in range(len(pairs))]
+    make_runs(list(range(len(pairs))), 0, {}, probe, "relative poses (RANSAC)")
+    ratio = strong(range(len(pairs)))
+    pending = list(ratio)
+    if probing:
+        make_runs(pending, 1, ratio, probe, "relative poses (second run)")
+        pending = [n for n in pending if runs_of_edge[n][1] is not None
+                   and not runs_agree(runs_of_edge[n], options.consensus_agreement)]
+        again = [n for n in pending if pairs.num_matches(n) > probe.ransac_max_matches]
+        for n in again:
+            runs_of_edge[n] = []
+        make_runs(again, 0, {}, options, "relative poses (RANSAC, all matches)")
+        ratio.update(strong(again))
+        pending = [n for n in pending if n in ratio]
+        for r in range(1, options.consensus_runs):
+            make_runs([n for n in pending if len(runs_of_edge[n]) == r], r, ratio, options,
+                      f"relative poses (consensus run {r + 1})")
+        return runs_of_edge
+    for r in range(1, options.consensus_runs):
+        make_runs(pending, r, ratio, options, f"relative poses (consensus run {r + 1})")
+        pending = [n for n in pending if runs_of_edge[n][-1] is not None]
+    return runs_of_edge
 
 
 #: :func:`measure_noise` found nothing to measure (a fixed threshold, no pair to re-estimate)
@@ -306,23 +403,8 @@ def build_view_graph(scene: SfMScene, options: LoadOptions = LoadOptions(),
         threshold = options.noise_ransac_max_error_px if sigma is None else \
             float(np.clip(options.inlier_threshold_sigmas * sigma, MIN_THRESHOLD_PX, options.noise_ransac_max_error_px))
 
-    def estimate_run(run: tuple[int, int]):
-        x_i, x_j, focal_i, focal_j = pairs[run[0]]
-        return _relative_pose_ransac(x_i, x_j, focal_i, focal_j, threshold, run[1], options)
-
-    # The first run of every edge, then the other runs only where it found enough inliers: the
-    # stable consensus is a subset of every run's inliers, so an edge whose first run falls
-    # short of --min-inliers is filtered whatever the others find (weak pairs are also the ones
-    # whose RANSAC runs to its trial limit). The results are those of running them all.
-    first = _pool_map(estimate_run, [(n, options.seed) for n in range(len(pairs))], options.progress,
-                      "relative poses (RANSAC)", options.jobs)
-    promising = [n for n, estimate in enumerate(first)
-                 if estimate is not None and int(estimate[2].sum()) >= options.min_inliers]
-    extra = [(n, options.seed + r) for n in promising for r in range(1, options.consensus_runs)]
-    runs_of_edge = [[estimate] for estimate in first]
-    for (n, _), estimate in zip(extra, _pool_map(estimate_run, extra, options.progress, "relative poses (consensus)",
-                                                 options.jobs)):
-        runs_of_edge[n].append(estimate)
+    runs_of_edge = _consensus_runs(pairs, threshold, options)
+    consensus_runs_made = sum(len(runs) for runs in runs_of_edge)
     num_failed = 0
     for n, k in enumerate(to_estimate):
         edge, runs = graph.edges[k], runs_of_edge[n]  # a weak edge: its one run, filtered below
@@ -353,6 +435,7 @@ def build_view_graph(scene: SfMScene, options: LoadOptions = LoadOptions(),
         "unregistered_views": list(graph.unregistered_views),
         "num_inlier_matches": int(sum(graph.edges[k].num_inliers for k in graph.active_edges())),
         "noise_sigma_px": sigma, "ransac_max_error_px": threshold, "consensus_runs": options.consensus_runs,
+        "ransac_runs": consensus_runs_made,
         "dropped_matches": dict(sorted(dropped.items())), "min_inliers": options.min_inliers,
         "time_s": time.perf_counter() - start,
     }

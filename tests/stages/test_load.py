@@ -21,13 +21,14 @@ def test_weak_edges_skip_the_extra_runs_and_the_graph_is_that_of_every_run(scene
     """An edge whose first RANSAC run has fewer inliers than --min-inliers is filtered whatever
     the other runs find (the stable set is a subset of every run's inliers): those runs are
     skipped, and every edge ends exactly as when all runs are made."""
-    options = LoadOptions(min_inliers=500)  # a third of the fixture's edges fall short (matches capped at 1000)
+    # a third of the fixture's edges fall short (matches capped at 1000); every strong edge makes every run
+    options = LoadOptions(min_inliers=500, consensus_agreement=None)
     calls: list[int] = []
     ransac = load._relative_pose_ransac
 
-    def counted(x_i, x_j, focal_i, focal_j, max_error_px, seed, options_):
+    def counted(x_i, x_j, focal_i, focal_j, max_error_px, seed, options_, inlier_ratio=None):
         calls.append(seed)
-        return ransac(x_i, x_j, focal_i, focal_j, max_error_px, seed, options_)
+        return ransac(x_i, x_j, focal_i, focal_j, max_error_px, seed, options_, inlier_ratio)
 
     monkeypatch.setattr(load, "_relative_pose_ransac", counted)
     graph, report = load.build_view_graph(scene, options)
@@ -42,8 +43,9 @@ def test_weak_edges_skip_the_extra_runs_and_the_graph_is_that_of_every_run(scene
         x_i, x_j = scene.normalized[edge.i][matches[:, 0]], scene.normalized[edge.j][matches[:, 1]]
         focal_i = scene.intrinsics[scene.views[edge.i].intrinsics_id].focal_px
         focal_j = scene.intrinsics[scene.views[edge.j].intrinsics_id].focal_px
-        runs = [ransac(x_i, x_j, focal_i, focal_j, threshold, options.seed + r, options)
-                for r in range(options.consensus_runs)]
+        runs = [ransac(x_i, x_j, focal_i, focal_j, threshold, options.seed, options)]
+        runs += [ransac(x_i, x_j, focal_i, focal_j, threshold, options.seed + r, options, runs[0][2].mean())
+                 for r in range(1, options.consensus_runs)]
         R, _, stable = load.stable_consensus(runs)
         if runs[0][2].sum() < options.min_inliers:
             weak += 1
@@ -130,3 +132,81 @@ def test_the_matches_of_keypoints_the_camera_cannot_undistort_are_left_out_and_w
     herzjesu = read_database(DATA_FIXTURES / "herzjesu_p8" / "database.db")
     same, nothing = without_unprojectable_keypoints(herzjesu)
     assert same is herzjesu and nothing == {} and unprojectable_warning(nothing) is None
+
+
+def _simulated_pair(num_inliers: int, num_outliers: int, seed: int = 0):
+    """Two views of a PINHOLE camera (f = 800 px, 960 x 960) 1 unit apart looking at points 5-9
+    units away, 0.3 px of noise; ``num_outliers`` matches of random keypoints after the inliers."""
+    from rotonly_cli.io.cameras import normalize
+    from rotonly_cli.scene.types import Intrinsics, PairMatches, SfMScene, View
+
+    rng = np.random.default_rng(seed)
+    camera = Intrinsics(1, "PINHOLE", 960, 960, np.array([800.0, 800.0, 480.0, 480.0]))
+    points = np.column_stack([rng.uniform(-2.5, 2.5, (num_inliers, 2)), rng.uniform(5.0, 9.0, num_inliers)])
+    angle = np.deg2rad(8.0)
+    R = np.array([[np.cos(angle), 0.0, np.sin(angle)], [0.0, 1.0, 0.0], [-np.sin(angle), 0.0, np.cos(angle)]])
+    in_j = points @ R.T + np.array([-1.0, 0.0, 0.0])
+    scene = SfMScene(source="test")
+    scene.intrinsics[1] = camera
+    for v, xyz in ((1, points), (2, in_j)):
+        pixels = 800.0 * xyz[:, :2] / xyz[:, 2:] + 480.0 + rng.normal(scale=0.3, size=(num_inliers, 2))
+        pixels = np.vstack([pixels, rng.uniform(0.0, 960.0, (num_outliers, 2))])
+        scene.views[v] = View(v, f"{v}.jpg", 1, width=960, height=960)
+        scene.keypoints[v] = pixels
+        scene.normalized[v] = normalize(camera, pixels)
+    scene.pairs[(1, 2)] = PairMatches(1, 2, np.repeat(np.arange(num_inliers + num_outliers)[:, None], 2, axis=1))
+    return scene
+
+
+def test_the_consensus_runs_make_the_trials_the_first_runs_inlier_ratio_needs(monkeypatch):
+    """A pair of 1200 matches, 25 % of them random: the first run has the 20-trial floor and
+    the min_inliers bound (30 / 1200: the 2000 cap); it finds the inlier ratio (0.75), and
+    each consensus run stops at the trials that ratio needs at 0.9999 (34), above the floor."""
+    import pycolmap
+
+    from rotonly_cli.geometry import pairwise as pg
+
+    given = []
+    real = pycolmap.RANSACOptions
+
+    def recording(**kwargs):
+        given.append((kwargs["min_num_trials"], kwargs["max_num_trials"]))
+        return real(**kwargs)
+
+    scene = _simulated_pair(900, 300)
+    options = LoadOptions(ransac_max_error_px=1.0, consensus_agreement=None, jobs=1)
+    monkeypatch.setattr(pycolmap, "RANSACOptions", recording)
+    graph, report = load.build_view_graph(scene, options)
+    assert report["ransac_runs"] == options.consensus_runs == len(given)
+    assert given[0] == (20, 2000)
+    ratio = (graph.edges[0].num_inliers + graph.edges[0].dropped_matches.get("unstable consensus", 0)) / 1200
+    assert 0.74 <= ratio <= 0.76  # the 900 inliers, as the first run and every run found them
+    # 0.75 needs 34 trials; the run's ratio is the 900 within a few matches (35 at 0.745)
+    fewest, most = (pg.ransac_trials_needed(r, 5, options.ransac_confidence) for r in (0.76, 0.74))
+    assert (fewest, most) == (32, 37)
+    assert len(set(given[1:])) == 1 and given[1][0] == 20 and fewest <= given[1][1] <= most, given
+    assert load.ransac_trials(1200, options, 0.99) == (20, 20)  # 4 needed: the floor stays
+    assert load.ransac_trials(1200, options, 0.3) == (20, 2000)  # 4549 needed: the cap
+
+
+def test_runs_that_agree_are_not_repeated_and_runs_that_differ_are():
+    """consensus_agreement: a clean pair's first two runs keep the same matches, so it makes
+    two runs, not four, and keeps the matches both accept. Masks that differ in more than the agreement do not agree."""
+    scene = _simulated_pair(1500, 0)
+    graph, report = load.build_view_graph(scene, LoadOptions(ransac_max_error_px=1.0, jobs=1,
+                                                             consensus_agreement=0.01))
+    assert report["ransac_runs"] == 2
+    assert graph.edges[0].num_inliers >= 1450
+    every, _ = load.build_view_graph(scene, LoadOptions(ransac_max_error_px=1.0, jobs=1, consensus_agreement=None))
+    assert every.edges[0].num_inliers <= graph.edges[0].num_inliers  # four runs' common matches are fewer
+
+    def run(mask):
+        return np.eye(3), np.zeros(3), np.asarray(mask, dtype=bool)
+
+    mask = np.ones(200, dtype=bool)
+    one_off, three_off = mask.copy(), mask.copy()
+    one_off[0] = False
+    three_off[:3] = False
+    assert load.runs_agree([run(mask), run(one_off)], 0.01)  # 1 of 200 differs
+    assert not load.runs_agree([run(mask), run(three_off)], 0.01)  # 3 of 200
+    assert load.runs_agree([run(mask), run(three_off)], 0.02)

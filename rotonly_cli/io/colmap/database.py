@@ -135,12 +135,14 @@ def read_database(path: PathLike, include_unverified: bool = True, scratch_dir: 
             scene.keypoints[image_id] = keypoints.astype(np.float64)
             scene.normalized[image_id] = normalize_keypoints(camera, scene.keypoints[image_id])
 
-        pair_ids, geometries = database.read_two_view_geometries()
+        # one pair at a time: the whole table as pycolmap objects (and the raw matches of every
+        # pair, read to skip the verified ones) held 16 more bytes per match at once
         verified_pair_ids = set()
         num_rejected = 0
-        for pair_id, geometry in zip(pair_ids, geometries):
+        for pair_id in database.read_two_view_geometry_num_inliers()[0]:
             verified_pair_ids.add(int(pair_id))
             i, j = (int(v) for v in pycolmap.pair_id_to_image_pair(pair_id))  # i < j, canonical
+            geometry = database.read_two_view_geometry(i, j)
             config = pycolmap.TwoViewGeometryConfiguration(int(geometry.config)).name
             inliers = np.asarray(geometry.inlier_matches, dtype=np.int64).reshape(-1, 2)
             if config in _REJECTED_CONFIGS or inliers.shape[0] == 0:
@@ -163,12 +165,11 @@ def read_database(path: PathLike, include_unverified: bool = True, scratch_dir: 
             logger.info("%s: %d verified-and-rejected pairs skipped", path, num_rejected)
 
         if include_unverified:
-            raw_pair_ids, raw_matches = database.read_all_matches()
-            for pair_id, matches in zip(raw_pair_ids, raw_matches):
+            for pair_id in database.read_num_matches()[0]:
                 if int(pair_id) in verified_pair_ids:
                     continue
                 i, j = (int(v) for v in pycolmap.pair_id_to_image_pair(pair_id))
-                matches = np.asarray(matches, dtype=np.int64).reshape(-1, 2)
+                matches = np.asarray(database.read_matches(i, j), dtype=np.int64).reshape(-1, 2)
                 if matches.shape[0] == 0:
                     continue
                 _check_match_indices(scene, i, j, matches, path, "matches")
