@@ -259,15 +259,18 @@ def _components(reports: dict) -> str:
 def _timings(reports: dict) -> str:
     rows = []
     total = _get(reports, "run.time_s") or 0.0
+    resources = reports.get("resources", {})
     for name, report in reports.items():
         if name == "run" or not isinstance(report.get("time_s"), (int, float)):
             continue
         share = 100.0 * report["time_s"] / total if total else 0.0
+        # the process's peak resident memory by the stage's end (reports/resources.json)
+        memory = _num(reports, f"resources.{name}.peak_rss_mb") if name in resources else "–"
         rows.append([escape(name), _num(reports, f"{name}.time_s"),
-                     f'<span class="bar" style="width:{min(share, 100):.0f}%"></span> {share:.0f} %'])
+                     f'<span class="bar" style="width:{min(share, 100):.0f}%"></span> {share:.0f} %', memory])
     if "time_s" in reports.get("run", {}):
-        rows.append(["<b>run (total, with reading and writing)</b>", _num(reports, "run.time_s"), ""])
-    return _table(["stage", "time [s]", "share of the run"], rows, "timings")
+        rows.append(["<b>run (total, with reading and writing)</b>", _num(reports, "run.time_s"), "", ""])
+    return _table(["stage", "time [s]", "share of the run", "peak memory [MB]"], rows, "timings")
 
 
 def _intrinsics(before: dict, after: dict) -> str:

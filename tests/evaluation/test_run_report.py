@@ -108,7 +108,8 @@ def test_report_is_self_contained_and_its_numbers_are_the_reports(full_run):
     # the summary and the times are there
     for path in ("run.num_registered", "run.num_views", "run.num_points", "run.num_active_edges", "load.num_pairs",
                  "export.num_observations", "export.reprojection_error_px.median", "run.rotation_error_deg.mean",
-                 "run.time_s", *(f"{name}.time_s" for name in reports if name != "run")):
+                 "run.time_s", *(f"{name}.time_s" for name in reports if name not in ("run", "resources")),
+                 *(f"resources.{name}.peak_rss_mb" for name in reports["resources"])):
         assert path in shown, path
     # per image: every view's observation count and errors
     for k, view in enumerate(reports["export"]["per_view"]):
