@@ -323,19 +323,24 @@ def _consensus_runs(pairs: EdgeCoordinates, threshold: float, options: LoadOptio
     The first run of every edge, then the other runs only where it found enough inliers: the
     stable consensus is a subset of every run's inliers, so an edge whose first run falls
     short of --min-inliers is filtered whatever the others find (weak pairs are also the ones
-    whose RANSAC runs to its trial limit). The consensus runs know the edge's inlier ratio
-    (the first run's) and stop at the trials it needs (:func:`ransac_trials`).
+    whose RANSAC runs to its trial limit).
 
-    With ``consensus_agreement``, the first two runs see at most ``agreement_max_matches``
+    With ``consensus_agreement`` (the fast front end, off by default), the consensus runs know
+    the edge's inlier ratio (the first run's) and stop at the trials it needs
+    (:func:`ransac_trials`; by default every run has the trials of the first: that bound
+    changed castle-P19's OpenMVG default-preset pairs enough to change which pairs the
+    refutation filters), and the first two runs see at most ``agreement_max_matches``
     matches; an edge whose two runs agree (:func:`runs_agree`) keeps them. The others make
     their ``consensus_runs`` runs on ``ransac_max_matches`` (those with no more matches than
     the smaller subset go on from the two runs they made, which are the same)."""
+    fast = options.consensus_agreement is not None
+
     def estimate_run(run: tuple[int, int, float | None, LoadOptions]):
         x_i, x_j, focal_i, focal_j = pairs[run[0]]
         return _relative_pose_ransac(x_i, x_j, focal_i, focal_j, threshold, run[1], run[3], run[2])
 
     def make_runs(edges: list[int], r: int, ratio: dict, run_options: LoadOptions, what: str) -> None:
-        runs = [(n, options.seed + r, ratio.get(n), run_options) for n in edges]
+        runs = [(n, options.seed + r, ratio.get(n) if fast else None, run_options) for n in edges]
         for (n, *_), estimate in zip(runs, _pool_map(estimate_run, runs, options.progress, what, options.jobs)):
             runs_of_edge[n].append(estimate)
 

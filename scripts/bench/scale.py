@@ -46,7 +46,8 @@ RECIPES = {
                       "--epipolar-outlier-fraction 0.05"),
     "circular-3000": ("--setup circular --views 3000 --points 300000 --window 10 --seed 1 --corrupt-fraction 0.05 "
                       "--epipolar-outlier-fraction 0.05"),
-    "all-50": "--setup circular --views 50 --points 5000 --window 25 --seed 1 --epipolar-outlier-fraction 0.1",
+    # every pair matched (1225), 6.1 M matches, tracks of ~31 of the 50 views, 10 % wrong matches
+    "all-50": "--setup circular --views 50 --points 13400 --window 25 --seed 1 --epipolar-outlier-fraction 0.1",
     "linear-10000": "--setup linear --views 10000 --points 700000 --window 3 --seed 1",
 }
 STAGES = ("load", "identify", "refine", "average", "optimize", "translate", "reject", "triangulate")
