@@ -31,8 +31,26 @@ from rotonly_cli.options import MIN_MATCHES  # noqa: F401 (re-exported)
 
 
 # ----------------------------------------------------------------------------- packing
+class _EdgeOffsets:
+    """What both forms of many edges' matches derive from their ``offsets`` (E + 1,)."""
+
+    offsets: np.ndarray
+
+    @property
+    def num_edges(self) -> int:
+        return len(self.offsets) - 1
+
+    @property
+    def num_matches(self) -> int:
+        return int(self.offsets[-1])
+
+    @property
+    def counts(self) -> np.ndarray:
+        return np.diff(self.offsets)
+
+
 @dataclass
-class EdgeBatch:
+class EdgeBatch(_EdgeOffsets):
     """Matches of many edges, concatenated.
 
     ``x_i``, ``x_j``: (M, 3) homogeneous normalized coordinates (z = 1 for 2-column input);
@@ -46,14 +64,6 @@ class EdgeBatch:
     #: positive weights keep the noise-free null vector exact) and weight each residual row;
     #: robust TRRM sets them by IRLS (geometry/trrm.py)
     weights: np.ndarray | None = None
-
-    @property
-    def num_edges(self) -> int:
-        return len(self.offsets) - 1
-
-    @property
-    def counts(self) -> np.ndarray:
-        return np.diff(self.offsets)
 
     @property
     def edge_of_match(self) -> np.ndarray:
@@ -84,7 +94,7 @@ class EdgeBatch:
 
 
 @dataclass
-class ObservedMatches:
+class ObservedMatches(_EdgeOffsets):
     """Matches of many edges held as rows of one table of observation coordinates: what an
     :class:`EdgeBatch` holds, in 16 bytes per match instead of 48 (two int64 rows instead of
     two float64 3-vectors), the coordinates stored once per observation however many matches
@@ -97,18 +107,6 @@ class ObservedMatches:
     rows: np.ndarray
     offsets: np.ndarray
     weights: np.ndarray | None = None
-
-    @property
-    def num_edges(self) -> int:
-        return len(self.offsets) - 1
-
-    @property
-    def num_matches(self) -> int:
-        return int(self.offsets[-1])
-
-    @property
-    def counts(self) -> np.ndarray:
-        return np.diff(self.offsets)
 
     def subset(self, edges: np.ndarray) -> EdgeBatch:
         """The EdgeBatch of ``edges`` (indices, in the given order): coordinates gathered."""
@@ -125,7 +123,7 @@ class ObservedMatches:
 
 def num_matches(batch: EdgeBatch | ObservedMatches) -> int:
     """M of either form."""
-    return int(batch.offsets[-1])
+    return batch.num_matches
 
 
 def edge_group_batches(batch: EdgeBatch | ObservedMatches, max_matches: int = 1 << 19):
