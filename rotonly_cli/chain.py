@@ -291,9 +291,10 @@ def reject_stage(run: Run) -> None:
                     report["edges_filtered"] or "none")
         if report["num_dropped"] == 0 and not report["edges_filtered"]:
             break
-        if report["num_dropped"] < run.options.reject.min_dropped_to_resolve and not report["edges_filtered"]:
+        fewest = run.options.reject.fewest_dropped_to_resolve(report["num_edges"])
+        if report["num_dropped"] < fewest and not report["edges_filtered"]:
             run.graph = before.graph  # too few to move the rotations: not worth a re-solve, not applied
-            report["not_applied"] = f"fewer than {run.options.reject.min_dropped_to_resolve} matches"
+            report["not_applied"] = f"fewer than {fewest} matches"
             break
         _ensure_two_views(run.graph, "multi-view rejection")
         resolve()

@@ -9,6 +9,7 @@ The measurements behind the defaults are in docs/tuning.md.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from rotonly_cli.compat import StrEnum
@@ -596,6 +597,9 @@ class RejectOptions:
     #: the rounds end: fewer matches than one edge needs (--min-inliers' default) cannot move
     #: the rotations, and the GRRM + LiGT re-solve costs 10-20 % of a run (docs/tuning.md)
     min_dropped_to_resolve: int = 30
+    #: ... and fewer than this many per edge of the round: at 1000 views (10 000 edges) rounds
+    #: dropping 794 and 463 of 21 M matches each cost a GRRM + LiGT re-solve of 3-4 minutes
+    min_dropped_per_edge: float = 0.1
     #: rounds confirming matches by their tracks, run first when LiGT left views out or its
     #: first solve misfits the tracks (chain._confirmation_rounds); 0: none
     confirm_max_rounds: int = 3
@@ -620,9 +624,15 @@ class RejectOptions:
     #: or its first solve misfits the tracks by more than this factor of the misfit before
     refute_max_misfit_growth: float = 1.5
 
+    def fewest_dropped_to_resolve(self, num_edges: int) -> int:
+        """The fewest dropped matches for which a round is applied and re-solved."""
+        return max(self.min_dropped_to_resolve, math.ceil(self.min_dropped_per_edge * num_edges))
+
     def validate(self) -> RejectOptions:
         if self.max_rounds < 0 or self.confirm_max_rounds < 0 or self.refute_max_edges < 0:
             raise InputError("must be >= 0", field="reject.max_rounds")
+        if not self.min_dropped_per_edge >= 0:
+            raise InputError("must be >= 0", field="reject.min_dropped_per_edge")
         if not (self.refute_max_ratio > 1.0 and self.refute_max_misfit_growth >= 1.0):
             # a pair's matches fit their own rotation best: a ratio of 1 or less refutes every pair
             raise InputError("must be > 1", field="reject.refute_max_ratio")
