@@ -1,5 +1,5 @@
 """Every click option used by more than one command, declared once; defaults come from
-rotonly_cli/options.py.
+rotonly_cli/options/.
 
 =====================  ==============================================================
 option                 commands

@@ -1,0 +1,150 @@
+"""Every option of rotonly, one frozen dataclass per stage composed in :class:`RunOptions`,
+and every choice as a StrEnum.
+
+A StrEnum member equals its string (``RobustLoss.CAUCHY == "cauchy"``), so callers may pass
+either. This package imports nothing of rotonly but ``compat`` and ``errors``: the geometry
+modules take their options from here, and each re-exports its own (``trrm.TRRMOptions``).
+The measurements behind the defaults are in docs/tuning.md.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from rotonly_cli.errors import InputError
+from rotonly_cli.options.common import (
+    INTRINSICS_MODES,
+    LOSSES,
+    MIN_MATCHES,
+    REESTIMATE_MODES,
+    RESIDUALS,
+    Intrinsics,
+    Reestimate,
+    ResidualForm,
+    RobustLoss,
+    RobustWeight,
+)
+from rotonly_cli.options.inputs import (
+    IntrinsicsOptions,
+    LoadOptions,
+)
+from rotonly_cli.options.solvers import (
+    AveragingOptions,
+    GRRMOptions,
+    IdentificationOptions,
+    LiGTOptions,
+    ResectionOptions,
+    TriangulationOptions,
+    TRRMOptions,
+)
+
+__all__ = [
+    "AverageOptions", "AveragingOptions", "GRRMOptions", "IdentificationOptions", "Intrinsics", "IntrinsicsOptions",
+    "LiGTOptions", "LoadOptions", "Reestimate", "RejectOptions", "ResectionOptions", "ResidualForm", "RobustLoss",
+    "RobustWeight", "RunOptions", "TRRMOptions", "TriangulationOptions",
+    "INTRINSICS_MODES", "LOSSES", "MIN_MATCHES", "REESTIMATE_MODES", "RESIDUALS",
+]
+
+
+# ============================================================================ stages
+
+@dataclass(frozen=True)
+class RejectOptions:
+    """The reject stage (stages/reject.py): multi-view outlier rejection under the global poses."""
+
+    #: rounds of reject -> GRRM -> LiGT; they stop earlier when a round drops nothing
+    max_rounds: int = 3
+    #: a match is dropped beyond this many robust sigmas of the Sampson errors under the global poses
+    outlier_sigmas: float = 5.0
+    #: ... and never within this many pixels
+    min_threshold_px: float = 1.0
+    #: a round that would drop fewer matches than this (and filter no edge) is not applied and
+    #: the rounds end: fewer matches than one edge needs (--min-inliers' default) cannot move
+    #: the rotations, and the GRRM + LiGT re-solve costs 10-20 % of a run (docs/tuning.md)
+    min_dropped_to_resolve: int = 30
+    #: ... and fewer than this many per edge of the round: at 1000 views (10 000 edges) rounds
+    #: dropping 794 and 463 of 21 M matches each cost a GRRM + LiGT re-solve of 3-4 minutes
+    min_dropped_per_edge: float = 0.1
+    #: rounds confirming matches by their tracks, run first when LiGT left views out or its
+    #: first solve misfits the tracks (chain._confirmation_rounds); 0: none
+    confirm_max_rounds: int = 3
+    #: ... the misfit: the first solve's sigma beyond this many times the last robust round's
+    confirm_misfit_sigmas: float = 10.0
+    #: a match is confirmed when a track of this many views or more holds its two keypoints
+    confirm_min_views: int = 3
+    #: ... and the rounds need at least this fraction of the matches confirmed: the
+    #: unconfirmed ones a minority, as robust estimation needs of its outliers
+    confirm_min_fraction: float = 0.5
+    #: the rounds are kept when LiGT's first solve on every match fits the tracks under the
+    #: new rotations with at most this ratio of the sigma before (stages/translate.first_solve_sigma_px)
+    confirm_misfit_ratio: float = 0.5
+    #: where LiGT's first solve misfits the tracks (``confirm_misfit_sigmas``), before the
+    #: confirmation: pairs whose matches fit the relative rotation the other pairs imply this
+    #: many times worse (median epipolar residual) than their own are filtered, the most refuted
+    #: first (chain._refutation_rounds); clean inputs stay below 2.5
+    refute_max_ratio: float = 6.0
+    #: ... at most this many pairs; 0: none
+    refute_max_edges: int = 3
+    #: ... each is undone (and the test ends) when LiGT then leaves a view out that it tied in,
+    #: or its first solve misfits the tracks by more than this factor of the misfit before
+    refute_max_misfit_growth: float = 1.5
+
+    def fewest_dropped_to_resolve(self, num_edges: int) -> int:
+        """The fewest dropped matches for which a round is applied and re-solved."""
+        return max(self.min_dropped_to_resolve, math.ceil(self.min_dropped_per_edge * num_edges))
+
+    def validate(self) -> RejectOptions:
+        if self.max_rounds < 0 or self.confirm_max_rounds < 0 or self.refute_max_edges < 0:
+            raise InputError("must be >= 0", field="reject.max_rounds")
+        if not self.min_dropped_per_edge >= 0:
+            raise InputError("must be >= 0", field="reject.min_dropped_per_edge")
+        if not (self.refute_max_ratio > 1.0 and self.refute_max_misfit_growth >= 1.0):
+            # a pair's matches fit their own rotation best: a ratio of 1 or less refutes every pair
+            raise InputError("must be > 1", field="reject.refute_max_ratio")
+        if self.confirm_min_views < 3:
+            # two views are any match's own pair: nothing would be confirmed by a third
+            raise InputError("must be >= 3", field="reject.confirm_min_views")
+        if not (0.0 < self.confirm_min_fraction <= 1.0 and 0.0 < self.confirm_misfit_ratio <= 1.0):
+            raise InputError("must be in (0, 1]", field="reject.confirm_min_fraction")
+        if not (self.confirm_misfit_sigmas > 0 and self.outlier_sigmas > 0 and self.min_threshold_px >= 0):
+            raise InputError("must be > 0", field="reject.confirm_misfit_sigmas")
+        return self
+
+
+@dataclass(frozen=True)
+class AverageOptions:
+    """The average stage (stages/average.py)."""
+
+    #: residual (deg) above which an edge is a gross outlier: the averaging's own inlier
+    #: threshold (Geman-McClure σ = 5°, Chatterjee & Govindu ICCV 2013)
+    max_residual_deg: float = 5.0
+    max_rounds: int = 5
+    #: Chatterjee & Govindu's averaging with its Geman-McClure σ measured on the edges (15 robust
+    #: sigmas of the L1 solution's residuals, at most their 5°): TRRM's relative rotations
+    #: are 0.05-0.2° off, and at σ = 5° a repeated-structure pair 1.9° off took a sparse graph's
+    #: GRRM start with it (docs/tuning.md "Rotation averaging")
+    averaging: AveragingOptions = AveragingOptions(irls_sigma_residual_factor=15.0)
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """`rotonly run`: the whole chain."""
+
+    matches_dir: str | None = None  #: OpenMVG input: features + matches folder
+    matches_file: str | None = None  #: OpenMVG input: the matches file (-M; default: matches.e/f/putative)
+    image_path: str | None = None  #: images for the point colours (default: beside the input)
+    gt: str | None = None  #: ground truth for the final evaluation
+    intrinsics: IntrinsicsOptions = IntrinsicsOptions()
+    load: LoadOptions = LoadOptions()
+    identification: IdentificationOptions = IdentificationOptions()
+    trrm: TRRMOptions = TRRMOptions()
+    average: AverageOptions = AverageOptions()
+    optimize: GRRMOptions = GRRMOptions()
+    translate: LiGTOptions = LiGTOptions()
+    reject: RejectOptions = RejectOptions()
+    triangulate: TriangulationOptions = TriangulationOptions()
+    grrm: bool = True  #: False: keep the averaged rotations (ablation)
+    progress: bool = False
+    jobs: int = 1  #: processes for identification, TRRM, GRRM, robust LiGT (runtime/parallel); same numbers
+    max_memory_gb: float | None = None  #: --max-memory: a stage predicted above it stops the run (runtime/memory)
