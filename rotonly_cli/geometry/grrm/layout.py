@@ -52,7 +52,6 @@ class Part:
     edge: np.ndarray  #: (Cp,) int32: each contribution's global edge
     sizes: np.ndarray  #: (Gp,) contributions per observation
     g0: int  #: the part's first observation in GRRM's observation order
-    c0: int  #: ... and first contribution
     blocks: list  #: (s0, s1, g0, g1) contribution and observation ranges, local to the part
 
     @property
@@ -122,7 +121,7 @@ class Layout:
             g0, g1 = np.searchsorted(group_rank, [r0, r1])
             c0 = int(starts[g0]) if g0 < self.num_groups else 2 * M
             c1 = int(starts[g1]) if g1 < self.num_groups else 2 * M
-            self.parts.append(self._part(edges, offsets, order[c0:c1], sizes[g0:g1], int(g0), c0, chunk))
+            self.parts.append(self._part(edges, offsets, order[c0:c1], sizes[g0:g1], int(g0), chunk))
         # --- pair blocks: the edges at each view, and each edge's place there
         self.deg = np.bincount(edge_views.ravel(), minlength=n)
         at_view = np.argsort(edge_views.ravel(), kind="stable")  # (2E,) edge-side slots, grouped by view
@@ -157,7 +156,7 @@ class Layout:
         start = self._view_start[v]
         return self._inc_edge[start + local // d], self._inc_edge[start + local % d]
 
-    def _part(self, edges, offsets, order_slice, sizes, g0, c0, chunk) -> Part:
+    def _part(self, edges, offsets, order_slice, sizes, g0, chunk) -> Part:
         M = self.M
         counts = np.diff(offsets)
         local_offsets = np.concatenate([[0], np.cumsum(counts[edges])])
@@ -173,7 +172,7 @@ class Layout:
         g_bounds = np.concatenate([g_cuts, [len(sizes)]]) if len(sizes) else np.zeros(1, dtype=np.int64)
         blocks = [(int(cuts[a]), int(cuts[b]), int(a), int(b)) for a, b in zip(g_bounds[:-1], g_bounds[1:])]
         return Part(edges=edges, num_matches=Mp, rows=rows.astype(np.int32 if 2 * Mp < 2**31 else np.int64),
-                    edge=edge.astype(np.int32), sizes=sizes.astype(np.int64), g0=g0, c0=c0, blocks=blocks)
+                    edge=edge.astype(np.int32), sizes=sizes.astype(np.int64), g0=g0, blocks=blocks)
 
     def pair_blocks(self, edge: np.ndarray, side: np.ndarray, pa: np.ndarray, pb: np.ndarray) -> np.ndarray:
         """The normal-equation block of each pair (pa[k], pb[k]) of contributions of one

@@ -80,14 +80,6 @@ class GRRMSystem:
         shares = even_ranges([p.num_contributions for p in self.layout.parts], EVALUATION_PARTS)
         self.shares = [self.layout.parts[a:b] for a, b in shares]
 
-    @property
-    def block_row(self) -> np.ndarray:
-        return self.layout.block_row
-
-    @property
-    def block_col(self) -> np.ndarray:
-        return self.layout.block_col
-
     def relative(self, R: np.ndarray) -> np.ndarray:
         return R[self.edge_views[:, 1]] @ np.swapaxes(R[self.edge_views[:, 0]], 1, 2)
 
@@ -395,7 +387,7 @@ class GRRMSystem:
         # the pair blocks that occur (the dense per-view tables hold blocks no observation fills)
         present = np.flatnonzero(np.any(off != 0.0, axis=1))
         off_blocks = off[present].reshape(-1, 3, 3)
-        row, col = self.block_row[present], self.block_col[present]
+        row, col = self.layout.block_row[present], self.layout.block_col[present]
         e = np.concatenate([np.arange(E), row, col])
         f = np.concatenate([np.arange(E), col, row])
         M = np.concatenate([diag.reshape(E, 3, 3), off_blocks, np.swapaxes(off_blocks, 1, 2)])
