@@ -372,7 +372,7 @@ def _rerun(loaded: Run, scene: SfMScene, template: Run, estimation: bool = False
     options = loaded.options
     if estimation:
         options = replace(options, translate=replace(options.translate, robust_rounds=0))
-    run = Run(loaded.input_path, loaded.input_kind, scene, copy.deepcopy(loaded.graph), options,
+    run = Run(loaded.input_path, loaded.input_kind, scene, loaded.graph.copy(), options,
               reports={"load": report}, keypoint_rgb=template.keypoint_rgb, calibration=template.calibration)
     return chain(run, ESTIMATION_STAGES if estimation else STAGES[1:])
 

@@ -4,7 +4,6 @@ and the snapshot a round that is undone restores. Split out of chain.py (issue 5
 
 from __future__ import annotations
 
-import copy
 import logging
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -40,7 +39,7 @@ class _Snapshot:
 
 
 def _snapshot(run: Run) -> _Snapshot:
-    return _Snapshot(copy.deepcopy(run.graph), run.rotations, run.centers,
+    return _Snapshot(run.graph.copy(), run.rotations, run.centers,
                      {k: run.reports.get(k) for k in ("optimize", "translate")})
 
 
@@ -230,7 +229,7 @@ def _confirmation_rounds(run: Run, resolve) -> dict:
     # and LiGT ties every view in; where views were left out for want of tracks (a weak
     # link: castle-P19 matched sequentially, 7 views out, 6 after), some stay out, and the
     # rounds are undone
-    run.graph = copy.deepcopy(original)
+    run.graph = original.copy()
     resolve(("translate",))
     left_all = sorted(views_ligt_left_out(run.reports.get("translate")))
     # ... and the new rotations may not put a pair beyond the averaging's outlier residual

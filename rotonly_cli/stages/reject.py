@@ -14,7 +14,6 @@ pipeline then runs GRRM and LiGT on what is left, until a round drops nothing
 
 from __future__ import annotations
 
-import copy
 import logging
 import time
 
@@ -215,7 +214,7 @@ def confirm_round(original: ViewGraph, confirmed: list[np.ndarray], edges: list[
     bridges (no cycle runs through them: the rotation across one is its own pair's estimate
     whatever the others say, so fewer matches only make it noisier), which keep all of
     their own; and the round's counts."""
-    graph = copy.deepcopy(original)
+    graph = original.copy()
     report = {"num_edges": len(edges), "num_matches": 0, "num_dropped": 0, "edges_kept_whole": 0}
     bridges = set(active_bridges(original))
     for k, keep in zip(edges, confirmed):

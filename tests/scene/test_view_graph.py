@@ -121,3 +121,16 @@ def test_workspace_state_round_trip(tmp_path):
 def test_load_state_of_a_plain_folder_is_input_error(tmp_path):
     with pytest.raises(InputError, match="not a rotonly workspace"):
         load_state(tmp_path)
+
+
+def test_copy_shares_match_arrays_and_stays_as_it_was():
+    graph = _graph([(1, 2), (2, 3)], num_views=3)
+    before = [e.matches.copy() for e in graph.edges]
+    copied = graph.copy()
+    assert all(c.matches is e.matches for c, e in zip(copied.edges, graph.edges))  # no 16 B per match copied
+    assert copied.edges[0] is not graph.edges[0] and copied.edges[0].R_j_from_i is not graph.edges[0].R_j_from_i
+    graph.edges[0].drop_matches(np.arange(40) % 2 == 0, "test")
+    graph.edges[1].filter("test")
+    assert graph.edges[0].num_inliers == 20 and copied.edges[0].num_inliers == 40
+    assert all(np.array_equal(c.matches, m) for c, m in zip(copied.edges, before))
+    assert copied.edges[0].dropped_matches == {} and copied.edges[1].active

@@ -28,7 +28,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-from rotonly_cli.geometry.tracks import EVALUATION_PARTS, even_ranges
+from rotonly_cli.geometry.tracks import EVALUATION_PARTS, even_ranges, segment_indices
 
 #: contributions per block (blocks of ~1 MB arrays stay in cache; block edges fall on
 #: observation boundaries, and an observation's pairs stay inside its block)
@@ -90,38 +90,42 @@ class Layout:
         self.n, self.E, self.M = n, E, M
         self.edge_views = edge_views
         rank = view_order(n, edge_views)
-        # --- contributions sorted by (rank of their view, observation id): one stable sort
-        span = int(obs_ids.max()) + 1 if M else 1
-        key = np.empty(2 * M, dtype=np.int64)
-        for side in range(2):
-            key[side * M:(side + 1) * M] = np.repeat(rank[edge_views[:, side]] * span, counts) + obs_ids[:, side]
-        order = np.argsort(key, kind="stable")
-        key = key[order]
-        first = np.ones(2 * M, dtype=bool)
-        first[1:] = key[1:] != key[:-1]
-        starts = np.flatnonzero(first)
-        del first
-        self.num_groups = len(starts)
-        sizes = np.diff(np.append(starts, 2 * M))
-        # the observations in id order (ties: rank order), for outputs indexed like the ids
-        ids_sorted = key[starts] % span
-        self.id_order = np.argsort(ids_sorted, kind="stable")  # id_order[k]: observation of the k-th id
-        group_rank = key[starts] // span
-        del key, ids_sorted
         # --- parts: view ranges in rank order with about equal incident matches
         incident = np.bincount(edge_views[:, 0], counts, minlength=n) + np.bincount(edge_views[:, 1], counts,
                                                                                      minlength=n)
         perm = np.argsort(rank)
         num_parts = max(EVALUATION_PARTS, -(-int(incident.sum()) // max(part_matches, 1)))
+        # --- each part's contributions sorted by (rank of their view, observation id), one part
+        # at a time: a part's keys form their own range, so its stable sort is the global one's
+        # restriction (no sort and key of all 2M contributions at once: 40 B per match)
+        span = int(obs_ids.max()) + 1 if M else 1
         self.parts: list[Part] = []
+        part_ids = []  # per part: its observations' ids, in observation order
+        g0 = 0
         for r0, r1 in even_ranges(incident[perm], num_parts):
             in_part = np.zeros(n, dtype=bool)
             in_part[perm[r0:r1]] = True
-            edges = np.flatnonzero(in_part[edge_views[:, 0]] | in_part[edge_views[:, 1]])
-            g0, g1 = np.searchsorted(group_rank, [r0, r1])
-            c0 = int(starts[g0]) if g0 < self.num_groups else 2 * M
-            c1 = int(starts[g1]) if g1 < self.num_groups else 2 * M
-            self.parts.append(self._part(edges, offsets, order[c0:c1], sizes[g0:g1], int(g0), chunk))
+            at = in_part[edge_views]  # (E, 2): the edge's side-i / side-j view is in the part
+            edges = np.flatnonzero(at[:, 0] | at[:, 1])
+            index, key = [], []  # the part's contributions (side * M + match, ascending) and their keys
+            for side in range(2):
+                e_s = np.flatnonzero(at[:, side])
+                match = segment_indices(offsets[e_s], counts[e_s])
+                index.append(match + side * M)
+                key.append(np.repeat(rank[edge_views[e_s, side]] * span, counts[e_s]) + obs_ids[match, side])
+            index, key = np.concatenate(index), np.concatenate(key)
+            order = np.argsort(key, kind="stable")
+            key = key[order]
+            first = np.ones(len(key), dtype=bool)
+            first[1:] = key[1:] != key[:-1]
+            starts = np.flatnonzero(first)
+            part_ids.append(key[starts] % span)
+            self.parts.append(self._part(edges, offsets, index[order], np.diff(np.append(starts, len(key))), g0,
+                                         chunk))
+            g0 += len(starts)
+        self.num_groups = g0
+        # the observations in id order (ties: rank order), for outputs indexed like the ids
+        self.id_order = np.argsort(np.concatenate(part_ids), kind="stable")  # id_order[k]: observation of the k-th id
         # --- pair blocks: the edges at each view, and each edge's place there
         self.deg = np.bincount(edge_views.ravel(), minlength=n)
         at_view = np.argsort(edge_views.ravel(), kind="stable")  # (2E,) edge-side slots, grouped by view

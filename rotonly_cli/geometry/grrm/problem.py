@@ -294,6 +294,7 @@ class GRRMSystem:
                     if np.any(excess > 0):
                         any_excess = True
                         self._accumulate_rank_one(excess_sums, sizes, edges, side[s0:s1], B, V_blk, drho * excess)
+            del table, side  # the next part's table is not made beside this one (256 B per match of a part)
         return cost, sums, excess_sums, any_excess
 
     def _accumulate_rank_one(self, sums, sizes, edges, side, B: np.ndarray, V_blk: np.ndarray,
