@@ -161,3 +161,21 @@ def test_without_parallax_the_points_are_the_same_and_the_parallax_is_nan():
     assert np.all(np.isnan(bare.max_parallax_deg)) and np.all(full.max_parallax_deg > 0)
     with pytest.raises(Exception, match="min_parallax_deg"):
         triangulate_tracks(*args, options=TriangulationOptions(min_parallax_deg=1.0), with_parallax=False)
+
+
+@pytest.mark.parametrize("chunk", [1, 7, 100])
+def test_in_slices_of_whole_points_the_numbers_are_the_same(monkeypatch, chunk):
+    # a collection's observations are triangulated a slice of points at a time (memory): the
+    # same numbers bit for bit, whatever the slice, with a point behind a camera and a point
+    # too few rays among them
+    from rotonly_cli.geometry import triangulation
+
+    scene = make_street_scene(12, 300, seed=3)
+    noisy = scene.obs_xy + np.random.default_rng(7).normal(scale=1e-3, size=scene.obs_xy.shape)
+    noisy[:5] = -noisy[:5] * 40.0  # wreck the first point's rays
+    whole = triangulate(scene, noisy)
+    monkeypatch.setattr(triangulation, "CHUNK_OBSERVATIONS", chunk)
+    sliced = triangulate(scene, noisy)
+    for name in ("points_in_world", "valid", "mean_reprojection_error", "max_parallax_deg", "in_front"):
+        np.testing.assert_array_equal(getattr(sliced, name), getattr(whole, name))
+    assert not whole.valid.all() and whole.valid.mean() > 0.9
