@@ -40,7 +40,7 @@ from rotonly_cli.scene.view_graph import ViewGraph
 from rotonly_cli.stages.load import NOT_MEASURED
 
 if TYPE_CHECKING:
-    from rotonly_cli.stages.intrinsics import Calibration
+    from rotonly_cli.calibration import Calibration
 
 logger = logging.getLogger(__name__)
 
@@ -66,7 +66,7 @@ class Run:
     tracks: TrackCache = field(default_factory=TrackCache)
     #: the intrinsics as read, before any stage changed them (report.html)
     input_intrinsics: dict = field(default_factory=dict)
-    #: the camera calibration of this run (stages/intrinsics.Calibration)
+    #: the camera calibration of this run (calibration.Calibration)
     calibration: Calibration | None = None
     components: list = field(default_factory=list)  #: the graph's other parts (components.Component)
 
@@ -90,8 +90,8 @@ def load_scene(scene: SfMScene, kind: InputKind, input_label: str, options: RunO
     """The load stage on a scene already read (``input_label``: its path, or what it was made
     from; ``sources``: what it was read from, stages.load.input_files, for reports/load.json):
     the focal lengths the input marks as guesses calibrated (--intrinsics), the view graph built."""
+    from rotonly_cli.calibration import guess_missing_cameras, start_calibration
     from rotonly_cli.options import Intrinsics
-    from rotonly_cli.stages.intrinsics import guess_missing_cameras, start_calibration
     from rotonly_cli.stages.load import measure_noise, without_unprojectable_keypoints
 
     started = time.perf_counter()
@@ -378,21 +378,21 @@ def _rerun(loaded: Run, scene: SfMScene, template: Run, estimation: bool = False
 
 
 def calibrated_chain(loaded: Run, chain=_chain) -> Run:
-    """identify ... triangulate with the intrinsics calibrated (stages/intrinsics.py): passes
+    """identify ... triangulate with the intrinsics calibrated (calibration/): passes
     of rotonly's stages, each followed by an estimate of the intrinsics from its
     reconstruction, until they settle; then the final pass, whose rotations, centres and
     points are the result. ``loaded``: the run after the load stage (not changed); ``chain``:
     runs stages on a run (:func:`_chain`; run_stages adds the progress bars)."""
-    from rotonly_cli.stages import intrinsics
+    from rotonly_cli.options import Intrinsics
 
     calibration = loaded.calibration
     options = loaded.options.intrinsics
-    if calibration is None or options.mode == intrinsics.Mode.FIXED:
+    if calibration is None or options.mode == Intrinsics.FIXED:
         return chain(loaded, STAGES[1:])
     guessed = bool(calibration.calibrate)
     started = time.perf_counter()
     run = _rerun(loaded, loaded.scene, loaded, estimation=guessed, chain=chain)
-    auto = options.mode == intrinsics.Mode.AUTO
+    auto = options.mode == Intrinsics.AUTO
 
     def judge_given(run: Run) -> bool:
         """auto: the cameras taken as given that ``run``'s reconstruction shows wrong join the

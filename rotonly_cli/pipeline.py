@@ -64,7 +64,7 @@ from rotonly_cli.runtime.startup import collector_paused
 from rotonly_cli.scene.types import SfMScene
 
 if TYPE_CHECKING:
-    from rotonly_cli.stages.intrinsics import Calibration
+    from rotonly_cli.calibration import Calibration
 
 logger = logging.getLogger(__name__)
 WORKSPACE_ENTRIES = {"sfm_data.json", "sparse", "view_graph.json", "reports", "run.log", STATE_FILE, "eval",
@@ -402,8 +402,8 @@ def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: fl
 
 def _restored_calibration(scene: SfMScene, options: RunOptions, saved: dict) -> Calibration:
     """The intrinsics an earlier command of this workspace ended with (state.npz), on ``scene``."""
+    from rotonly_cli.calibration import start_calibration
     from rotonly_cli.options import Intrinsics
-    from rotonly_cli.stages.intrinsics import start_calibration
 
     mode = saved.get("mode", Intrinsics.FIXED)
     calibration = start_calibration(scene, replace(options.intrinsics, mode=mode), calibrate_now=False)

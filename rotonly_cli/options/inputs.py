@@ -86,7 +86,7 @@ class LoadOptions:
 
 @dataclass(frozen=True)
 class IntrinsicsOptions:
-    """Camera calibration (stages/intrinsics.py; docs/tuning.md "Intrinsics")."""
+    """Camera calibration (calibration/; docs/tuning.md "Intrinsics")."""
 
     mode: Intrinsics = Intrinsics.AUTO
     #: auto: a camera whose reprojection errors after the first reconstruction (robust sigma
@@ -174,8 +174,8 @@ class IntrinsicsOptions:
     converged_focal_change: float = 0.015
     #: once the calibration's rounds settle, each calibrated camera is checked: its images
     #: with at least ``zoom_min_pairs`` fundamental matrices are calibrated on a camera each
-    #: (stages.intrinsics.Calibration.check_zoom), and when ``zoom_min_images`` or more were,
-    #: two groups of focal lengths (stages.intrinsics.focal_groups: a gap of at least
+    #: (calibration.Calibration.check_zoom), and when ``zoom_min_images`` or more were,
+    #: two groups of focal lengths (calibration.focal_groups: a gap of at least
     #: ``zoom_min_gap``, relative, and ``zoom_gap_to_spread`` times either group's own range)
     #: give the images of one group a camera of their own (a zoom lens under one camera:
     #: docs/algorithms.md §8 "Images at another zoom"); an image with one or two fundamental

@@ -1,4 +1,4 @@
-"""stages/intrinsics.py and the calibrated chain of chain.py (issue 20): guessed focal lengths
+"""calibration/ and the calibrated chain of chain/calibrate.py (issue 20): guessed focal lengths
 and unknown distortion, on simulated user inputs (simulation/user_cameras.py) and the bundled
 calibrated fixtures. The small, fast version of scripts/bench/intrinsics.py is here."""
 
@@ -11,6 +11,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from rotonly_cli import calibration as stage
+from rotonly_cli.calibration.adjustment import _parameter_std
 from rotonly_cli.errors import InputError
 from rotonly_cli.evaluation.quality import evaluate
 from rotonly_cli.io.detect import read_scene
@@ -19,7 +21,6 @@ from rotonly_cli.options import IntrinsicsOptions, LoadOptions, RunOptions
 from rotonly_cli.pipeline import STAGES, resume, run_pipeline
 from rotonly_cli.scene.types import Intrinsics, SfMScene, View
 from rotonly_cli.simulation.user_cameras import camera_per_view, simulate_user_cameras, write_inputs
-from rotonly_cli.stages import intrinsics as stage
 
 from helpers import DATA_FIXTURES
 
@@ -797,7 +798,7 @@ def test_parameter_std_from_the_adjustment_covariance_and_its_image_cap():
     adjuster = pycolmap.create_default_ceres_bundle_adjuster(adjustment, config, reconstruction)
     adjuster.solve()
     [camera_id] = list(reconstruction.cameras)
-    std = stage._parameter_std(reconstruction, adjuster, [camera_id], 0, IntrinsicsOptions())
+    std = _parameter_std(reconstruction, adjuster, [camera_id], 0, IntrinsicsOptions())
     assert std[camera_id].shape == (len(reconstruction.cameras[camera_id].params),)
     assert np.all(std[camera_id] > 0) and np.all(np.isfinite(std[camera_id]))
     sigma = stage.residual_sigma_px(reconstruction)
@@ -807,7 +808,7 @@ def test_parameter_std_from_the_adjustment_covariance_and_its_image_cap():
     far.xyz = far.xyz * 1e6
     assert stage.residual_sigma_px(reconstruction) == pytest.approx(sigma, rel=0.02)
     capped = IntrinsicsOptions(covariance_max_images=5)
-    assert stage._parameter_std(reconstruction, adjuster, [camera_id], 0, capped) == {}
+    assert _parameter_std(reconstruction, adjuster, [camera_id], 0, capped) == {}
 
 
 def test_bad_intrinsics_options_of_the_flat_ground_checks():
