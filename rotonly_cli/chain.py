@@ -411,8 +411,10 @@ def calibrated_chain(loaded: Run, chain=_chain) -> Run:
     unjudged = auto and guessed
     if not guessed and not (auto and judge_given(run)):
         return run  # every camera fits: the intrinsics stay as given
+    # auto, when only suspects are calibrated: the run with the given intrinsics, the result if
+    # none of their changes turns out significant
+    fallback = None if guessed else run
     if not guessed:
-        calibration.fallback = run  # the result if no change turns out significant
         started = time.perf_counter()  # that pass would have been the result: not the calibration's time
     graph_run, full_load = loaded, True  # the run whose load stage (relative poses) the passes reuse
 
@@ -426,9 +428,9 @@ def calibrated_chain(loaded: Run, chain=_chain) -> Run:
     round_, last_round = 0, options.max_rounds - 1
     while True:
         settled = calibration.estimate(output_scene(run))
-        if calibration.back_to_given():
+        if fallback is not None and calibration.back_to_given():
             calibration.time_s += time.perf_counter() - started
-            return calibration.fallback
+            return fallback
         if settled and unjudged:  # the guesses settled: now the given cameras can be judged
             unjudged = False
             settled = not judge_given(run)
@@ -441,7 +443,7 @@ def calibrated_chain(loaded: Run, chain=_chain) -> Run:
             graph_run, full_load = reload(True), False
         run = _rerun(graph_run, calibration.scene, loaded, estimation=True, chain=chain)
         round_ += 1
-    if not settled and len(calibration.rounds) > 1 and not calibration.splits:
+    if not settled and len(calibration.steps.rounds) > 1 and not calibration.splits:
         # the rounds ran out without settling: they oscillate about intrinsics that
         # reconstructions bent by wrong matches cannot fix (castle-P19 listed with the focal 15 %
         # short, its default-preset E matches: 1394.8 -> 1480.6 -> 1380.7 -> 1427.5 -> 1568.5 px,

@@ -316,6 +316,7 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
     (the calibration's, those views, the baseline check of the centres, the edges on no cycle,
     the rotations the tracks refuted, the views a rejection round cut loose, the pairs' scatter
     about the final rotations), each also logged."""
+    from rotonly_cli.calibration.rounds import run_summary
     from rotonly_cli.components import components_warning, views_in_other_models
     from rotonly_cli.stages.average import (
         pair_scatter_deg,
@@ -329,7 +330,7 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
 
     if run.calibration is not None:
         run.reports["intrinsics"] = run.calibration.finish(scene)
-        summary.update(run.calibration.summary())
+        summary.update(run_summary(run.reports["intrinsics"]))
     bridges = unchecked_edges(run.graph, set(scene.poses))
     summary["edges_on_no_cycle"] = [list(pair) for pair in bridges]
     summary["pair_residual_deg_median"] = pair_scatter_deg(run.graph, scene.poses)

@@ -88,49 +88,52 @@ def _same(a: Intrinsics, b: Intrinsics) -> bool:
 
 
 @dataclass
+class CalibrationSteps:
+    """What each step of a run's calibration reported, as reports/intrinsics.json lists them."""
+
+    #: each view-graph calibration (focals.view_graph_focals, rotating_camera_focals)
+    view_graph: list[dict] = field(default_factory=list)
+    #: each round's estimate (:meth:`Calibration.estimate`); the rounds' ranking reads them
+    rounds: list[dict] = field(default_factory=list)
+    #: per camera, the reprojection sigma of the first reconstruction that judged it
+    first_reprojection_px: dict[int, float] = field(default_factory=dict)
+    suspect_threshold_px: float | None = None  #: the sigma above which a camera was a suspect
+    centred_check: dict | None = None  #: :meth:`Calibration.check_centred` (None: no camera checked)
+    suspect_check: dict | None = None  #: the adjustment that confirms suspects (None: none to confirm)
+    zoom_check: dict | None = None  #: :meth:`Calibration.check_zoom` (None: not made; it is made once)
+    unsettled: dict | None = None  #: :meth:`Calibration.take_best_round` (None: the rounds settled)
+
+
+@dataclass
 class Calibration:
-    """The intrinsics of one ``rotonly run``: as given, as they evolve, and the report.
-    ``scene`` is the input scene with the current intrinsics (a new copy at every change, so
-    runs made with earlier intrinsics keep theirs)."""
+    """The intrinsics of one ``rotonly run``: as given, as they evolve, and the steps' reports.
+    ``options`` and ``jobs`` are fixed; ``given`` is the input's cameras, to which a zoom check
+    adds the cameras it splits off; ``scene`` is the input scene with the current intrinsics (a
+    new copy at every change, so runs made with earlier intrinsics keep theirs)."""
 
     options: IntrinsicsOptions
     given: dict[int, Intrinsics]
     scene: SfMScene
+    jobs: int = 1  #: processes for the fundamental-matrix fits
     #: cameras being calibrated, and why: "guess" (the input says so), "suspect" (its
-    #: reprojection error), "refine" (--intrinsics refine)
+    #: reprojection error), "refine" (--intrinsics refine), "centred principal point", "zoom"
     calibrate: dict[int, str] = field(default_factory=dict)
     #: per calibrated camera, what the estimates are compared with (refinement-model terms):
     #: the view-graph calibration's result for a guess, else the given intrinsics
     reference: dict[int, Intrinsics] = field(default_factory=dict)
-    view_graph: list[dict] = field(default_factory=list)
-    rounds: list[dict] = field(default_factory=list)
-    first_reprojection_px: dict[int, float] = field(default_factory=dict)
-    suspect_threshold_px: float | None = None
-    noise_sigma_px: float | None = None  #: the matches' noise (F-based), when it was measured
-    #: auto, when only suspects are calibrated: the run with the given intrinsics, the result
-    #: if none of their changes is significant
-    fallback: object | None = None
-    settled: bool | None = None  #: whether the last round moved the intrinsics by little (None: no round)
-    #: the report of :meth:`check_centred` (None: no camera was checked)
-    centred_check: dict | None = None
-    #: the report of the adjustment that confirms suspects (None: none to confirm)
-    suspect_check: dict | None = None
-    #: cameras one of those adjustments has looked at already
-    adjusted_once: set = field(default_factory=set)
-    result: dict = field(default_factory=dict)
-    jobs: int = 1  #: processes for the fundamental-matrix fits
-    #: wall time the calibration added to the run (view-graph focals, estimation passes and
-    #: rounds; not the pass whose result is written)
-    time_s: float = 0.0
     #: cameras this calibration added for images at another zoom (:meth:`_split`): {new
     #: camera: {"from": camera, "views": [...], "names": [...], "focal_px": its view-graph focal}}
     splits: dict[int, dict] = field(default_factory=dict)
-    #: the report of :meth:`check_zoom` (None: not made)
-    zoom_check: dict | None = None
-    #: the report of :meth:`take_best_round` (None: the rounds settled)
-    unsettled: dict | None = None
-    #: per round (``rounds``), the scene with that round's estimate
+    #: cameras one adjustment (:meth:`_one_adjustment`) has looked at already
+    adjusted_once: set = field(default_factory=set)
+    noise_sigma_px: float | None = None  #: the matches' noise (F-based), when it was measured
+    settled: bool | None = None  #: whether the last round moved the intrinsics by little (None: no round)
+    #: per round (``steps.rounds``), the scene with that round's estimate
     round_scenes: list = field(default_factory=list)
+    #: wall time the calibration added to the run (view-graph focals, estimation passes and
+    #: rounds; not the pass whose result is written)
+    time_s: float = 0.0
+    steps: CalibrationSteps = field(default_factory=CalibrationSteps)
 
     def shift_limit_px(self, camera_id: int) -> float:
         """:func:`shift_limit_px` of a given camera at the matches' measured noise."""
@@ -138,11 +141,11 @@ class Calibration:
 
     def _calibrate_focals(self, cameras_: dict[int, str]) -> None:
         focals, report = view_graph_focals(self.scene, set(cameras_), self.options, self.jobs)
-        self.view_graph.append(report)
+        self.steps.view_graph.append(report)
         if set(cameras_) - set(focals):  # no fundamental matrix fixed them: a rotating camera?
             rotating, rotating_report = rotating_camera_focals(self.scene, set(cameras_) - set(focals), self.options)
             if rotating_report["cameras"]:
-                self.view_graph.append(rotating_report)
+                self.steps.view_graph.append(rotating_report)
             focals = {**focals, **rotating}
         self.scene = with_intrinsics(self.scene, focals)
         for camera_id, why in cameras_.items():
@@ -167,7 +170,7 @@ class Calibration:
         with k1 = -0.3 and the focal guessed 40 % long split its images at 2149 and 3112 px
         (true: 1380 for all); on the settled ones as they are, a zoom bends the principal
         point (Herz-Jesus-P8 with three images zoomed 5 %: 60 px), and the groups drown."""
-        if not self.options.zoom_check or self.zoom_check is not None:
+        if not self.options.zoom_check or self.steps.zoom_check is not None:
             return False
         start = time.perf_counter()
         # twins are one device, checked from one camera (the rounds gave a guess's twins a focal each)
@@ -175,10 +178,10 @@ class Calibration:
         checked = {c: replace(self._check_camera(group), id=c) for group in devices for c in group}
         scene = with_intrinsics(self.scene, checked)
         fundamentals = refit_fundamentals(scene, self.options, self.jobs) if devices else {}
-        self.zoom_check = per_image_focals(scene, devices, fundamentals, self.options) if fundamentals else {}
-        split = [self._split(finding, checked) for finding in self.zoom_check.get("disagree", [])]
-        self.zoom_check["time_s"] = time.perf_counter() - start
-        self.time_s += self.zoom_check["time_s"]
+        self.steps.zoom_check = per_image_focals(scene, devices, fundamentals, self.options) if fundamentals else {}
+        split = [self._split(finding, checked) for finding in self.steps.zoom_check.get("disagree", [])]
+        self.steps.zoom_check["time_s"] = time.perf_counter() - start
+        self.time_s += self.steps.zoom_check["time_s"]
         return any(split)
 
     def _check_camera(self, device: list[int]) -> Intrinsics:
@@ -237,12 +240,12 @@ class Calibration:
         (docs/tuning.md "Intrinsics"), and a suspect the adjustment leaves where it was would
         cost a round and a pass for the same result."""
         per_camera = {int(c): float(v) for c, v in sigma_by_camera.items()}
-        self.first_reprojection_px = self.first_reprojection_px or per_camera  # a probe's came first
+        self.steps.first_reprojection_px = self.steps.first_reprojection_px or per_camera  # a probe's came first
         noise = None
         if any(v > self.options.suspect_reprojection_px for v in per_camera.values()):
             noise = self.noise_sigma_px = projective_noise_sigma_px(scene, self.options)
-        self.suspect_threshold_px = suspect_threshold_px(noise, self.options)
-        suspects = suspect_cameras(per_camera, self.suspect_threshold_px)
+        self.steps.suspect_threshold_px = suspect_threshold_px(noise, self.options)
+        suspects = suspect_cameras(per_camera, self.steps.suspect_threshold_px)
         # twins are one device as the front end left it: what shows one of them wrong shows
         # the others (whose own errors may sit just below the threshold) and they are
         # calibrated together, sharing their principal point
@@ -251,15 +254,15 @@ class Calibration:
         if suspects:
             sigmas = ", ".join(f"{per_camera.get(c, float('nan')):.2f}" for c in sorted(suspects))
             if posed is not None:
-                confirmed, self.suspect_check = self._one_adjustment(posed(), suspects)
+                confirmed, self.steps.suspect_check = self._one_adjustment(posed(), suspects)
                 if not confirmed:
                     logger.info("intrinsics: camera(s) %s reproject with sigma %s px (> %.2f px), but one adjustment "
                                 "moves them by less than %.1f px or within %g standard deviations of its estimate: "
-                                "kept as given", sorted(suspects), sigmas, self.suspect_threshold_px,
+                                "kept as given", sorted(suspects), sigmas, self.steps.suspect_threshold_px,
                                 min(self.shift_limit_px(c) for c in suspects), self.options.min_change_sigmas)
                     return False
             logger.info("intrinsics: camera(s) %s reproject with sigma %s px (> %.2f px): calibrating them",
-                        sorted(suspects), sigmas, self.suspect_threshold_px)
+                        sorted(suspects), sigmas, self.steps.suspect_threshold_px)
             self._calibrate_focals(dict.fromkeys(sorted(suspects), "suspect"))
         return bool(suspects)
 
@@ -324,7 +327,7 @@ class Calibration:
         for camera_id in changed:
             self.calibrate[camera_id] = "centred principal point"
             self.reference[camera_id] = cameras.refinement_model(self.given[camera_id])
-        self.centred_check = report
+        self.steps.centred_check = report
         shifts, sigmas = report["shifts_px"], report["change_sigmas"]
         logger.info("intrinsics: camera(s) %s have their principal point at the image centre (a default); "
                     "one adjustment moves them by %s px (limit %s), %s standard deviations of its estimate "
@@ -351,9 +354,10 @@ class Calibration:
         self.scene = with_intrinsics(self.scene, changed) if changed else self.scene
         report.update(moved=moved, focal_change=focal_change,
                       result={str(c): describe(self.scene.intrinsics[c]) for c in sorted(self.calibrate)})
-        self.rounds.append(report)
+        self.steps.rounds.append(report)
         self.round_scenes.append(self.scene)
-        logger.info("intrinsics: round %d (%.2f s): %s", len(self.rounds), report["time_s"], self._calibrated_text())
+        logger.info("intrinsics: round %d (%.2f s): %s", len(self.steps.rounds), report["time_s"],
+                    self._calibrated_text())
         self.settled = moved <= self.options.converged_shift and focal_change <= self.options.converged_focal_change
         return self.settled
 
@@ -365,17 +369,17 @@ class Calibration:
         def rank(report: dict) -> tuple[bool, int]:
             return report.get("termination") == "CONVERGENCE", int(report.get("num_points") or 0)
 
-        best = max(range(len(self.rounds)), key=lambda k: rank(self.rounds[k]))
+        best = max(range(len(self.steps.rounds)), key=lambda k: rank(self.steps.rounds[k]))
         chosen = self.round_scenes[best]
         changed = {c: chosen.intrinsics[c] for c in self.calibrate
                    if c in chosen.intrinsics and not _same(chosen.intrinsics[c], self.scene.intrinsics[c])}
         if changed:
             self.scene = with_intrinsics(self.scene, changed)
-        self.unsettled = {"taken_round": best + 1,
+        self.steps.unsettled = {"taken_round": best + 1,
                           "rounds": [{"num_points": report.get("num_points"), "termination": report.get("termination")}
-                                     for report in self.rounds],
+                                     for report in self.steps.rounds],
                           "result": {str(c): describe(self.scene.intrinsics[c]) for c in sorted(self.calibrate)}}
-        converged, points = rank(self.rounds[best])
+        converged, points = rank(self.steps.rounds[best])
         logger.info("intrinsics: the rounds did not settle; round %d's estimate, its adjustment %s on %d points, is "
                     "taken: %s", best + 1, "converged" if converged else "not converged", points,
                     self._calibrated_text())
@@ -392,10 +396,9 @@ class Calibration:
                    / half_diagonal(scene.intrinsics[c]) > self.options.converged_shift for c in self.calibrate)
 
     def back_to_given(self) -> bool:
-        """True when there is a fallback run and every camera is back to its given intrinsics
-        (never after a split: the fallback gave the split images the other focal)."""
-        return self.fallback is not None and not self.splits and all(_same(self.scene.intrinsics[c], k)
-                                                                     for c, k in self.given.items())
+        """True when every camera is back to its given intrinsics (never after a split: a run
+        with the given intrinsics gave the split images the other focal)."""
+        return not self.splits and all(_same(self.scene.intrinsics[c], k) for c, k in self.given.items())
 
     def finish(self, posed: SfMScene) -> dict:
         """The report (reports/intrinsics.json) of the run's final reconstruction ``posed``."""
@@ -405,28 +408,28 @@ class Calibration:
         split_to = {split["from"]: new_id for new_id, split in self.splits.items()}
         twins = {c for group in twin_cameras(self.given, self.given) if len(group) > 1 for c in group}
         warnings += [zoom_warning(finding, split_to.get(finding["camera"]), finding["camera"] in twins)
-                     for finding in (self.zoom_check or {}).get("disagree", [])]
+                     for finding in (self.steps.zoom_check or {}).get("disagree", [])]
         for camera_id, intrinsic in self.given.items():
             if intrinsic.prior_focal is False and camera_id not in self.calibrate:
                 warnings.append(f"camera {camera_id}: its focal length is marked as a guess (prior_focal_length = 0) "
                                 f"and is used as given (--intrinsics {self.options.mode})")
-        self.result = {
+        return {
             "mode": str(self.options.mode),
             "cameras": {str(c): {"start": describe(self.given[c]), "end": describe(final[c]),
                                  "calibrated": self.calibrate.get(c), "prior_focal": self.given[c].prior_focal,
                                  "focal_change": final[c].focal_px / self.given[c].focal_px - 1.0,
                                  "reprojection_error_px": per_camera.get(c),
-                                 "first_reprojection_sigma_px": self.first_reprojection_px.get(c)}
+                                 "first_reprojection_sigma_px": self.steps.first_reprojection_px.get(c)}
                         for c in sorted(self.given)},
-            "reprojection_error_px": overall, "view_graph_calibration": self.view_graph, "rounds": self.rounds,
-            "settled": self.settled, "suspect_threshold_px": self.suspect_threshold_px,
-            "centred_principal_point_check": self.centred_check, "suspect_check": self.suspect_check,
+            "reprojection_error_px": overall, "view_graph_calibration": self.steps.view_graph,
+            "rounds": self.steps.rounds,
+            "settled": self.settled, "suspect_threshold_px": self.steps.suspect_threshold_px,
+            "centred_principal_point_check": self.steps.centred_check, "suspect_check": self.steps.suspect_check,
             "noise_sigma_px": self.noise_sigma_px,
-            "zoom_check": self.zoom_check, "unsettled": self.unsettled,
+            "zoom_check": self.steps.zoom_check, "unsettled": self.steps.unsettled,
             "split_cameras": {str(c): split for c, split in self.splits.items()},
             "kept_given_intrinsics": all(_same(final[c], k) for c, k in self.given.items()),
             "warnings": warnings, "time_s": self.time_s}
-        return self.result
 
     def changed(self) -> dict:
         """For the workspace state: the mode and the cameras whose intrinsics differ from the
@@ -464,13 +467,14 @@ class Calibration:
         if restored:
             self.scene = with_intrinsics(self.scene, restored)
 
-    def summary(self) -> dict:
-        """The run summary's part: intrinsics at start and end per camera, the final mean
-        reprojection error, the warnings."""
-        return {"intrinsics": {c: {"start": v["start"]["params"], "end": v["end"]["params"],
-                                   "model": [v["start"]["model"], v["end"]["model"]]}
-                               for c, v in self.result["cameras"].items()},
-                "reprojection_error_px": self.result["reprojection_error_px"], "warnings": self.result["warnings"]}
+
+def run_summary(report: dict) -> dict:
+    """The run summary's part of a calibration's report (:meth:`Calibration.finish`):
+    intrinsics at start and end per camera, the final mean reprojection error, the warnings."""
+    return {"intrinsics": {c: {"start": v["start"]["params"], "end": v["end"]["params"],
+                               "model": [v["start"]["model"], v["end"]["model"]]}
+                           for c, v in report["cameras"].items()},
+            "reprojection_error_px": report["reprojection_error_px"], "warnings": report["warnings"]}
 
 
 def start_calibration(scene: SfMScene, options: IntrinsicsOptions, calibrate_now: bool = True,

@@ -569,7 +569,7 @@ def test_a_round_that_moves_the_focal_by_more_than_one_and_a_half_percent_has_no
     estimate = stage.with_focal(CAMERA, focal_factor * CAMERA.focal_px)
     calibration._gated_estimates = lambda *args: ({1: estimate}, {"time_s": 0.0})
     assert calibration.estimate(scene) is settled
-    report = calibration.rounds[-1]
+    report = calibration.steps.rounds[-1]
     assert report["moved"] < IntrinsicsOptions().converged_shift
     assert report["focal_change"] == pytest.approx(focal_factor - 1.0)
 
@@ -585,16 +585,16 @@ def test_rounds_that_do_not_settle_take_the_round_converged_on_the_most_points()
     calibration = stage.Calibration(IntrinsicsOptions(), {1: CAMERA}, scene, calibrate={1: "suspect"})
     rounds = [(1480.6, 229, "NO_CONVERGENCE"), (1380.7, 1547, "CONVERGENCE"), (1427.5, 3000, "NO_CONVERGENCE"),
               (1568.5, 285, "NO_CONVERGENCE")]
-    calibration.rounds = [{"num_points": points, "termination": termination} for _, points, termination in rounds]
+    calibration.steps.rounds = [{"num_points": points, "termination": termination} for _, points, termination in rounds]
     calibration.round_scenes = [stage.with_intrinsics(scene, {1: stage.with_focal(CAMERA, focal)})
                                 for focal, _, _ in rounds]
     calibration.scene = calibration.round_scenes[-1]
     calibration.take_best_round()
     assert calibration.scene.intrinsics[1].focal_px == pytest.approx(1380.7)
-    assert calibration.unsettled["taken_round"] == 2
+    assert calibration.steps.unsettled["taken_round"] == 2
     assert calibration.finish(calibration.scene)["unsettled"]["taken_round"] == 2
     # none converged: the most points
-    calibration.rounds = [dict(report, termination="NO_CONVERGENCE") for report in calibration.rounds]
+    calibration.steps.rounds = [dict(report, termination="NO_CONVERGENCE") for report in calibration.steps.rounds]
     calibration.take_best_round()
     assert calibration.scene.intrinsics[1].focal_px == pytest.approx(1427.5)
 
