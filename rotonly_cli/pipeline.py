@@ -1,4 +1,4 @@
-"""`rotonly run`: the whole chain (chain.py) into a workspace, and the workspace form of each stage.
+"""`rotonly run`: the whole chain (chain/) into a workspace, and the workspace form of each stage.
 
 load (INPUT -> view graph, re-estimated relative poses, min-inlier filter)
 -> identify (scene kinds; ROTATION_SINGULAR filtered) -> refine (TRRM, batched)

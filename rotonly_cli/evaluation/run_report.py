@@ -117,11 +117,11 @@ def structure_statistics(scene: SfMScene, view_ids: list[int]) -> StructureStati
 # ============================================================================ reading the reports
 
 def read_reports(reports_dir: Path, stages_done: list[str]) -> dict[str, dict]:
-    """reports/<name>.json as written, in chain order (pipeline.STAGES, then export): the
+    """reports/<name>.json as written, in chain order (stages.STAGES, then export): the
     stages done (a stage command leaves the later stages' files of an earlier run: stale, left
     out), export only after triangulation, any other report, ``run`` last."""
     found = {path.stem: path for path in sorted(reports_dir.glob("*.json"))} if reports_dir.is_dir() else {}
-    from rotonly_cli.pipeline import STAGES
+    from rotonly_cli.stages import STAGES
 
     def current(name: str) -> bool:
         if name in STAGES:

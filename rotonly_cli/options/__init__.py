@@ -67,7 +67,7 @@ class RejectOptions:
     #: dropping 794 and 463 of 21 M matches each cost a GRRM + LiGT re-solve of 3-4 minutes
     min_dropped_per_edge: float = 0.1
     #: rounds confirming matches by their tracks, run first when LiGT left views out or its
-    #: first solve misfits the tracks (reject_rounds._confirmation_rounds); 0: none
+    #: first solve misfits the tracks (chain/reject._confirmation_rounds); 0: none
     confirm_max_rounds: int = 3
     #: ... the misfit: the first solve's sigma beyond this many times the last robust round's
     confirm_misfit_sigmas: float = 10.0
@@ -82,7 +82,7 @@ class RejectOptions:
     #: where LiGT's first solve misfits the tracks (``confirm_misfit_sigmas``), before the
     #: confirmation: pairs whose matches fit the relative rotation the other pairs imply this
     #: many times worse (median epipolar residual) than their own are filtered, the most refuted
-    #: first (reject_rounds._refutation_rounds); clean inputs stay below 2.5
+    #: first (chain/reject._refutation_rounds); clean inputs stay below 2.5
     refute_max_ratio: float = 6.0
     #: ... at most this many pairs; 0: none
     refute_max_edges: int = 3

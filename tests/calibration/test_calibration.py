@@ -602,11 +602,11 @@ def test_rounds_that_do_not_settle_take_the_round_converged_on_the_most_points()
 def test_a_failed_quick_estimation_pass_falls_back_to_the_full_chain(user_inputs, tmp_path, monkeypatch):
     """The quick pass runs on intrinsics that may be far off; if it finds no reconstruction,
     the run goes on as without it (the full chain with the given intrinsics decides)."""
-    from rotonly_cli import chain
+    from rotonly_cli.chain import calibrate
     from rotonly_cli.errors import AlgorithmError
 
     _, guessed, _ = user_inputs
-    rerun, calls = chain._rerun, []
+    rerun, calls = calibrate._rerun, []
 
     def failing_first(*args, **kwargs):
         calls.append(1)
@@ -614,7 +614,7 @@ def test_a_failed_quick_estimation_pass_falls_back_to_the_full_chain(user_inputs
             raise AlgorithmError("fewer than two usable images after scene identification")
         return rerun(*args, **kwargs)
 
-    monkeypatch.setattr(chain, "_rerun", failing_first)
+    monkeypatch.setattr(calibrate, "_rerun", failing_first)
     summary = run_pipeline(guessed["openmvg"], tmp_path / "out", _options())
     assert summary["num_registered"] == 6 and len(calls) > 1
     log = (tmp_path / "out" / "run.log").read_text()
