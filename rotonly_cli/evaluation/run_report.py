@@ -22,7 +22,6 @@ from pathlib import Path
 
 import numpy as np
 
-from rotonly_cli import __version__
 from rotonly_cli.evaluation import svg
 from rotonly_cli.evaluation.run_figures import (  # noqa: F401 - top_view_axes: re-exported
     figure,
@@ -34,6 +33,7 @@ from rotonly_cli.evaluation.run_figures import (  # noqa: F401 - top_view_axes: 
     view_graph_figure,
 )
 from rotonly_cli.scene.types import Intrinsics, SfMScene
+from rotonly_cli.version import __version__
 
 REPORT_FILE = "report.html"
 #: list items shown of a report value (the JSON file has them all)
