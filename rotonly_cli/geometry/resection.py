@@ -1,7 +1,7 @@
 """Centres of views LiGT left out, by resection with their rotations known.
 
 LiGT positions the largest set of views that tracks of three or more views tie together
-(geometry.rigid_views). Its robust rounds judge observations by one global solve, and when wrong
+(geometry.ligt.rigid). Its robust rounds judge observations by one global solve, and when wrong
 multi-view tracks bend that solve the few tracks of a weak link look like outliers and the
 views beyond it lose their centre (castle-P19 matched sequentially: 8 of 19; docs/tuning.md
 "Resection of the views LiGT left out"). A view whose rotation is known needs only its centre

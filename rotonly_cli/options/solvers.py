@@ -226,7 +226,7 @@ class ResectionOptions:
 
 @dataclass(frozen=True, kw_only=True)
 class LiGTOptions:
-    """LiGT camera centres (geometry/ligt.py)."""
+    """LiGT camera centres (geometry/ligt/)."""
 
     #: tracks whose best base pair has ‖θ_lr‖ below this carry no translation information
     #: (pure rotation / infinitely far points, seed §6.1: all θ = 0 for PR/B/I)

@@ -1,7 +1,7 @@
 """Stage `translate`: camera centres by LiGT from the global rotations and the tracks of the
 active REGULAR edges (PURE_ROTATION edges carry no translation information, paper
 §"Scene Identification"). Views LiGT cannot constrain (without a constraint, or outside the largest
-rigid set, geometry.rigid_views, whose distance to the others no track through three or more
+rigid set, geometry.ligt.rigid, whose distance to the others no track through three or more
 views ties down) are resected from the points of the others, their rotations known
 (geometry.resection, algorithms.md §1.5). A view still without a centre whose pair with a
 positioned view is a pure rotation (PURE_ROTATION: PR/B/I, its translation unobservable) is
