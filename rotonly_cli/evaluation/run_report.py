@@ -55,11 +55,7 @@ class StructureStatistics:
 
 
 def _focal_px(intrinsics: Intrinsics | None) -> float:
-    if intrinsics is None:
-        return float("nan")
-    from rotonly_cli.stages.load import focal_length
-
-    return focal_length(intrinsics)
+    return float("nan") if intrinsics is None else intrinsics.focal_px
 
 
 def _stats(values: np.ndarray) -> dict | None:
