@@ -121,10 +121,11 @@ def refuted_edges(graph: ViewGraph, inputs, R_cam_from_world: np.ndarray) -> lis
 
 
 def reject_round(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_world: np.ndarray,
-                 centers: np.ndarray, focal_px: np.ndarray, options: RejectOptions = RejectOptions(),
-                 min_inliers: int = 30, max_residual_deg: float = 5.0) -> dict:
-    """One round (module docstring) on the REGULAR edges between posed views, in place.
-    Returns the round's report (counts and threshold)."""
+                 centers: np.ndarray, focal_px: np.ndarray, options: RejectOptions, min_inliers: int,
+                 max_residual_deg: float) -> dict:
+    """One round (module docstring) on the REGULAR edges between posed views, in place;
+    ``min_inliers`` and ``max_residual_deg``: the run's LoadOptions.min_inliers and
+    AverageOptions.max_residual_deg. Returns the round's report (counts and threshold)."""
     start = time.perf_counter()
     heartbeat.advance()  # the reject stage's rounds, for the progress lines in a pipe
     index = view_index(graph)

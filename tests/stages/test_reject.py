@@ -5,7 +5,7 @@ import numpy as np
 
 import rotonly_cli
 from rotonly_cli.geometry import so3
-from rotonly_cli.options import RejectOptions, RunOptions
+from rotonly_cli.options import AverageOptions, LoadOptions, RejectOptions, RunOptions
 from rotonly_cli.scene.types import Pose, View
 from rotonly_cli.scene.view_graph import Edge, ViewGraph
 from rotonly_cli.stages.reject import CONFIRM_REASON, DROP_REASON, REFUTE_REASON, reject_round
@@ -37,7 +37,8 @@ def _graph(rng, wrong_px: float, num_wrong: int):
 
 def test_wrong_matches_dropped_clean_ones_kept():
     graph, normalized, R, C = _graph(np.random.default_rng(0), wrong_px=15.0, num_wrong=20)
-    report = reject_round(graph, normalized, R, C, np.full(3, FOCAL), RejectOptions(), min_inliers=30)
+    report = reject_round(graph, normalized, R, C, np.full(3, FOCAL), RejectOptions(), LoadOptions.min_inliers,
+                          AverageOptions.max_residual_deg)
     first = graph.edges[0]
     # most of the 20 wrong ones go (those whose offset lies along their epipolar line may stay)
     assert 12 <= first.dropped_matches[DROP_REASON] <= 20
@@ -50,7 +51,8 @@ def test_wrong_matches_dropped_clean_ones_kept():
 def test_edge_that_would_be_emptied_keeps_its_matches():
     """Filtering it could cut a weakly connected view loose; it is reported instead."""
     graph, normalized, R, C = _graph(np.random.default_rng(1), wrong_px=30.0, num_wrong=190)
-    report = reject_round(graph, normalized, R, C, np.full(3, FOCAL), RejectOptions(), min_inliers=30)
+    report = reject_round(graph, normalized, R, C, np.full(3, FOCAL), RejectOptions(), LoadOptions.min_inliers,
+                          AverageOptions.max_residual_deg)
     assert graph.edges[0].active and graph.edges[0].num_inliers == 200 and not graph.edges[0].dropped_matches
     assert report["edges_kept_whole"] == 1
     assert graph.edges[1].active and graph.edges[2].active
