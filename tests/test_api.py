@@ -105,7 +105,7 @@ def test_the_cli_and_the_api_name_the_options_alike():
     from rotonly_cli.options.settings import SETTINGS
 
     assert set(inspect.signature(rotonly_cli.run).parameters) - {"input", "out", "options"} == set(SETTINGS)
-    cli = {param.name for param in command.params} - {"input_path", "out_dir", "no_grrm"}
+    cli = {param.name for param in command.params if param.expose_value} - {"input_path", "out_dir", "no_grrm"}
     assert cli == set(SETTINGS) - {"grrm", "progress"}
 
 

@@ -18,6 +18,7 @@ from rotonly_cli.chain.run import Run, output_scene
 from rotonly_cli.chain.stages import load_graph, load_options, run_chain
 from rotonly_cli.errors import AlgorithmError, InputError
 from rotonly_cli.io.detect import InputKind
+from rotonly_cli.io.readers import READERS
 from rotonly_cli.options import RunOptions
 from rotonly_cli.scene.types import SfMScene
 from rotonly_cli.stages import STAGES
@@ -29,12 +30,14 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 
-def load_stage(input_path: str | Path, options: RunOptions, scratch: Path | None = None) -> Run:
-    """``scratch``: where a database's private copy is made (the run's staging folder)."""
+def load_stage(input_path: str | Path, options: RunOptions, scratch: Path | None = None,
+               kind: InputKind | None = None) -> Run:
+    """INPUT read, then :func:`load_scene`; ``scratch``: where a database's private copy is made
+    (the run's staging folder); ``kind``: INPUT's kind, when detected already."""
     from rotonly_cli.stages.load import input_files, read_input
 
     start = time.perf_counter()
-    scene, kind = read_input(input_path, options.matches_dir, options.matches_file, scratch)
+    scene, kind = read_input(input_path, options.matches_dir, options.matches_file, scratch, kind)
     sources = input_files(input_path, kind, scene, options.matches_dir, options.matches_file)
     return load_scene(scene, kind, str(input_path), options, time.perf_counter() - start, sources)
 
@@ -49,7 +52,8 @@ def load_scene(scene: SfMScene, kind: InputKind, input_label: str, options: RunO
     from rotonly_cli.stages.load import measure_noise, without_unprojectable_keypoints
 
     started = time.perf_counter()
-    scene, guessed_views = guess_missing_cameras(scene, options.intrinsics.mode, kind == InputKind.OPENMVG)
+    scene, guessed_views = guess_missing_cameras(scene, options.intrinsics.mode,
+                                                 READERS[kind].openmvg_cameras)
     with_camera = [v for v, view in scene.views.items() if view.intrinsics_id in scene.intrinsics]
     if len(with_camera) < min(2, len(scene.views)):  # views without a camera under --intrinsics fixed
         raise InputError(f"{len(scene.views) - len(with_camera)} of {len(scene.views)} views have no camera (an "

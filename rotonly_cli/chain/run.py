@@ -12,6 +12,7 @@ import numpy as np
 
 from rotonly_cli.errors import AlgorithmError
 from rotonly_cli.io.detect import InputKind
+from rotonly_cli.io.readers import READERS
 from rotonly_cli.options import RunOptions
 from rotonly_cli.scene.tracks import TrackCache
 from rotonly_cli.scene.types import SfMScene, Structure
@@ -53,19 +54,11 @@ def ensure_two_views(graph: ViewGraph, after: str) -> None:
 
 
 def image_root(run: Run) -> Path | None:
-    """--image-path; else COLMAP: ``images/`` beside the database; OpenMVG: root_path the way
-    OpenMVG's tools read it (from the current directory), else from the sfm_data.json folder."""
+    """--image-path; else where the input's kind keeps its images (io/readers: COLMAP,
+    ``images/`` beside the database; OpenMVG, root_path the way its tools read it)."""
     if run.options.image_path:
         return Path(run.options.image_path)
-    input_path = Path(run.input_path)
-    if run.input_kind == InputKind.COLMAP_DB:
-        candidate = input_path.parent / "images"
-        return candidate if input_path.is_file() and candidate.is_dir() else None
-    if run.input_kind != InputKind.OPENMVG:
-        return None
-    from rotonly_cli.io.openmvg import image_root as openmvg_image_root
-
-    return openmvg_image_root(run.scene.root_path, input_path / "sfm_data.json" if input_path.is_dir() else input_path)
+    return READERS[run.input_kind].image_root(Path(run.input_path), run.scene)
 
 
 def output_root_path(run: Run) -> str:
@@ -73,7 +66,7 @@ def output_root_path(run: Run) -> str:
     as it came (OpenMVG resolves both from the current directory), else the image folder found."""
     if run.options.image_path:
         return str(run.options.image_path)
-    if run.input_kind == InputKind.OPENMVG:
+    if READERS[run.input_kind].keeps_root_path:
         return run.scene.root_path
     root = image_root(run)
     return "" if root is None else str(root)
