@@ -104,11 +104,10 @@ def residual_sigma_px(reconstruction) -> float:
     """Per-coordinate sigma (px) of the reprojection residuals of ``reconstruction`` (a
     pycolmap Reconstruction) as it is now (:func:`reprojection_errors` of its scene): the
     median error norm / √(2 ln 2) (a Gaussian residual's norm is Rayleigh), so that the few
-    points an adjustment sends far off do not count (castle-P19's OpenMVG matches: a mean of
-    1e150 px after one adjustment), times √(n / (n − p)) for the p parameters the adjustment
-    fitted to its n residual coordinates (3 per point, 6 per image). NaN without observations.
-    The points' stored errors are not used: an adjustment does not update them (they were the
-    errors before it)."""
+    points an adjustment sends far off do not count (their mean can be astronomical), times
+    √(n / (n − p)) for the p parameters the adjustment fitted to its n residual coordinates (3
+    per point, 6 per image). NaN without observations. The points' stored errors are not used:
+    an adjustment does not update them (they were the errors before it)."""
     from rotonly_cli.io.colmap.model import scene_from_reconstruction
 
     errors = list(reprojection_errors(scene_from_reconstruction(reconstruction)).values())
@@ -203,9 +202,7 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int], options: IntrinsicsOp
         # the same zoom; OpenMVG's image listing without grouping) takes all of the group's
         # adjusted camera; a guessed one (COLMAP's one 1.2 x size guess can hide several
         # zooms) only its principal point, and each camera's own focal and distortion from the
-        # second adjustment. One image's own focal is weakly fixed: castle-P19's database with
-        # a camera per image, EXIF-like, moved view 16's by 1.9 %; its OpenMVG project with an
-        # intrinsic per view moved view 3's by 3.9 % (0.170 deg; shared, 0.083 deg).
+        # second adjustment. One image's own focal is weakly fixed (it moved by percents).
         whole = {c for group in merged if scene.intrinsics[group[0]].prior_focal is not False for c in group}
         # a group's cameras carry the uncertainty of the group's camera they take
         first_std = _parameter_std(first, adjuster, [group[0] for group in merged if group[0] in whole], offset,

@@ -35,9 +35,8 @@ MIN_MATCHES_PER_PROCESS = 20_000
 def refit_fundamentals(scene: SfMScene, options: IntrinsicsOptions, jobs: int = 1) -> dict[tuple[int, int], np.ndarray]:
     """F of every verified pair that can hold one, from pycolmap's LO-RANSAC with Sampson
     refinement on the pair's matches, in pixels without the cameras' known distortion (the
-    keypoints themselves when there is none). COLMAP 3.8 stores F without that refinement:
-    the view-graph focal of fountain-P11's guessed database was 2.4 % off with the stored F,
-    0.03 % with the re-fitted one (docs/tuning.md). ``jobs``: processes (forked)."""
+    keypoints themselves when there is none). COLMAP 3.8 stores F without that refinement,
+    which costs the view-graph focal percents (docs/tuning.md). ``jobs``: processes (forked)."""
     import pycolmap
 
     ransac = pycolmap.RANSACOptions(max_error=options.fundamental_max_error_px, random_seed=options.seed,
@@ -72,12 +71,9 @@ def view_graph_focals(scene: SfMScene, calibrate: set[int], options: IntrinsicsO
     ``pycolmap.calibrate_view_graph`` over the re-fitted fundamental matrices; the other
     cameras are held constant. Cameras given identical intrinsics (:func:`twin_cameras`:
     COLMAP's camera per image) are calibrated as one, as in the first adjustment of a round:
-    entry-P10's guessed database with a camera per image has 9 fundamental matrices for 10
-    cameras, and a focal each put cameras 1 and 2 at 574 and 476 px (true 1381), which took
-    four rounds (22 s) to undo. Twins whose focal the input gives (an EXIF camera per image,
-    calibrated as suspects) share it too: a focal each left entry-P10's such database at
-    0.1638 deg (shared: 0.0460), though castle-P19's gained by it (0.038 against 0.044 deg,
-    seeds 0-2)."""
+    a camera per image has fewer fundamental matrices than cameras, and a focal each went far
+    off. Twins whose focal the input gives (an EXIF camera per image, calibrated as suspects)
+    share it too (docs/tuning.md "Measurements behind the code")."""
     start = time.perf_counter()
     fundamentals = refit_fundamentals(scene, options, jobs)
     report = {"cameras": sorted(calibrate), "num_pairs": len(fundamentals), "refit_time_s": time.perf_counter() - start}
@@ -137,8 +133,7 @@ def per_image_focals(scene: SfMScene, devices: list[list[int]], fundamentals: di
     device with at least ``zoom_min_images`` such images is checked by :func:`focal_groups`:
     {"focal_px": {camera: {view: focal}}, "disagree": [findings]}. A zoom lens or two devices
     under one camera (COLMAP's ``single_camera``, OpenMVG's ``-k``) give one focal to images
-    taken at two: fountain-P11's database with four of its eleven images zoomed 5 % ended
-    0.94 deg off, and no shared calibration fits both (docs/tuning.md "Intrinsics")."""
+    taken at two, and no shared calibration fits both (docs/tuning.md "Intrinsics")."""
     paired, pairs_of = np.unique(np.array(list(fundamentals), dtype=np.int64).reshape(-1), return_counts=True)
     enough = set(paired[pairs_of >= options.zoom_min_pairs].tolist())
     checked = {}
@@ -176,9 +171,8 @@ def focal_groups(focals: dict[int, float], options: IntrinsicsOptions) -> list[l
     focal lengths (``focals``: {view: px}) when that gap is a zoom's, not the calibration's
     scatter: at least ``zoom_min_gap`` (relative), ``zoom_gap_to_spread`` times the larger
     group's own range, and two images a side; None otherwise. Calibrated cameras' images
-    scatter by ±0.5 % (Herz-Jesus-P8, fountain-P11) and, where few pairs hold a fundamental
-    matrix, by tens of per cent with no gap between groups (entry-P10: -65 % to +0.2 %;
-    castle-P19: -8 % to +3 %)."""
+    scatter by half a per cent and, where few pairs hold a fundamental matrix, by tens of per
+    cent with no gap between groups (docs/tuning.md "Measurements behind the code")."""
     views = [v for v, f in focals.items() if np.isfinite(f) and f > 0]
     if len(views) < 4:
         return None

@@ -33,8 +33,7 @@ def guess_missing_cameras(scene: SfMScene, mode: Mode, openmvg: bool) -> tuple[S
     that size, if any: :func:`_principal_point_of_size`), which ``auto`` and ``refine``
     calibrate: what the listing's ``-f`` would have made of them (it groups views of one size
     and focal into one intrinsic). One camera per view, as COLMAP's front end makes them,
-    measured worse on Strecha's OpenMVG projects with every intrinsic removed (castle-P19 0.30
-    against 0.10 deg; docs/tuning.md "Intrinsics"). ``fixed`` calibrates nothing: there the
+    measured worse (docs/tuning.md "Intrinsics"). ``fixed`` calibrates nothing: there the
     views stay without a camera and out of the outputs (the run warns)."""
     missing = [v for v, view in sorted(scene.views.items())
                if view.intrinsics_id not in scene.intrinsics and v in scene.keypoints]
@@ -59,10 +58,9 @@ def _principal_point_of_size(guess: Intrinsics, scene: SfMScene) -> Intrinsics:
     of the guess's image size (their median), if there are any. Such views' images most likely
     come from the device whose other images kept their EXIF (an edit or a messenger strips
     it), and a principal point that a few images see cannot be estimated (to first order it is
-    a rotation of the camera: ``min_images_principal_point``): Herz-Jesus-P8's and entry-P10's
-    OpenMVG projects with one view's intrinsic undefined ended at 0.105 and 0.056-0.128 deg
-    with the guess's centre, 10 px off, and at 0.040 and 0.023-0.033 deg with it (all given:
-    0.040 and 0.022 deg). Where the listing left the given cameras at the centre, nothing changes."""
+    a rotation of the camera: ``min_images_principal_point``); the image centre is 10 px off
+    on real cameras, and costs accuracy (docs/tuning.md "Measurements behind the code").
+    Where the listing left the given cameras at the centre, nothing changes."""
     of_views = [scene.intrinsics[view.intrinsics_id] for view in scene.views.values()
                 if view.intrinsics_id in scene.intrinsics]
     given = [np.asarray(k.params, dtype=np.float64)[cameras.parameter_groups(k)["principal_point"]]

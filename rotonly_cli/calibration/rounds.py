@@ -169,7 +169,7 @@ class Calibration:
         On the first view-graph calibration's cameras (no distortion yet), a simulated capture
         with k1 = -0.3 and the focal guessed 40 % long split its images at 2149 and 3112 px
         (true: 1380 for all); on the settled ones as they are, a zoom bends the principal
-        point (Herz-Jesus-P8 with three images zoomed 5 %: 60 px), and the groups drown."""
+        point by tens of pixels, and the groups drown."""
         if not self.options.zoom_check or self.steps.zoom_check is not None:
             return False
         start = time.perf_counter()

@@ -94,8 +94,7 @@ def _probe_for_suspects(input_label: str, kind: InputKind, calibration: Calibrat
     (ESTIMATION_LOAD, ESTIMATION_STAGES) whose reprojection errors tell whether some camera's
     intrinsics are wrong, before the full load stage and chain run with them (with a wrong
     EXIF focal that pass costs a fifth of them: docs/tuning.md "Intrinsics"). True if some
-    camera joined the calibration. Calibrated inputs (noise 0.13-0.25 px on Strecha) never
-    probe."""
+    camera joined the calibration. Calibrated inputs never probe."""
     if not isinstance(noise_sigma, float) or noise_sigma <= options.intrinsics.probe_noise_px:
         return False
     logger.info("intrinsics: the matches fit essential matrices at sigma %.2f px (> %.2f px): a quick estimation "
@@ -162,9 +161,8 @@ def calibrated_chain(loaded: Run, chain=run_chain) -> Run:
         return calibration.check_centred(posed) or suspects
 
     # a reconstruction made with a guess still uncalibrated bends every camera's errors with
-    # it (Herz-Jesus-P8's OpenMVG project with one view's focal a guess: the given camera of
-    # the other seven reprojected at 0.35 px > 0.31 px and was "calibrated" 0.9 % short):
-    # with guesses, the given cameras are judged once the guesses have settled (the rounds)
+    # it (a right camera beside it looks wrong): with guesses, the given cameras are judged
+    # once the guesses have settled (the rounds)
     unjudged = auto and guessed
     if not guessed and not (auto and judge_given(run)):
         return run  # every camera fits: the intrinsics stay as given
@@ -203,9 +201,8 @@ def calibrated_chain(loaded: Run, chain=run_chain) -> Run:
         round_ += 1
     if not settled and len(calibration.steps.rounds) > 1 and not calibration.splits:
         # the rounds ran out without settling: they oscillate about intrinsics that
-        # reconstructions bent by wrong matches cannot fix (castle-P19 listed with the focal 15 %
-        # short, its default-preset E matches: 1394.8 -> 1480.6 -> 1380.7 -> 1427.5 -> 1568.5 px,
-        # true 1380.9; the last one written, 7.2 deg). The estimate of the round whose
+        # reconstructions bent by wrong matches cannot fix, and the last need not be the best.
+        # The estimate of the round whose
         # adjustment converged on the most points is taken
         calibration.take_best_round()
     calibration.time_s += time.perf_counter() - started

@@ -62,8 +62,7 @@ def rejection(run: Run, solve: Callable[[str], None]) -> None:
             break
         before = _snapshot(run)  # what an undone round restores (reject_round changes the graph in place)
         # matches are judged under LiGT's own centres: a resected view's centre carries the error
-        # of the points it was resected from (castle-P19's OpenMVG matches, seed 4: judged with
-        # them, the round's drops took the rotations 0.1099 -> 0.1153 deg)
+        # of the points it was resected from (docs/tuning.md "Measurements behind the code")
         judged = ligt_centres(run.centers, run.reports.get("translate"), view_index(run.graph))
         report = reject_round(run.graph, run.scene.normalized, run.rotations, judged, focal_px,
                               run.options.reject, run.options.load.min_inliers, run.options.average.max_residual_deg)
@@ -85,14 +84,11 @@ def rejection(run: Run, solve: Callable[[str], None]) -> None:
         resolve()
         off_after = list(views_off(run.reports.get("translate")))
         # views resected after the solve count as lost: the round's drops cut them out of the
-        # tracks' rigid set, and their rotations are the ones those drops spoiled (castle-P19's
-        # OpenMVG matches, focal x1.2: resected, the round kept, 0.0945 -> 0.1267 deg)
+        # tracks' rigid set, and their rotations are the ones those drops spoiled
         lost = views_lost(before.reports["translate"], run.reports.get("translate"))
         if len(off_after) > len(views_off(before.reports["translate"])) or lost:
-            # LiGT's solve on the cleaned tracks collapsed where the previous one had not (castle-P19,
-            # OpenMVG matches, 5 consensus runs, seed 3: 17.6 GT units), or the dropped matches cut
-            # views out of the set that tracks tie together (the same input, seed 1: views 12-15
-            # lost their centres in the second round): the round is undone
+            # LiGT's solve on the cleaned tracks collapsed where the previous one had not, or the
+            # dropped matches cut views out of the set that tracks tie together: the round is undone
             _restore(run, before)
             report["undone"] = {"views_off": off_after, "views_without_centre": lost}
             logger.info("reject: round undone, its LiGT solve %s",
@@ -141,8 +137,8 @@ def _rotations_misfit_tracks(run: Run) -> bool:
     """Whether LiGT's solve says the rotations disagree with the tracks, the cue for the
     confirmation rounds: it left views out of the set the tracks tie together, or its first
     solve (every observation in) misfits them by ``confirm_misfit_sigmas`` times the sigma of
-    its last round's (the noise of the observations it kept). Clean inputs: 1-3 times;
-    castle-P19 from OpenMVG's default preset: 20-70 times (docs/tuning.md)."""
+    its last round's (the noise of the observations it kept): clean inputs stay at a few times
+    (docs/tuning.md)."""
     from rotonly_cli.stages.translate import tracks_misfit, views_ligt_left_out
 
     options = run.options.reject
@@ -156,8 +152,7 @@ def _rotations_bent(run: Run) -> bool:
     """The refutation's cue: LiGT's first solve misfits the tracks by ``confirm_misfit_sigmas``
     times its last round's sigma (the misfit half of :func:`_rotations_misfit_tracks`). Views
     left out with the rotations fitting the tracks (a weak link short of tracks) are no sign of a
-    pair bending them: an OpenMVG subset of castle-P19 (12 views, 0.71 px) lost a pair 5 deg
-    from the others' rotation and three views to it (0.097 -> 0.113 deg)."""
+    pair bending them: filtering a pair there cost views and accuracy."""
     from rotonly_cli.stages.translate import tracks_misfit
 
     options = run.options.reject
@@ -183,8 +178,7 @@ def _refutation_rounds(run: Run, resolve) -> dict:
     other pairs refute are filtered (stages/reject.refuted_edges, geometry/refutation): a pair whose
     matches are consistently wrong (repeated structure that fits its own epipolar geometry)
     bends GRRM's rotations until its own matches fit them, and where it is weakly tied, no
-    residual under the bent rotations shows it (castle-P19 from OpenMVG's F-verified matches:
-    pairs 12-17 and 15-17, 0.22-0.28 deg). Left out, its matches misfit the rotation the
+    residual under the bent rotations shows it. Left out, its matches misfit the rotation the
     others imply: the most refuted pair beyond ``refute_max_ratio`` is filtered and GRRM and
     LiGT re-solved, at most ``refute_max_edges`` times. A filtered pair is put back, and the
     test ends, when LiGT then leaves out a view it tied in (the pair was a link the tracks
@@ -205,8 +199,7 @@ def _refutation_rounds(run: Run, resolve) -> dict:
                       if entry["fit_ratio"] > options.refute_max_ratio]
         # the others refute a pair only where they stay redundant: a pair whose loss would
         # leave other pairs on no cycle had one path to disagree with, and nothing would check
-        # those pairs afterwards (castle-P19's OpenMVG matches, an 8-view subset: two pairs
-        # filtered left five bridges, 0.18 -> 0.34 deg). Then the test ends: the pairs below
+        # those pairs afterwards. Then the test ends: the pairs below
         # the most refuted one may be the ones it bent (a simulated pair turned 1.5 deg: 31x,
         # its neighbours up to 11x)
         if not candidates or _leaves_new_bridges(run.graph, candidates[0]["edge_index"],
@@ -241,9 +234,8 @@ def _confirmation_rounds(run: Run, resolve) -> dict:
     """Where LiGT's solve says the rotations disagree with the tracks
     (:func:`_rotations_misfit_tracks`), GRRM's objective, which takes every match of a pair,
     may have been bent by wrong matches that fit their own pair's epipolar geometry (repeated
-    structure a few pixels off the right line, no third view to refute them): castle-P19 from
-    OpenMVG's default preset, 0.27-0.29 deg, LiGT's first solve 5-25 px off the tracks and
-    views 11-18 left out.
+    structure a few pixels off the right line, no third view to refute them; docs/tuning.md
+    "Confirmation by tracks").
 
     Each round triangulates the tracks under the current poses (every view with a centre,
     resected ones too), keeps on every edge only the matches a track of ``confirm_min_views``
@@ -287,8 +279,7 @@ def _confirmation_rounds(run: Run, resolve) -> dict:
         graph, report = confirm_round(original, confirmed, edges)
         if report["num_dropped"] > (1.0 - options.confirm_min_fraction) * report["num_matches"]:
             # most matches unconfirmed: tracks of three views are too few for a consistency
-            # test, and GRRM on the rest would be a thin subsample (castle-P19's database, a
-            # 6-view subset: 28 % confirmed, 0.09 -> 0.27 deg)
+            # test, and GRRM on the rest would be a thin subsample
             result = {"too_few_confirmed": report}
             break
         run.graph = graph
@@ -310,14 +301,12 @@ def _confirmation_rounds(run: Run, resolve) -> dict:
     # the test: LiGT on every match's tracks (the graph before the rounds) under the new
     # rotations. Where wrong matches had bent the rotations, the tracks now agree with them
     # and LiGT ties every view in; where views were left out for want of tracks (a weak
-    # link: castle-P19 matched sequentially, 7 views out, 6 after), some stay out, and the
-    # rounds are undone
+    # link), some stay out, and the rounds are undone
     run.graph = copy.deepcopy(original)
     resolve(("translate",))
     left_all = sorted(views_ligt_left_out(run.reports.get("translate")))
     # ... and the new rotations may not put a pair beyond the averaging's outlier residual
-    # (an 8-view subset of castle-P19's database: a leaf turned 24 deg) nor a
-    # view off its pairs' baselines (LiGT shrinking the centres fits every track)
+    # (a leaf can turn far) nor a view off its pairs' baselines (LiGT shrinking the centres fits every track)
     outlier = run.options.average.max_residual_deg
     new_outliers = int(np.sum((residuals() > outlier) & ~(residual_before > outlier)))
     off = sorted(set(views_off(run.reports.get("translate"))) - set(views_off(saved.reports["translate"])))

@@ -44,8 +44,7 @@ def write_outputs(out_dir: Path, scene: SfMScene, input_kind: InputKind, jobs: i
     # included, expect); the COLMAP model keeps the database's ids
     openmvg_scene = (renumber_views_by_name(colmap.colmap_to_openmvg(scene))
                      if READERS[input_kind].colmap_ids else scene)
-    # formatting its ~10 numbers per observation is the export's largest cost (fountain-P11:
-    # 0.42 s of 0.58 s)
+    # formatting its ~10 numbers per observation is the export's largest cost (three quarters)
     sfm_data = ForkedCall(lambda: openmvg.write_sfm_data(out_dir / sfm_data_name, openmvg_scene), jobs > 1)
     try:
         colmap.write_model(out_dir / sparse_name, scene, binary=True)

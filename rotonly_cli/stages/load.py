@@ -237,8 +237,8 @@ def stable_consensus(estimates: list) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
     Near-degenerate pairs (a dominant plane, repeated structure) let RANSAC settle on
     different models from different samples; matches near the threshold then swing in and out
-    of the inlier set, and the ones that swing pull the rotation (measured on castle-P19,
-    docs/tuning.md). Those that every run accepts do not."""
+    of the inlier set, and the ones that swing pull the rotation (docs/tuning.md "Load").
+    Those that every run accepts do not."""
     if not estimates or any(estimate is None for estimate in estimates):
         return None
     stable = np.logical_and.reduce([estimate[2] for estimate in estimates])
@@ -310,11 +310,11 @@ def _consensus_runs(pairs: EdgeCoordinates, threshold: float, options: LoadOptio
     With ``consensus_agreement`` (the fast front end, off by default), the consensus runs know
     the edge's inlier ratio (the first run's) and stop at the trials it needs
     (:func:`ransac_trials`; by default every run has the trials of the first: that bound
-    changed castle-P19's OpenMVG default-preset pairs enough to change which pairs the
-    refutation filters), and the first two runs see at most ``agreement_max_matches``
-    matches; an edge whose two runs agree (:func:`runs_agree`) keeps them. The others make
-    their ``consensus_runs`` runs on ``ransac_max_matches`` (those with no more matches than
-    the smaller subset go on from the two runs they made, which are the same)."""
+    changes noisy pairs enough to change which pairs the refutation filters), and the first
+    two runs see at most ``agreement_max_matches`` matches; an edge whose two runs agree
+    (:func:`runs_agree`) keeps them. The others make their ``consensus_runs`` runs on
+    ``ransac_max_matches`` (those with no more matches than the smaller subset go on from the
+    two runs they made, which are the same)."""
     fast = options.consensus_agreement is not None
 
     def estimate_run(run: tuple[int, int, float | None, LoadOptions]):

@@ -51,8 +51,7 @@ def undone_round_warning(report: dict | None) -> str | None:
     """The run summary's warning when a rejection round was undone because its re-solve left
     views without a centre or put them off their baselines (reports/reject.json): tracks tie
     those views to the rest so weakly that dropping a few hundred matches cuts them loose, and
-    their poses are the least certain of the run (castle-P19, OpenMVG matches: seeds 1-4,
-    0.086-0.113 deg against 0.065 for seed 0, where no round was undone). None otherwise."""
+    their poses are the least certain of the run. None otherwise."""
     for round_ in (report or {}).get("rounds") or []:
         undone = round_.get("undone")
         if not undone:
@@ -161,7 +160,7 @@ def reject_round(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from
         keep = error <= threshold
         if np.count_nonzero(keep) < min_inliers:
             # an edge this round would empty keeps its matches: filtering it can cut a weakly
-            # connected view loose, and LiGT's centre for it with it (castle-P19, OpenMVG matches)
+            # connected view loose, and LiGT's centre for it with it
             report["edges_kept_whole"] = report.get("edges_kept_whole", 0) + 1
             continue
         report["num_dropped"] += edge.drop_matches(keep, DROP_REASON)

@@ -38,9 +38,8 @@ class RobustLiGTResult:
 
 
 #: Gauss-Newton steps of the points of :func:`observation_errors`: their errors decide drops at
-#: a pixel or more, and with 2 (of the final triangulation's 5) every drop on the eight Strecha
-#: inputs is the same (the written models are byte-identical); ~0.03 s of 0.13 s per call on
-#: fountain-P11's 80 000 observations
+#: a pixel or more, and with 2 (of the final triangulation's 5) every drop on the measured inputs
+#: is the same (the written models are byte-identical) for a quarter of the call's time
 ERROR_REFINEMENT_ITERATIONS = 2
 
 
@@ -242,7 +241,7 @@ def _robust_rounds(parts: _TrackParts, obs_focal_px: np.ndarray, view_mask: np.n
         # the floor anneals: the first solve is bent by the wrong tracks, and at 1 px its errors
         # also mark the good observations of a weak link (the few tracks that tie two parts of
         # a capture together, which such a solve fits worst): dropped, they leave the link to
-        # the wrong ones or cut it (castle-P19 matched sequentially lost 6-7 of 19 views)
+        # the wrong ones or cut it
         floor = _annealed_floor_px(len(rounds), options)
         threshold = max(final_threshold, floor)
         if best is not None and sigma > 2.0 * best[0]:
