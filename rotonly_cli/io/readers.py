@@ -1,7 +1,8 @@
 """The inputs of `rotonly run`, one entry per kind (io/detect.InputKind) in :data:`READERS`: what
 can be checked before anything is written, how the scene with its matches is read, what was
 read (reports/load.json), where the images are, and whose conventions the scene carries. The
-chain asks this table; nothing else branches on the kind of input."""
+load stage, the chain, the export and pipeline.check_input ask this table (`rotonly convert`
+branches on its input and output kinds together: a conversion, not a run's reading)."""
 
 from __future__ import annotations
 
