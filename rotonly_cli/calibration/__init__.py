@@ -12,35 +12,7 @@ intrinsics that make them; the poses rotonly writes are always the product of it
 rotation-only stages.
 """
 
-from rotonly_cli.calibration.adjustment import (
-    change_sigmas,
-    estimate_intrinsics,
-    gate,
-    half_diagonal,
-    residual_sigma_px,
-    shift_limit_px,
-    shift_px,
-)
-from rotonly_cli.calibration.focals import (
-    focal_groups,
-    per_image_focals,
-    refit_fundamentals,
-    view_graph_focals,
-    zoom_warning,
-)
-from rotonly_cli.calibration.guesses import (
-    cameras_to_calibrate,
-    centred_principal_point,
-    guess_missing_cameras,
-    suspect_cameras,
-    suspect_threshold_px,
-    twin_cameras,
-)
-from rotonly_cli.calibration.noise import homography_noise_sigma_px, projective_noise_sigma_px
-from rotonly_cli.calibration.rounds import Calibration, start_calibration, warnings_for, with_focal, with_intrinsics
+from rotonly_cli.calibration.guesses import guess_missing_cameras
+from rotonly_cli.calibration.rounds import Calibration, start_calibration
 
-__all__ = ["Calibration", "cameras_to_calibrate", "centred_principal_point", "change_sigmas", "estimate_intrinsics",
-           "focal_groups", "gate", "guess_missing_cameras", "half_diagonal", "homography_noise_sigma_px",
-           "per_image_focals", "projective_noise_sigma_px", "refit_fundamentals", "residual_sigma_px",
-           "shift_limit_px", "shift_px", "start_calibration", "suspect_cameras", "suspect_threshold_px",
-           "twin_cameras", "view_graph_focals", "warnings_for", "with_focal", "with_intrinsics", "zoom_warning"]
+__all__ = ["Calibration", "guess_missing_cameras", "start_calibration"]
