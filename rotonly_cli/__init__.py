@@ -4,7 +4,8 @@
 two-view and multi-view building blocks are ``rotonly_cli.twoview`` and ``rotonly_cli.multiview``.
 """
 
-__version__ = "0.1.0"
+from rotonly_cli.version import __version__
+
 __all__ = ["run", "__version__"]
 
 

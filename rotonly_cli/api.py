@@ -13,14 +13,14 @@ bit for bit. With ``out`` the workspace is written too, as ``rotonly run INPUT -
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.io.detect import InputKind
-from rotonly_cli.options import INTRINSICS_MODES, Intrinsics, Reestimate, RunOptions
+from rotonly_cli.options import RunOptions
 from rotonly_cli.scene.types import PairMatches, SfMScene, Structure
 from rotonly_cli.scene.view_graph import ViewGraph
 
@@ -107,32 +107,15 @@ def _scene_input(source) -> tuple[SfMScene, InputKind, str] | None:
 
 
 def _options(options: RunOptions | None, settings: dict) -> RunOptions:
-    """``options`` with the CLI-named ``settings`` applied; without ``options``, the CLI's
-    defaults (RunOptions(), and ``jobs`` = the usable CPUs)."""
+    """``options`` with the CLI-named ``settings`` applied (options.settings); without
+    ``options``, the CLI's defaults (RunOptions(), and ``jobs`` = the usable CPUs)."""
+    from rotonly_cli.options.settings import with_settings
+
     if options is None:
         from rotonly_cli.runtime.parallel import usable_cpus
 
         options = RunOptions(jobs=usable_cpus())
-    load, average, intrinsics, top = {}, {}, {}, {}
-    names = {"ransac_max_error": ("load", "ransac_max_error_px"), "min_inliers": ("load", "min_inliers"),
-             "reestimate": ("load", "reestimate"), "seed": ("load", "seed"),
-             "max_residual_deg": ("average", "max_residual_deg"), "matches": ("top", "matches_file"),
-             "matches_dir": ("top", "matches_dir"), "image_path": ("top", "image_path"), "gt": ("top", "gt"),
-             "grrm": ("top", "grrm"), "jobs": ("top", "jobs"), "progress": ("top", "progress"),
-             "intrinsics": ("intrinsics", "mode"), "max_memory": ("top", "max_memory_gb")}
-    for name, value in settings.items():
-        if value is None:
-            continue
-        group, key = names[name]
-        if key in ("matches_file", "matches_dir", "image_path", "gt"):
-            value = str(value)
-        if key == "reestimate":
-            value = Reestimate(value)
-        if group == "intrinsics":
-            value = Intrinsics(value) if value in INTRINSICS_MODES else value  # else validate() names it
-        {"load": load, "average": average, "intrinsics": intrinsics, "top": top}[group][key] = value
-    return replace(options, load=replace(options.load, **load), average=replace(options.average, **average),
-                   intrinsics=replace(options.intrinsics, **intrinsics), **top)
+    return with_settings(options, settings)
 
 
 def run(input, out: str | os.PathLike | None = None, *, gt=None, matches_dir=None, matches=None, image_path=None,

@@ -1,6 +1,6 @@
 """Every connected part of the view graph as its own model (issue 49 point 6).
 
-The chain (chain.py) reconstructs the largest connected component of the load stage's view
+The chain (chain/) reconstructs the largest connected component of the load stage's view
 graph: OUT/sparse/ and OUT/sfm_data.json, as before (architecture.md: ``sparse/`` holds the
 model). The load stage's other components of :data:`MIN_VIEWS` or more views are then
 reconstructed one by one, largest first: the stages after load (identify ... triangulate) on a

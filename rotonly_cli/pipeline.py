@@ -1,4 +1,4 @@
-"""`rotonly run`: the whole chain (chain.py) into a workspace, and the workspace form of each stage.
+"""`rotonly run`: the whole chain (chain/) into a workspace, and the workspace form of each stage.
 
 load (INPUT -> view graph, re-estimated relative poses, min-inlier filter)
 -> identify (scene kinds; ROTATION_SINGULAR filtered) -> refine (TRRM, batched)
@@ -48,6 +48,7 @@ from rotonly_cli.errors import InputError, write_error
 from rotonly_cli.io import atomic
 from rotonly_cli.io.atomic import check_replaceable
 from rotonly_cli.io.detect import InputKind, detect_input
+from rotonly_cli.io.readers import READERS
 from rotonly_cli.io.workspace import (
     STATE_FILE,
     WorkspaceState,
@@ -64,7 +65,7 @@ from rotonly_cli.runtime.startup import collector_paused
 from rotonly_cli.scene.types import SfMScene
 
 if TYPE_CHECKING:
-    from rotonly_cli.stages.intrinsics import Calibration
+    from rotonly_cli.calibration import Calibration
 
 logger = logging.getLogger(__name__)
 WORKSPACE_ENTRIES = {"sfm_data.json", "sparse", "view_graph.json", "reports", "run.log", STATE_FILE, "eval",
@@ -136,13 +137,13 @@ def check_out_dir(out_dir: Path) -> None:
     check_replaceable(out_dir, WORKSPACE_ENTRIES | model_files(out_dir), "a rotonly workspace")
 
 
-def check_input(input_path: Path) -> None:
-    """What can be checked of INPUT before anything is written: its kind, and a database
-    table by table (io/colmap/database_check). OpenMVG projects are checked as they are read."""
-    if detect_input(input_path) == InputKind.COLMAP_DB:
-        from rotonly_cli.io.colmap.database_check import check_database
-
-        check_database(input_path)
+def check_input(input_path: Path) -> InputKind:
+    """What can be checked of INPUT before anything is written: its kind (returned), and what
+    io/readers.READERS checks of that kind (a database table by table; OpenMVG projects are
+    checked as they are read)."""
+    kind = detect_input(input_path)
+    READERS[kind].check(input_path)
+    return kind
 
 
 class _LogFile(logging.FileHandler):
@@ -216,7 +217,7 @@ def run_into(input_path: str | Path | SfMScene, out_dir: str | Path, options: Ru
     check_out_dir(out_dir)
     gt = ground_truth_for(options, stages)
     if not in_memory:
-        check_input(input_path)  # before anything is made: a bad input leaves no folder behind
+        kind = check_input(input_path)  # before anything is made: a bad input leaves no folder behind
     staging = atomic.Staging(out_dir)  # parents made here are removed again by discard()
     start = time.perf_counter()
     guard = memory.MemoryGuard(options.max_memory_gb)
@@ -239,7 +240,7 @@ def run_in_memory(input_path: str | Path | SfMScene, options: RunOptions = RunOp
                   stages: tuple[str, ...] = STAGES, kind: InputKind | None = None, label: str | None = None) -> Run:
     """:func:`run_stages` as `rotonly run` runs them (the collector paused), writing nothing."""
     if not isinstance(input_path, SfMScene):
-        check_input(Path(input_path))
+        kind = check_input(Path(input_path))
     with collector_paused():
         return run_stages(input_path, options, stages, kind, label, guard=memory.MemoryGuard(options.max_memory_gb))
 
@@ -247,25 +248,27 @@ def run_in_memory(input_path: str | Path | SfMScene, options: RunOptions = RunOp
 def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptions(),
                stages: tuple[str, ...] = STAGES, kind: InputKind | None = None, label: str | None = None,
                scratch: Path | None = None, guard: memory.MemoryGuard | None = None) -> Run:
-    """Run ``stages`` (a prefix of STAGES) in memory on INPUT (a path, or a scene already read:
-    then ``kind`` and ``label`` say what it is), with the progress bars (in a pipe, progress
-    lines: runtime/heartbeat) and -v detail lines. ``scratch``: where a database's private copy
-    is made (default: a temporary folder). ``guard``: the memory guard each stage passes first
-    (runtime/memory; default: one of ``options.max_memory_gb``); its record goes to
-    ``run.reports["memory"]``."""
+    """Run ``stages`` (a prefix of STAGES) in memory on INPUT (a path, or a scene already read;
+    ``kind``: what it is, detected here for a path when not given; ``label``: a scene's name),
+    with the progress bars (in a pipe, progress lines: runtime/heartbeat) and -v detail lines.
+    ``scratch``: where a database's private copy is made (default: a temporary folder).
+    ``guard``: the memory guard each stage passes first (runtime/memory; default: one of
+    ``options.max_memory_gb``); its record goes to ``run.reports["memory"]``."""
     from rotonly_cli.components import split_off
     from rotonly_cli.monitor import StageMonitor
 
     guard = guard or memory.MemoryGuard(options.max_memory_gb)
     with StageMonitor(stages, options.progress) as monitor, heartbeat.heartbeat(not options.progress):
         counts = None  # an OpenMVG project or a scene: counted once read (the stages after load)
-        if not isinstance(input_path, SfMScene) and detect_input(Path(input_path)) == InputKind.COLMAP_DB:
-            counts = memory.database_counts(input_path)
+        if not isinstance(input_path, SfMScene):
+            kind = kind or detect_input(Path(input_path))
+            if kind == InputKind.COLMAP_DB:  # a database can be counted before it is read
+                counts = memory.database_counts(input_path)
         with monitor.stage("load"), heartbeat.task("load"), guard.stage("load", counts):
             if isinstance(input_path, SfMScene):
                 run = load_scene(input_path, kind, label or "<in memory>", options)
             else:
-                run = load_stage(input_path, options, scratch)
+                run = load_stage(input_path, options, scratch, kind)
             monitor.run = run
         loaded = run
         if "triangulate" in stages:
@@ -316,6 +319,7 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
     (the calibration's, those views, the baseline check of the centres, the edges on no cycle,
     the rotations the tracks refuted, the views a rejection round cut loose, the pairs' scatter
     about the final rotations), each also logged."""
+    from rotonly_cli.calibration.rounds import run_summary
     from rotonly_cli.components import components_warning, views_in_other_models
     from rotonly_cli.stages.average import (
         pair_scatter_deg,
@@ -329,7 +333,7 @@ def summarize_outcome(run: Run, scene: SfMScene, summary: dict) -> None:
 
     if run.calibration is not None:
         run.reports["intrinsics"] = run.calibration.finish(scene)
-        summary.update(run.calibration.summary())
+        summary.update(run_summary(run.reports["intrinsics"]))
     bridges = unchecked_edges(run.graph, set(scene.poses))
     summary["edges_on_no_cycle"] = [list(pair) for pair in bridges]
     summary["pair_residual_deg_median"] = pair_scatter_deg(run.graph, scene.poses)
@@ -402,8 +406,8 @@ def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: fl
 
 def _restored_calibration(scene: SfMScene, options: RunOptions, saved: dict) -> Calibration:
     """The intrinsics an earlier command of this workspace ended with (state.npz), on ``scene``."""
+    from rotonly_cli.calibration import start_calibration
     from rotonly_cli.options import Intrinsics
-    from rotonly_cli.stages.intrinsics import start_calibration
 
     mode = saved.get("mode", Intrinsics.FIXED)
     calibration = start_calibration(scene, replace(options.intrinsics, mode=mode), calibrate_now=False)

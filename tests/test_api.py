@@ -96,6 +96,19 @@ def test_run_options_are_the_cli_options(tmp_path):
         rotonly_cli.run(42)
 
 
+def test_the_cli_and_the_api_name_the_options_alike():
+    """One mapping (options.settings.SETTINGS) serves both: the keywords of rotonly_cli.run and
+    the options of `rotonly run` (--no-grrm aside: the CLI passes grrm=not no_grrm) are its names."""
+    import inspect
+
+    from rotonly_cli.cli.run import command
+    from rotonly_cli.options.settings import SETTINGS
+
+    assert set(inspect.signature(rotonly_cli.run).parameters) - {"input", "out", "options"} == set(SETTINGS)
+    cli = {param.name for param in command.params if param.expose_value} - {"input_path", "out_dir", "no_grrm"}
+    assert cli == set(SETTINGS) - {"grrm", "progress"}
+
+
 def test_average_rotations():
     rng = np.random.default_rng(3)
     truth = {v: so3.exp(rng.normal(size=3)) for v in (10, 11, 12, 13, 14)}

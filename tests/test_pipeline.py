@@ -66,6 +66,26 @@ def _split_problem(seed: int, first: int):
     return problem
 
 
+def test_the_input_is_detected_once_per_run(tmp_path, monkeypatch):
+    """run_into detects INPUT's kind once and hands it down: the memory count, the reader
+    (io/readers.READERS) and the load report use it."""
+    from rotonly_cli import pipeline
+    from rotonly_cli.io import detect
+    from rotonly_cli.stages import load
+
+    calls = []
+
+    def counted(path):
+        calls.append(path)
+        return detect.detect_input(path)
+
+    monkeypatch.setattr(pipeline, "detect_input", counted)
+    monkeypatch.setattr(load, "detect_input", counted)
+    database = _write_db(tmp_path, _problem(num_views=5))
+    run_pipeline(database, tmp_path / "out", RunOptions(jobs=1), stages=("load", "identify"))
+    assert calls == [database]
+
+
 def test_disconnected_graph_writes_each_component_as_a_model(tmp_path):
     import pycolmap
 

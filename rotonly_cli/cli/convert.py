@@ -17,7 +17,7 @@ from rotonly_cli.cli import options as cli_options
 @cli_options.matches_dir
 @cli_options.matches_file
 @click.option("--text", is_flag=True, help="Write a COLMAP model as .txt instead of .bin.")
-def command(input_path: Path, output_path: Path, matches_dir: Path | None, matches_file: Path | None,
+def command(input_path: Path, output_path: Path, matches_dir: Path | None, matches: Path | None,
             text: bool) -> None:
     """Convert between COLMAP and OpenMVG.
 
@@ -38,5 +38,5 @@ def command(input_path: Path, output_path: Path, matches_dir: Path | None, match
     """
     from rotonly_cli.convert import convert
 
-    click.echo(convert(input_path, output_path, matches_dir=matches_dir, matches_file=matches_file, text=text),
+    click.echo(convert(input_path, output_path, matches_dir=matches_dir, matches_file=matches, text=text),
                err=True)

@@ -61,7 +61,7 @@ matches_dir = click.option(
     help="OpenMVG input: folder with <view>.feat and matches.e/f/putative .bin|.txt (default: the sfm_data.json "
          "folder).")
 matches_file = click.option(
-    "-M", "--matches", "matches_file", type=click.Path(path_type=Path), default=None,
+    "-M", "--matches", "matches", type=click.Path(path_type=Path), default=None,
     help="OpenMVG input: the matches file, as OpenMVG's --match_file (a bare name is looked up in --matches-dir; "
          "default: the first of matches.e, matches.f, matches.putative .bin|.txt there).")
 image_path = click.option(
@@ -98,7 +98,7 @@ max_residual_deg = click.option(
     "--max-residual-deg", type=FiniteFloatRange(min=0, min_open=True), default=AverageOptions.max_residual_deg,
     show_default=True, help="Edges further than this from the averaged rotations are filtered as outliers.")
 gt = click.option(
-    "--gt", "gt_path", type=click.Path(path_type=Path), default=None,
+    "--gt", type=click.Path(path_type=Path), default=None,
     help="Ground truth (Strecha folder, sfm_data.json or COLMAP model): writes OUT/eval/report.{json,html}.")
 jobs = click.option(
     "--jobs", type=click.IntRange(min=1), default=None,
@@ -109,7 +109,7 @@ jobs = click.option(
          "process; reports/refine.json, optimize.json and translate.json record how many ran). The numbers do "
          "not depend on it.")
 max_memory = click.option(
-    "--max-memory", "max_memory_gb", type=FiniteFloatRange(min=0, min_open=True), default=None, metavar="GB",
+    "--max-memory", type=FiniteFloatRange(min=0, min_open=True), default=None, metavar="GB",
     help="Stop (exit 1, one line, OUT as it was) before a stage whose predicted peak memory is above this many GB "
          "(2^30 bytes) or above the memory available (MemAvailable + the run's own, within a cgroup or ulimit -v), "
          "which is the limit without this option. reports/run.json records the predictions and the limit.")

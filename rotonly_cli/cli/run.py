@@ -11,18 +11,13 @@ import click
 from rotonly_cli.cli import options as cli_options
 
 
-def run_options(ctx: click.Context, matches_dir, matches_file, image_path, min_inliers, reestimate, ransac_max_error,
-                seed, intrinsics, **extra):
-    from rotonly_cli.options import AverageOptions, IntrinsicsOptions, LoadOptions, RunOptions
+def run_options(ctx: click.Context, **settings):
+    """RunOptions of the command's options (``settings``, by their names: options.settings),
+    with the progress bars on a terminal."""
+    from rotonly_cli.options import RunOptions
+    from rotonly_cli.options.settings import with_settings
 
-    load = LoadOptions(reestimate=reestimate, ransac_max_error_px=ransac_max_error, seed=seed,
-                       min_inliers=min_inliers)
-    average = AverageOptions(max_residual_deg=extra.pop("max_residual_deg", AverageOptions.max_residual_deg))
-    return RunOptions(matches_dir=None if matches_dir is None else str(matches_dir),
-                      matches_file=None if matches_file is None else str(matches_file),
-                      image_path=None if image_path is None else str(image_path), load=load, average=average,
-                      intrinsics=IntrinsicsOptions(mode=intrinsics),
-                      progress=show_progress(ctx), **extra)
+    return with_settings(RunOptions(), {**settings, "progress": show_progress(ctx)})
 
 
 def show_progress(ctx: click.Context) -> bool:
@@ -75,15 +70,13 @@ def chain_command(name: str, summary: str, stages: tuple[str, ...] | None, *opti
     stage: ``stages`` None) and ``rotonly identify`` (the first two). ``options``: the
     command's own click options, in --help order, between -o and --jobs."""
 
-    def callback(ctx: click.Context, input_path: Path, out_dir: Path, jobs: int, gt_path: Path | None = None,
-                 no_grrm: bool = False, **load_options) -> None:
+    def callback(ctx: click.Context, input_path: Path, out_dir: Path, no_grrm: bool = False, **settings) -> None:
         collecting = gc.isenabled()
         gc.disable()  # from the imports on: see runtime.startup.collector_paused
         try:
             from rotonly_cli.pipeline import run_pipeline
 
-            options = run_options(ctx, grrm=not no_grrm, gt=None if gt_path is None else str(gt_path),
-                                  jobs=jobs, **load_options)
+            options = run_options(ctx, grrm=not no_grrm, **settings)
             summary = (run_pipeline(input_path, out_dir, options) if stages is None
                        else run_pipeline(input_path, out_dir, options, stages=stages))
         finally:

@@ -18,7 +18,7 @@ from pathlib import Path
 import click
 
 from rotonly_cli.cli import options as cli_options
-from rotonly_cli.cli.run import chain_command, echo_summary, show_progress
+from rotonly_cli.cli.run import chain_command, echo_summary, run_options
 
 identify = chain_command("identify", """Load INPUT (COLMAP .db or OpenMVG sfm_data.json), estimate the view graph and
     identify every edge's scene kind (REGULAR / PURE_ROTATION / ROTATION_SINGULAR) into OUT.""",
@@ -27,19 +27,10 @@ identify = chain_command("identify", """Load INPUT (COLMAP .db or OpenMVG sfm_da
 
 def _stage_command(stage: str, summary: str, *options):
     """`rotonly <stage> WORKSPACE [options]`: one stage on an OUT workspace, in place."""
-    def callback(ctx: click.Context, workspace: Path, max_residual_deg: float | None = None,
-                 image_path: Path | None = None, gt_path: Path | None = None) -> None:
-        from rotonly_cli.options import AverageOptions, RunOptions
+    def callback(ctx: click.Context, workspace: Path, **settings) -> None:
         from rotonly_cli.pipeline import resume
 
-        kwargs: dict = {"progress": show_progress(ctx)}
-        if max_residual_deg is not None:
-            kwargs["average"] = AverageOptions(max_residual_deg=max_residual_deg)
-        if image_path is not None:
-            kwargs["image_path"] = str(image_path)
-        if gt_path is not None:
-            kwargs["gt"] = str(gt_path)
-        echo_summary(resume(workspace, stage, RunOptions(**kwargs)), workspace)
+        echo_summary(resume(workspace, stage, run_options(ctx, **settings)), workspace)
 
     for option in reversed(options):
         callback = option(callback)

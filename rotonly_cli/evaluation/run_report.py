@@ -22,7 +22,6 @@ from pathlib import Path
 
 import numpy as np
 
-from rotonly_cli import __version__
 from rotonly_cli.evaluation import svg
 from rotonly_cli.evaluation.run_figures import (  # noqa: F401 - top_view_axes: re-exported
     figure,
@@ -34,6 +33,7 @@ from rotonly_cli.evaluation.run_figures import (  # noqa: F401 - top_view_axes: 
     view_graph_figure,
 )
 from rotonly_cli.scene.types import Intrinsics, SfMScene
+from rotonly_cli.version import __version__
 
 REPORT_FILE = "report.html"
 #: list items shown of a report value (the JSON file has them all)
@@ -55,11 +55,7 @@ class StructureStatistics:
 
 
 def _focal_px(intrinsics: Intrinsics | None) -> float:
-    if intrinsics is None:
-        return float("nan")
-    from rotonly_cli.stages.load import focal_length
-
-    return focal_length(intrinsics)
+    return float("nan") if intrinsics is None else intrinsics.focal_px
 
 
 def _stats(values: np.ndarray) -> dict | None:
@@ -117,11 +113,11 @@ def structure_statistics(scene: SfMScene, view_ids: list[int]) -> StructureStati
 # ============================================================================ reading the reports
 
 def read_reports(reports_dir: Path, stages_done: list[str]) -> dict[str, dict]:
-    """reports/<name>.json as written, in chain order (pipeline.STAGES, then export): the
+    """reports/<name>.json as written, in chain order (stages.STAGES, then export): the
     stages done (a stage command leaves the later stages' files of an earlier run: stale, left
     out), export only after triangulation, any other report, ``run`` last."""
     found = {path.stem: path for path in sorted(reports_dir.glob("*.json"))} if reports_dir.is_dir() else {}
-    from rotonly_cli.pipeline import STAGES
+    from rotonly_cli.stages import STAGES
 
     def current(name: str) -> bool:
         if name in STAGES:

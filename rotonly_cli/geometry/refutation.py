@@ -6,10 +6,8 @@ pair whose matches are consistently wrong (repeated structure that fits the pair
 epipolar geometry) pulls the global rotations towards itself. Where the pair is weakly
 tied (few matches across a thin part of the graph) it pulls them far, and under the bent
 solution its own matches fit well: its residual under the global rotations cannot tell it
-apart (castle-P19 from OpenMVG's F-verified matches: a 31-match pair, its matches 0.26 px
-off the global epipolar lines and 0.94 px off the true ones, took the rotations 0.24° off).
-Left out, it would misfit. That is the externally studentised residual of regression
-diagnostics, here for rotation graphs (docs/algorithms.md §2.4).
+apart (docs/tuning.md "Refutation by the other pairs"). Left out, it would misfit. That is
+the externally studentised residual of regression diagnostics, here for rotation graphs (docs/algorithms.md §2.4).
 
 The exact test re-solves GRRM once per edge. Its linearisation costs one factorisation:
 about the current rotations, each edge e = (i, j) is a 3-vector measurement of the

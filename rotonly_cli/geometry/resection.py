@@ -1,16 +1,16 @@
 """Centres of views LiGT left out, by resection with their rotations known.
 
 LiGT positions the largest set of views that tracks of three or more views tie together
-(geometry.rigid_views). Its robust rounds judge observations by one global solve, and when wrong
+(geometry.ligt.rigid). Its robust rounds judge observations by one global solve, and when wrong
 multi-view tracks bend that solve the few tracks of a weak link look like outliers and the
-views beyond it lose their centre (castle-P19 matched sequentially: 8 of 19; docs/tuning.md
-"Resection of the views LiGT left out"). A view whose rotation is known needs only its centre
-c: every keypoint x of a point X already triangulated from positioned views gives, with the
-world bearing b = Rᵀ(x, 1) / ‖·‖, the linear constraint (I - b bᵀ)(X - c) = 0, two
-equations per point. Two points fix c, so a seeded RANSAC over pairs finds the centre that
-most of them agree with at a pixel threshold, and least squares on its inliers (each weighted
-by 1 / depth², so that the residual is an angle, as the image error is) refines it. Views are
-added one at a time, the best-supported first, and the points re-triangulated with each.
+views beyond it lose their centre (docs/tuning.md "Resection of the views LiGT left out"). A
+view whose rotation is known needs only its centre c: every keypoint x of a point X already
+triangulated from positioned views gives, with the world bearing b = Rᵀ(x, 1) / ‖·‖, the linear
+constraint (I - b bᵀ)(X - c) = 0, two equations per point. Two points fix c, so a seeded RANSAC
+over pairs finds the centre that most of them agree with at a pixel threshold, and least
+squares on its inliers (each weighted by 1 / depth², so that the residual is an angle, as the
+image error is) refines it. Views are added one at a time, the best-supported first, and the
+points re-triangulated with each.
 
 Arrays in, arrays out; no I/O.
 """

@@ -13,7 +13,7 @@ def robust_curvature(sq_norm: np.ndarray, loss: str, scale: float) -> np.ndarray
     Hessian of ρ(‖V‖²) w.r.t. V (up to the factor 2), kept positive semi-definite.
 
     Without it (plain IRLS weights ρ') LM converges only linearly under a robust loss
-    (measured ratio ~0.5 per iteration on Strecha); this is Triggs et al.'s correction
+    (measured ratio ~0.5 per iteration); this is Triggs et al.'s correction
     ("Bundle adjustment — a modern synthesis", §4.3), which Ceres applies only for ρ'' > 0.
     Here ρ'' < 0 (Cauchy, Huber) and the clamp β ≤ 1 drops only the radial curvature of
     observations beyond the loss scale, so the damped system stays positive definite.

@@ -40,8 +40,7 @@ __all__ = ["SplitResult", "split_conflicts"]
 #: (1 - (1 - w)^2)^8 (w = 0.2: 3e-4; the simulated 5 % wrong matches leave w < 0.1: 2e-6)
 HYPOTHESES = 8
 #: rounds of fit -> cut -> re-component; each takes the members (two nodes or more) out of
-#: every component it fits and drops the others (measured: v1000 and the Strecha databases
-#: settle in one or two)
+#: every component it fits and drops the others (measured inputs settle in one or two)
 MAX_ROUNDS = 4
 #: a hypothesis from two rays is scored with this factor on the threshold: its depth is only
 #: as good as its baseline, the refined point is held to the threshold itself

@@ -1,6 +1,6 @@
 """Camera models of either source tool behind one interface: pixels <-> normalized coordinates
 with the source tool's own model, and the COLMAP model that stands in for an intrinsic when
-pycolmap refines it (stages/intrinsics.py).
+pycolmap refines it (calibration/).
 
 OpenMVG intrinsics (lower-case model names) use OpenMVG's formulas (io/openmvg/cameras.py),
 COLMAP cameras pycolmap's. Pixels are in COLMAP's convention everywhere (scene/types.py).

@@ -59,35 +59,25 @@ class RejectOptions:
     outlier_sigmas: float = 5.0
     #: ... and never within this many pixels
     min_threshold_px: float = 1.0
-    #: a round that would drop fewer matches than this (and filter no edge) is not applied and
-    #: the rounds end: fewer matches than one edge needs (--min-inliers' default) cannot move
-    #: the rotations, and the GRRM + LiGT re-solve costs 10-20 % of a run (docs/tuning.md)
+    #: fewer drops than one edge needs (--min-inliers) cannot move the rotations: not worth a re-solve
     min_dropped_to_resolve: int = 30
-    #: ... and fewer than this many per edge of the round: at 1000 views (10 000 edges) rounds
-    #: dropping 794 and 463 of 21 M matches each cost a GRRM + LiGT re-solve of 3-4 minutes
+    #: ... nor fewer than this per edge of the round: a re-solve of a large graph costs minutes
     min_dropped_per_edge: float = 0.1
-    #: rounds confirming matches by their tracks, run first when LiGT left views out or its
-    #: first solve misfits the tracks (reject_rounds._confirmation_rounds); 0: none
+    #: rounds confirming matches by tracks, where LiGT's solve misfits them (chain/reject); 0: none
     confirm_max_rounds: int = 3
     #: ... the misfit: the first solve's sigma beyond this many times the last robust round's
     confirm_misfit_sigmas: float = 10.0
     #: a match is confirmed when a track of this many views or more holds its two keypoints
     confirm_min_views: int = 3
-    #: ... and the rounds need at least this fraction of the matches confirmed: the
-    #: unconfirmed ones a minority, as robust estimation needs of its outliers
+    #: ... and at least this fraction confirmed: the unconfirmed must be a minority, as outliers are
     confirm_min_fraction: float = 0.5
-    #: the rounds are kept when LiGT's first solve on every match fits the tracks under the
-    #: new rotations with at most this ratio of the sigma before (stages/translate.first_solve_sigma_px)
+    #: the rounds are kept when LiGT's first solve misfits the tracks by at most this ratio of before
     confirm_misfit_ratio: float = 0.5
-    #: where LiGT's first solve misfits the tracks (``confirm_misfit_sigmas``), before the
-    #: confirmation: pairs whose matches fit the relative rotation the other pairs imply this
-    #: many times worse (median epipolar residual) than their own are filtered, the most refuted
-    #: first (reject_rounds._refutation_rounds); clean inputs stay below 2.5
+    #: a pair fitting the others' rotation this many times worse than its own is filtered (chain/reject)
     refute_max_ratio: float = 6.0
     #: ... at most this many pairs; 0: none
     refute_max_edges: int = 3
-    #: ... each is undone (and the test ends) when LiGT then leaves a view out that it tied in,
-    #: or its first solve misfits the tracks by more than this factor of the misfit before
+    #: ... undone when LiGT then loses a view or misfits the tracks by more than this factor
     refute_max_misfit_growth: float = 1.5
 
     def fewest_dropped_to_resolve(self, num_edges: int) -> int:
@@ -116,14 +106,11 @@ class RejectOptions:
 class AverageOptions:
     """The average stage (stages/average.py)."""
 
-    #: residual (deg) above which an edge is a gross outlier: the averaging's own inlier
-    #: threshold (Geman-McClure σ = 5°, Chatterjee & Govindu ICCV 2013)
+    #: an edge further than this from the averaged rotations is a gross outlier (the averaging's own σ)
     max_residual_deg: float = 5.0
+    #: averaging rounds: each filters the gross outliers and solves again
     max_rounds: int = 5
-    #: Chatterjee & Govindu's averaging with its Geman-McClure σ measured on the edges (15 robust
-    #: sigmas of the L1 solution's residuals, at most their 5°): TRRM's relative rotations
-    #: are 0.05-0.2° off, and at σ = 5° a repeated-structure pair 1.9° off took a sparse graph's
-    #: GRRM start with it (docs/tuning.md "Rotation averaging")
+    #: σ measured on the edges (15 robust sigmas, at most 5°): a pair 1-2° off must not pull the others
     averaging: AveragingOptions = AveragingOptions(irls_sigma_residual_factor=15.0)
 
 
@@ -135,16 +122,26 @@ class RunOptions:
     matches_file: str | None = None  #: OpenMVG input: the matches file (-M; default: matches.e/f/putative)
     image_path: str | None = None  #: images for the point colours (default: beside the input)
     gt: str | None = None  #: ground truth for the final evaluation
+    #: --intrinsics: which cameras are calibrated (calibration/)
     intrinsics: IntrinsicsOptions = IntrinsicsOptions()
+    #: the load stage: relative poses re-estimated by RANSAC
     load: LoadOptions = LoadOptions()
+    #: the identify stage: scene kinds
     identification: IdentificationOptions = IdentificationOptions()
+    #: the refine stage: TRRM per edge
     trrm: TRRMOptions = TRRMOptions()
+    #: the average stage: robust rotation averaging
     average: AverageOptions = AverageOptions()
+    #: the optimize stage: GRRM
     optimize: GRRMOptions = GRRMOptions()
+    #: the translate stage: robust LiGT
     translate: LiGTOptions = LiGTOptions()
+    #: the reject stage: multi-view outlier rejection
     reject: RejectOptions = RejectOptions()
+    #: the triangulate stage
     triangulate: TriangulationOptions = TriangulationOptions()
     grrm: bool = True  #: False: keep the averaged rotations (ablation)
+    #: progress bars (the CLI: on a terminal, unless -q)
     progress: bool = False
     jobs: int = 1  #: processes for identification, TRRM, GRRM, robust LiGT (runtime/parallel); same numbers
     max_memory_gb: float | None = None  #: --max-memory: a stage predicted above it stops the run (runtime/memory)

@@ -40,7 +40,7 @@ class Reestimate(StrEnum):
 
 
 class Intrinsics(StrEnum):
-    """What ``rotonly run`` does with the camera intrinsics it is given (stages/intrinsics.py)."""
+    """What ``rotonly run`` does with the camera intrinsics it is given (calibration/)."""
 
     FIXED = "fixed"  #: used as given
     #: every camera calibrated: focal lengths from the view graph, then focal, principal point

@@ -19,49 +19,38 @@ from rotonly_cli.options.common import (
 class LoadOptions:
     """The load stage (stages/load.py)."""
 
-    #: every edge by default: COLMAP's stored poses come from verification at 4 px, loose
-    #: enough to let repeated-structure matches pull them (docs/tuning.md)
+    #: every edge: COLMAP verifies at 4 px, loose enough for repeated structure to pull its stored poses
     reestimate: Reestimate = Reestimate.ALL
-    #: RANSAC inlier threshold in pixels (Sampson error at the view's focal length); None:
-    #: ``inlier_threshold_sigmas`` x the matches' noise sigma, measured on the input
+    #: RANSAC inlier threshold (px, Sampson at the focal); None: inlier_threshold_sigmas x measured noise
     ransac_max_error_px: float | None = None
+    #: the threshold in noise sigmas: wide enough for Gaussian inliers, tight for repeated structure
     inlier_threshold_sigmas: float = 2.5
     #: the loose threshold (px) of the RANSAC that measures the noise sigma
     noise_ransac_max_error_px: float = 2.0
     #: the largest edges whose RANSAC inliers give the noise sigma
     noise_sample_edges: int = 30
-    #: seeded RANSAC runs per edge; an edge keeps the matches that are inliers of all of them
-    #: (the stable consensus) and the pose of the run closest to the others. Four, not three:
-    #: three runs can all settle on the same wrong model of a repeated-structure pair
-    #: (docs/tuning.md, castle-P19's OpenMVG matches)
+    #: seeded RANSAC runs per edge, keeping the matches all accept: three can agree on one wrong model
     consensus_runs: int = 4
-    #: a fast front end for clean matches, off by default: an edge whose first two runs, on
-    #: at most ``agreement_max_matches`` matches, keep the same matches up to this fraction of
-    #: them keeps those runs; the others make ``consensus_runs`` runs on ``ransac_max_matches``.
-    #: 0.01: the load stage several times cheaper, the Strecha scenes as accurate, but 10 %
-    #: wrong matches along the epipolar lines 1.7x worse (docs/tuning.md)
+    #: off: an edge whose first two runs agree to this fraction keeps them (faster, less robust)
     consensus_agreement: float | None = None
+    #: ... those two runs on at most this many matches
     agreement_max_matches: int = 500
-    #: a RANSAC run on an edge with more matches samples and scores a seeded random subset of
-    #: this size; the inliers are then all matches within the threshold of its model. Its cost
-    #: grows with the matches (~15 µs each: the local optimisation), its model's accuracy hardly
-    #: (TRRM refines it on the inliers). None: always all matches
+    #: a RANSAC run samples at most this many matches: its cost grows with them, its model hardly
     ransac_max_matches: int | None = 2000
-    #: the matches are verified inliers already, so the adaptive trial count stops early;
-    #: pycolmap's default floor of 1000 trials would dominate the load time
+    #: the matches are verified inliers already: pycolmap's floor of 1000 trials would dominate
     ransac_min_trials: int = 20
-    #: enough for an inlier ratio of 1/3 at the confidence below; pairs with fewer inliers
-    #: (unverified raw matches) would otherwise run pycolmap's 100 000 trials
+    #: enough for an inlier ratio of 1/3 at ransac_confidence; raw matches would run 100 000
     ransac_max_trials: int = 2000
+    #: the adaptive trial count's confidence of finding an all-inlier sample
     ransac_confidence: float = 0.9999
-    #: pycolmap multiplies its adaptive trial count (the count that reaches the confidence at
-    #: the best model's inlier ratio) by this margin
+    #: pycolmap's margin on its adaptive trial count
     ransac_trials_multiplier: float = 1.0
+    #: RANSAC seed: runs are deterministic
     seed: int = 0
     min_inliers: int = 30  #: edges with fewer inlier matches are filtered
+    #: progress bars (RunOptions.progress)
     progress: bool = False
-    #: RANSAC threads (pycolmap releases the GIL; every edge is seeded on its own, so the
-    #: results do not depend on it); 0 = one per usable CPU
+    #: RANSAC threads (pycolmap releases the GIL; edges seeded apart: same results); 0: the usable CPUs
     jobs: int = 0
 
     def validate(self) -> LoadOptions:
@@ -86,109 +75,67 @@ class LoadOptions:
 
 @dataclass(frozen=True)
 class IntrinsicsOptions:
-    """Camera calibration (stages/intrinsics.py; docs/tuning.md "Intrinsics")."""
+    """Camera calibration (calibration/; docs/tuning.md "Intrinsics")."""
 
+    #: --intrinsics: fixed, refine or auto (calibration/)
     mode: Intrinsics = Intrinsics.AUTO
-    #: auto: a camera whose reprojection errors after the first reconstruction (robust sigma
-    #: over every observation, before triangulation drops any) are above ``suspect_noise_sigmas``
-    #: x the matches' noise sigma (fundamental-matrix fits) and above ``suspect_reprojection_px``
-    #: is a suspect, calibrated if one adjustment on that reconstruction moves it significantly
-    #: (``min_shift``): a focal 2 % off already costs the Strecha scenes 0.25-1.3 deg and
-    #: raises that sigma to 0.33-0.93 px, 1.5-4.3 noise sigmas; calibrated cameras reproject
-    #: at 0.19-0.28 px (docs/tuning.md "Intrinsics")
+    #: auto: a camera reprojecting above this many noise sigmas ... is a suspect (a focal 2 % off)
     suspect_noise_sigmas: float = 1.5
+    #: ... and above this many pixels: calibrated cameras reproject below it
     suspect_reprojection_px: float = 0.3
-    #: auto: a camera marked known whose principal point lies within this many pixels of the
-    #: image centre (both axes) carries the default COLMAP's and OpenMVG's front ends write
-    #: when they do not know it, not a calibration: one adjustment on the first reconstruction
-    #: checks it, and the camera is calibrated if that moves it significantly (``min_shift``).
-    #: The Strecha scenes' principal points lie 11 px off the centre, and with it there their
-    #: rotations are 2-8x worse while the reprojection errors stay below the suspect
-    #: thresholds (docs/tuning.md "Intrinsics"). None: no check.
+    #: auto: a principal point this close to the centre is the front ends' default, checked; None: not
     centred_principal_point_px: float | None = 0.5
-    #: the quick estimation pass checks the cameras before the full load stage when the load
-    #: stage's noise sigma (essential-matrix fits, which wrong intrinsics inflate) is above this
+    #: a quick estimation pass checks the cameras first when the E-based noise is above this
     probe_noise_px: float = 0.5
     #: the largest pairs whose fundamental-matrix fits give the noise sigma
     noise_sample_pairs: int = 30
     #: F re-fit on each pair's verified matches before the view-graph calibration (pixels)
     fundamental_max_error_px: float = 2.0
+    #: ... its fewest RANSAC trials (the matches are verified already)
     fundamental_min_trials: int = 20
-    #: the view-graph calibration runs on at least this many fundamental matrices: a flat
-    #: field seen from tilted views left one pair with F (the other 205 PLANAR_OR_PANORAMIC),
-    #: and from it the focal went 1656 -> 9885 px (true 1380; the rounds then settled at
-    #: 8002 px, 34 deg off). Below, the rotating-camera fit and the rounds calibrate
+    #: fewer fundamental matrices cannot fix a focal (one pair sent it 7x off): rotations decide
     min_fundamental_pairs: int = 5
-    #: a rotating camera's focal length (a panorama: pairs a homography explains, no F) is kept
-    #: when its pairs' median pure-rotation residual at it is within this (pixels): a tripod
-    #: panorama fits at its noise (0.45 px at 0.3 px), a plane seen from two places at none
+    #: a rotating camera's focal is kept when its pairs fit pure rotations within this (px)
     rotation_fit_max_px: float = 2.0
-    #: that fit reads at most this many matches of a pair (a seeded subset): the median
-    #: residuals it compares hardly move, and on flat ground seen from above (every pair
-    #: PLANAR_OR_PANORAMIC, the fit refused) it took 4.8 s with all 1400 matches of each of
-    #: 201 pairs, 1.8 s with 300
+    #: that fit reads at most this many matches a pair: its medians hardly move, its time does
     rotation_fit_max_matches: int = 300
     #: the bundle adjustment that estimates the intrinsics uses the longest tracks only
     max_points: int = 5000
-    #: that bundle adjustment stops when an iteration lowers the cost by less than this
-    #: fraction (Ceres's own default; COLMAP's 0 runs on to the gradient tolerance:
-    #: 15 iterations instead of 9 on fountain-P11's guessed focal, for 0.001 px of focal)
+    #: the adjustment stops at a relative decrease below this (Ceres's default: fewer iterations)
     ba_function_tolerance: float = 1e-6
-    #: that bundle adjustment weighs reprojection errors beyond this many pixels by a Huber
-    #: loss (None: squared): wrong matches the rejection kept (repeated structure) otherwise
-    #: pull the principal point, and the rounds drift with it (docs/tuning.md "Intrinsics")
+    #: Huber loss beyond this (px): wrong matches the rejection kept would pull the principal point
     ba_huber_px: float | None = 1.0
+    #: rounds of estimation passes at most (the rounds usually settle in one or two)
     max_rounds: int = 4
-    #: the principal point is estimated only for a camera (or group of cameras given the same
-    #: intrinsics) seen in at least this many images: in one image a shift of it is, to first
-    #: order, a rotation of the camera (fountain-P11 with a camera per image: the eleven
-    #: estimates spread over 749-767 px, GT 761; shared, 759.4 px)
+    #: a principal point seen in fewer images is kept: in one it is, to first order, a rotation
     min_images_principal_point: int = 2
-    #: a parameter group (focal, principal point, distortion) changes only when the change
-    #: moves some pixel of the image by more than this fraction of its half diagonal
-    #: (0.5 %: 4.6 px on 1536 x 1024; calibrated inputs move by <= 4.2 px)
+    #: a change counts when it moves some pixel by this fraction of the half diagonal (right ones move less)
     min_shift: float = 0.005
-    #: ... for matches whose noise (fundamental-matrix sigma, px) is at most this; above, the
-    #: limit grows in proportion: one adjustment's estimate scatters with the keypoint noise
-    #: (castle-P19's sequential fixture with 0.75 px of it: a right camera's fy came out 1.4 %
-    #: long, 7.4 px of image shift, and was kept; docs/tuning.md "Intrinsics")
+    #: ... at matches this noisy (px) or less; above, the limit grows with the noise
     min_shift_noise_px: float = 0.25
-    #: ... and only when some parameter of the group moved by more than this many of its
-    #: standard deviations in that adjustment (its covariance at the residuals' noise): where
-    #: the data do not fix a parameter its estimate wanders. A flat field seen from above
-    #: trades the focal for the flying height (one adjustment put a right camera's focal
-    #: 2.7 % short there, 2.4x the rotation error); fountain-P11's phone database: 0.15 px
+    #: ... and only beyond this many standard deviations: a parameter the data do not fix wanders
     min_change_sigmas: float = 3.0
-    #: ... that standard deviation only up to this many images: pycolmap's covariance inverts
-    #: the dense pose block (0.9 s at 200 images, 2.5 s at 300, 85 s at 1000 on 5000 points);
-    #: beyond, the image-shift limit alone decides
+    #: ... that deviation only up to this many images: its cost grows as their cube
     covariance_max_images: int = 200
-    #: rounds stop when the intrinsics moved by less than this fraction of the half diagonal;
-    #: the relative poses of the load stage are re-estimated when they moved by more
+    #: rounds stop below this image shift (fraction of the half diagonal); above, poses are re-estimated
     converged_shift: float = 0.02
-    #: ... and their focal lengths by less than this fraction: a round whose focal change a new
-    #: distortion term and principal point partly undo at the image's edge has not settled
-    #: (castle-P19 listed with the focal 15 % short: the first round took the view graph's
-    #: 1234.9 px to 1260.3 (2.1 %), k1 -0.019, an image shift of 1.9 %; the rounds stopped there,
-    #: 8.7 % short, and the rotations ended 4.05 deg off; docs/tuning.md "Intrinsics")
+    #: ... and this focal change: a focal change the new distortion hides at the edge is not settled
     converged_focal_change: float = 0.015
-    #: once the calibration's rounds settle, each calibrated camera is checked: its images
-    #: with at least ``zoom_min_pairs`` fundamental matrices are calibrated on a camera each
-    #: (stages.intrinsics.Calibration.check_zoom), and when ``zoom_min_images`` or more were,
-    #: two groups of focal lengths (stages.intrinsics.focal_groups: a gap of at least
-    #: ``zoom_min_gap``, relative, and ``zoom_gap_to_spread`` times either group's own range)
-    #: give the images of one group a camera of their own (a zoom lens under one camera:
-    #: docs/algorithms.md §8 "Images at another zoom"); an image with one or two fundamental
-    #: matrices took 548 px for 1381 (entry-P10)
+    #: once settled, the images of each camera are calibrated apart: a zoom lens gets a second camera
     zoom_check: bool = True
+    #: ... an image with fewer fundamental matrices is not calibrated apart (its focal is loose)
     zoom_min_pairs: int = 3
+    #: ... a camera with fewer such images is not checked
     zoom_min_images: int = 4
+    #: ... two groups of focal lengths at least this far apart (relative) ...
     zoom_min_gap: float = 0.02
+    #: ... and this many times either group's own range: a zoom, not the calibration's scatter
     zoom_gap_to_spread: float = 3.0
     #: warnings: final mean reprojection error above this (px) ...
     warn_reprojection_px: float = 1.0
     #: ... or the focal of a camera not marked as a guess moved by more than this fraction
     warn_focal_change: float = 0.02
+    #: the seed of the calibration's RANSAC and subsets
     seed: int = 0
 
     def validate(self) -> IntrinsicsOptions:

@@ -18,13 +18,12 @@ Two process-wide settings are made by the console script too, before numpy is im
 
 * :func:`one_blas_thread_per_process`: rotonly parallelises by processes (``--jobs``), and the
   BLAS calls it makes are small (a few hundred flops each). A multi-threaded OpenBLAS wakes its
-  thread pool for them, and the pool then busy-waits for the next call: on castle-P19's
-  database its ``blas_thread_server`` spinning was 9.5 % of the run's CPU samples against
-  0.2 % of real BLAS work, taken from the core the other rotonly process needs.
+  thread pool for them, and the pool then busy-waits for the next call, on the core the other
+  rotonly process needs (docs/tuning.md "Process start-up and shutdown").
 * :func:`keep_freed_heap`: numpy's arrays of 0.1–30 MB are allocated and freed thousands of
   times per run. glibc's defaults hand that memory back to the kernel (munmap, heap trimming)
-  and every reuse faults it in again, zero-filled: 440 000 page faults and 1.7–2.1 s of system
-  time on castle-P19's database. Kept in the heap: 200 000 and 1.1 s.
+  and every reuse faults it in again, zero-filled; kept in the heap, half the page faults and
+  the system time go.
 """
 
 from __future__ import annotations
@@ -85,7 +84,7 @@ def one_blas_thread_per_process(environ: dict[str, str] | None = None) -> list[s
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
 #: mallopt(3) documents 32 MiB as the mmap threshold's upper limit on 64-bit systems
 MMAP_THRESHOLD_BYTES = 32 * 1024 * 1024
-#: free memory at the top of the heap kept for reuse; a whole Strecha run peaks at ~0.2 GB
+#: free memory at the top of the heap kept for reuse; a run on a few dozen views peaks far below
 TRIM_THRESHOLD_BYTES = 512 * 1024 * 1024
 
 

@@ -1,8 +1,11 @@
-"""The stages of the chain (chain.py runs them; each module's docstring says what it does)."""
+"""The stages of the chain (chain/stages.py runs them; each module's docstring says what it does)."""
 
 from __future__ import annotations
 
 from collections.abc import Iterable
+
+#: the stages of `rotonly run`, in chain order (chain/stages.py runs them)
+STAGES = ("load", "identify", "refine", "average", "optimize", "translate", "reject", "triangulate")
 
 
 def listed(items: Iterable[str], max_shown: int = 8) -> str:

@@ -107,12 +107,9 @@ def unchecked_edges_warning(edges: list[tuple[int, int]], max_shown: int = 8) ->
             f"would close cycles (reports/run.json: edges_on_no_cycle)")
 
 
-#: the run warns when the median of :func:`pair_residuals_deg` is above this (deg). On the
-#: Strecha scenes (as shipped, with noise added, and re-matched at lower resolutions) the mean
-#: rotation error was 0.25-2.5x that median; the shipped inputs stay below it but castle-P19's
-#: OpenMVG matches (0.079-0.122 deg over seeds 0-3, error 0.062-0.113 deg), and above it
-#: pycolmap's BA of rotonly's model cut the error by a third or more (docs/tuning.md "Pair
-#: scatter")
+#: the run warns when the median of :func:`pair_residuals_deg` is above this (deg): the mean
+#: rotation error follows that median, and above it a bundle adjustment of rotonly's model cuts
+#: the error by a third or more (docs/tuning.md "Pair scatter")
 PAIR_SCATTER_WARN_DEG = 0.1
 
 

@@ -28,11 +28,11 @@ from pathlib import Path
 
 import numpy as np
 
-from rotonly_cli.errors import InputError
 from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry import so3
 from rotonly_cli.io import cameras
 from rotonly_cli.io.detect import InputKind, detect_input
+from rotonly_cli.io.readers import READERS
 from rotonly_cli.options import LoadOptions, Reestimate
 from rotonly_cli.runtime import heartbeat
 from rotonly_cli.scene.types import Intrinsics, SfMScene
@@ -47,26 +47,15 @@ ESSENTIAL_SAMPLE_SIZE = 5
 
 
 def read_input(input_path: str | Path, matches_dir: str | Path | None = None,
-               matches_file: str | Path | None = None,
-               scratch_dir: str | Path | None = None) -> tuple[SfMScene, str]:
+               matches_file: str | Path | None = None, scratch_dir: str | Path | None = None,
+               kind: InputKind | None = None) -> tuple[SfMScene, str]:
     """(scene, kind) for a COLMAP database or an OpenMVG sfm_data.json (+ features, matches;
-    ``matches_file``: the matches file, -M, else the first of matches.e/f/putative).
-    ``scratch_dir``: where a database's private copy is made (default: a temporary folder)."""
-    from rotonly_cli.io import colmap, openmvg
-
+    ``matches_file``: the matches file, -M, else the first of matches.e/f/putative), read as
+    io/readers.READERS reads its kind. ``scratch_dir``: where a database's private copy is made
+    (default: a temporary folder); ``kind``: the input's kind, when detected already."""
     input_path = Path(input_path)
-    kind = detect_input(input_path)
-    if kind == InputKind.COLMAP_DB:
-        return colmap.read_database(input_path, scratch_dir=scratch_dir), kind
-    if kind == InputKind.OPENMVG:
-        sfm_data = input_path / "sfm_data.json" if input_path.is_dir() else input_path
-        scene = openmvg.read_project(sfm_data, matches_dir, matches_file)
-        if not scene.pairs:
-            raise InputError("no matches file (matches.e/f/putative .bin|.txt) beside the features",
-                             path=str(matches_dir or sfm_data.parent), field="--matches-dir")
-        return scene, kind
-    raise InputError("a COLMAP model holds no matches; give the COLMAP database or an OpenMVG sfm_data.json",
-                     path=str(input_path))
+    kind = kind or detect_input(input_path)
+    return READERS[kind].read(input_path, matches_dir, matches_file, scratch_dir), kind
 
 
 def without_unprojectable_keypoints(scene: SfMScene) -> tuple[SfMScene, dict]:
@@ -121,14 +110,7 @@ def input_files(input_path: str | Path, kind: str, scene: SfMScene, matches_dir:
     """What :func:`read_input` read, for reports/load.json: ``input_files`` (the database, or
     the sfm_data.json, each view's ``.feat`` and the matches file) and, for OpenMVG input,
     ``matches_file``."""
-    from rotonly_cli.io import openmvg
-
-    input_path = Path(input_path)
-    if kind != InputKind.OPENMVG:
-        return {"input_files": [str(input_path)]}
-    sfm_data = input_path / "sfm_data.json" if input_path.is_dir() else input_path
-    files, chosen = openmvg.project_files(scene, sfm_data, matches_dir, matches_file)
-    return {"input_files": files, "matches_file": chosen}
+    return READERS[kind].files(Path(input_path), scene, matches_dir, matches_file)
 
 
 def focal_length(intrinsics: Intrinsics) -> float:
@@ -255,8 +237,8 @@ def stable_consensus(estimates: list) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
     Near-degenerate pairs (a dominant plane, repeated structure) let RANSAC settle on
     different models from different samples; matches near the threshold then swing in and out
-    of the inlier set, and the ones that swing pull the rotation (measured on castle-P19,
-    docs/tuning.md). Those that every run accepts do not."""
+    of the inlier set, and the ones that swing pull the rotation (docs/tuning.md "Load").
+    Those that every run accepts do not."""
     if not estimates or any(estimate is None for estimate in estimates):
         return None
     stable = np.logical_and.reduce([estimate[2] for estimate in estimates])
@@ -328,11 +310,11 @@ def _consensus_runs(pairs: EdgeCoordinates, threshold: float, options: LoadOptio
     With ``consensus_agreement`` (the fast front end, off by default), the consensus runs know
     the edge's inlier ratio (the first run's) and stop at the trials it needs
     (:func:`ransac_trials`; by default every run has the trials of the first: that bound
-    changed castle-P19's OpenMVG default-preset pairs enough to change which pairs the
-    refutation filters), and the first two runs see at most ``agreement_max_matches``
-    matches; an edge whose two runs agree (:func:`runs_agree`) keeps them. The others make
-    their ``consensus_runs`` runs on ``ransac_max_matches`` (those with no more matches than
-    the smaller subset go on from the two runs they made, which are the same)."""
+    changes noisy pairs enough to change which pairs the refutation filters), and the first
+    two runs see at most ``agreement_max_matches`` matches; an edge whose two runs agree
+    (:func:`runs_agree`) keeps them. The others make their ``consensus_runs`` runs on
+    ``ransac_max_matches`` (those with no more matches than the smaller subset go on from the
+    two runs they made, which are the same)."""
     fast = options.consensus_agreement is not None
 
     def estimate_run(run: tuple[int, int, float | None, LoadOptions]):

@@ -50,8 +50,7 @@ def undone_round_warning(report: dict | None) -> str | None:
     """The run summary's warning when a rejection round was undone because its re-solve left
     views without a centre or put them off their baselines (reports/reject.json): tracks tie
     those views to the rest so weakly that dropping a few hundred matches cuts them loose, and
-    their poses are the least certain of the run (castle-P19, OpenMVG matches: seeds 1-4,
-    0.086-0.113 deg against 0.065 for seed 0, where no round was undone). None otherwise."""
+    their poses are the least certain of the run. None otherwise."""
     for round_ in (report or {}).get("rounds") or []:
         undone = round_.get("undone")
         if not undone:
@@ -120,10 +119,11 @@ def refuted_edges(graph: ViewGraph, inputs, R_cam_from_world: np.ndarray) -> lis
 
 
 def reject_round(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_world: np.ndarray,
-                 centers: np.ndarray, focal_px: np.ndarray, options: RejectOptions = RejectOptions(),
-                 min_inliers: int = 30, max_residual_deg: float = 5.0) -> dict:
-    """One round (module docstring) on the REGULAR edges between posed views, in place.
-    Returns the round's report (counts and threshold)."""
+                 centers: np.ndarray, focal_px: np.ndarray, options: RejectOptions, min_inliers: int,
+                 max_residual_deg: float) -> dict:
+    """One round (module docstring) on the REGULAR edges between posed views, in place;
+    ``min_inliers`` and ``max_residual_deg``: the run's LoadOptions.min_inliers and
+    AverageOptions.max_residual_deg. Returns the round's report (counts and threshold)."""
     start = time.perf_counter()
     heartbeat.advance()  # the reject stage's rounds, for the progress lines in a pipe
     index = view_index(graph)
@@ -159,7 +159,7 @@ def reject_round(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from
         keep = error <= threshold
         if np.count_nonzero(keep) < min_inliers:
             # an edge this round would empty keeps its matches: filtering it can cut a weakly
-            # connected view loose, and LiGT's centre for it with it (castle-P19, OpenMVG matches)
+            # connected view loose, and LiGT's centre for it with it
             report["edges_kept_whole"] = report.get("edges_kept_whole", 0) + 1
             continue
         report["num_dropped"] += edge.drop_matches(keep, DROP_REASON)

@@ -1,7 +1,7 @@
 """Stage `translate`: camera centres by LiGT from the global rotations and the tracks of the
 active REGULAR edges (PURE_ROTATION edges carry no translation information, paper
 §"Scene Identification"). Views LiGT cannot constrain (without a constraint, or outside the largest
-rigid set, geometry.rigid_views, whose distance to the others no track through three or more
+rigid set, geometry.ligt.rigid, whose distance to the others no track through three or more
 views ties down) are resected from the points of the others, their rotations known
 (geometry.resection, algorithms.md §1.5). A view still without a centre whose pair with a
 positioned view is a pure rotation (PURE_ROTATION: PR/B/I, its translation unobservable) is
@@ -32,10 +32,8 @@ from rotonly_cli.stages import listed
 logger = logging.getLogger(__name__)
 
 #: the robust rounds take a helper process (runtime.parallel.helper_class) from this many
-#: observations on. Measured in isolation (translate stage, one process / helper, medians of
-#: 10, one BLAS thread): entry-P10's database (55 000) 0.177 / 0.157 s, castle-P19's (61 000)
-#: 0.259 / 0.204 s; below, Herz-Jesus-P8's (39 000) 0.127 / 0.122 s and castle-P19's OpenMVG
-#: matches (24 000) 0.151 / 0.147 s gain nothing worth a fork (docs/tuning.md)
+#: observations on: below, a fork gains nothing worth it (docs/tuning.md "Measurements behind
+#: the code")
 LIGT_HELPER_MIN_OBSERVATIONS = 50_000
 
 
@@ -73,7 +71,7 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
     if baselines["views_off"] and options.outlier_threshold_start_px is not None:
         # the annealed rounds kept a weak link that the 1 px rounds would have cut, and its
         # tracks put views off their own pairs' directions: the rounds without annealing are
-        # tried, and kept if fewer views are off (castle-P19, a 6-view subset: view 19)
+        # tried, and kept if fewer views are off
         plain_robust, plain_centers, plain_baselines = solve(replace(options, outlier_threshold_start_px=None))
         taken = len(plain_baselines["views_off"]) < len(baselines["views_off"])
         annealing = {"views_off": baselines["views_off"], "without_views_off": plain_baselines["views_off"],

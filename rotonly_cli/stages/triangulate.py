@@ -202,7 +202,7 @@ def _keep_observations(tracks: Tracks, obs_xy: np.ndarray, keep: np.ndarray) -> 
 def _sigma_by_camera(scene: SfMScene, view_ids: list[int], view_rows: np.ndarray, error_px: np.ndarray) -> dict:
     """Per camera (intrinsics id) the robust sigma (1.4826 x the median) of the reprojection
     errors (px) of its views' observations, before any is dropped: how well the camera's
-    intrinsics fit (stages/intrinsics.py)."""
+    intrinsics fit (calibration/)."""
     camera_of_row = np.array([scene.views[v].intrinsics_id for v in view_ids], dtype=np.int64)
     cameras = camera_of_row[view_rows]
     return {str(int(c)): 1.4826 * float(np.median(error_px[cameras == c])) for c in np.unique(cameras)}

@@ -160,7 +160,7 @@ def run_row(label: str, input_path: Path, gt: Path, true: np.ndarray, options, m
             "registered": f"{len(result.rotations)}/{result.summary['num_views']}",
             "focal_error_pct": float(focal_errors[np.argmax(np.abs(focal_errors))]),
             "principal_point_error_px": float(np.hypot(*(ends[:, 1:3] - true[1:3]).T).max()),
-            # the zoom check's warning (stages.intrinsics.per_image_focals): none of these inputs has a zoom
+            # the zoom check's warning (calibration/focals.per_image_focals): none of these inputs has a zoom
             "zoom_warned": any("disagree on the focal length" in w for w in result.summary.get("warnings", []))}
 
 

@@ -1,4 +1,4 @@
-"""LiGT linear global translation (geometry/ligt.py) on synthetic street scenes."""
+"""LiGT linear global translation (geometry/ligt/) on synthetic street scenes."""
 
 from __future__ import annotations
 
@@ -162,7 +162,7 @@ def add_leaf_view(scene, rng, num_points: int = 60, shared_tracks: int = 0):
 @pytest.mark.parametrize("max_dense_keys", [4_000_000, 0])
 @pytest.mark.parametrize("pairs_per_chunk", [1 << 19, 1, 4])
 def test_rigid_views_follow_shared_baselines(monkeypatch, max_dense_keys, pairs_per_chunk):
-    monkeypatch.setattr("rotonly_cli.geometry.rigid_views.MAX_DENSE_KEYS", max_dense_keys)
+    monkeypatch.setattr("rotonly_cli.geometry.ligt.rigid.MAX_DENSE_KEYS", max_dense_keys)
     monkeypatch.setattr("rotonly_cli.geometry.tracks.PAIRS_PER_CHUNK", pairs_per_chunk)
 
     def rigid(tracks, num_views):
@@ -248,7 +248,7 @@ def test_too_few_constrained_views_is_an_error():
 
 
 def test_base_views_are_the_max_parallax_pair():
-    from rotonly_cli.geometry.ligt import _select_base_views
+    from rotonly_cli.geometry.ligt.linear import _select_base_views
 
     # track 0: rays at 0°, 10°, 30°, 5° -> pair (0, 2); track 1: single ray; track 2: two rays
     def ray(deg):
@@ -317,7 +317,7 @@ def test_a_helper_process_leaves_the_robust_rounds_unchanged_bit_for_bit():
     """The robust rounds work on two parts of the tracks, cut at a track boundary, whether this
     process evaluates both or a forked helper the second: centres, kept observations, errors
     and rounds are the same bits, with a view masked out too."""
-    from rotonly_cli.geometry.ligt import _TrackParts
+    from rotonly_cli.geometry.ligt.robust import _TrackParts
     from rotonly_cli.runtime import parallel
 
     R, tracks, views, corrupted, mask = _noisy_street_with_wrong_observations()
@@ -393,7 +393,7 @@ def test_updated_normal_matrix_is_the_fresh_assembly_up_to_rounding(monkeypatch)
     """Each robust round after the first may update LᵀL with the tracks whose observations
     changed (old terms out, new in): forced to (MAX_UPDATED_FRACTION 1), the centres, drops and
     sign votes are those of assembling every round afresh (0), with a view masked out too."""
-    from rotonly_cli.geometry import ligt
+    from rotonly_cli.geometry.ligt import robust as ligt
 
     R, tracks, views, corrupted, mask = _noisy_street_with_wrong_observations()
     assemblies = []

@@ -5,7 +5,7 @@ import numpy as np
 
 import rotonly_cli
 from rotonly_cli.geometry import so3
-from rotonly_cli.options import RejectOptions, RunOptions
+from rotonly_cli.options import AverageOptions, LoadOptions, RejectOptions, RunOptions
 from rotonly_cli.scene.types import Pose, View
 from rotonly_cli.scene.view_graph import Edge, ViewGraph
 from rotonly_cli.stages.reject import CONFIRM_REASON, DROP_REASON, REFUTE_REASON, reject_round
@@ -37,7 +37,8 @@ def _graph(rng, wrong_px: float, num_wrong: int):
 
 def test_wrong_matches_dropped_clean_ones_kept():
     graph, normalized, R, C = _graph(np.random.default_rng(0), wrong_px=15.0, num_wrong=20)
-    report = reject_round(graph, normalized, R, C, np.full(3, FOCAL), RejectOptions(), min_inliers=30)
+    report = reject_round(graph, normalized, R, C, np.full(3, FOCAL), RejectOptions(), LoadOptions.min_inliers,
+                          AverageOptions.max_residual_deg)
     first = graph.edges[0]
     # most of the 20 wrong ones go (those whose offset lies along their epipolar line may stay)
     assert 12 <= first.dropped_matches[DROP_REASON] <= 20
@@ -50,7 +51,8 @@ def test_wrong_matches_dropped_clean_ones_kept():
 def test_edge_that_would_be_emptied_keeps_its_matches():
     """Filtering it could cut a weakly connected view loose; it is reported instead."""
     graph, normalized, R, C = _graph(np.random.default_rng(1), wrong_px=30.0, num_wrong=190)
-    report = reject_round(graph, normalized, R, C, np.full(3, FOCAL), RejectOptions(), min_inliers=30)
+    report = reject_round(graph, normalized, R, C, np.full(3, FOCAL), RejectOptions(), LoadOptions.min_inliers,
+                          AverageOptions.max_residual_deg)
     assert graph.edges[0].active and graph.edges[0].num_inliers == 200 and not graph.edges[0].dropped_matches
     assert report["edges_kept_whole"] == 1
     assert graph.edges[1].active and graph.edges[2].active
@@ -81,8 +83,8 @@ def _fake_solves(monkeypatch, views_off: dict, views_without_centre: tuple = ())
         run.reports["translate"] = {"baselines": {"views_off": dict(views_off)}, "solve": "after the round",
                                     "views_without_centre": list(views_without_centre)}
 
-    monkeypatch.setattr(chain, "optimize_stage", optimize)
-    monkeypatch.setattr(chain, "translate_stage", translate)
+    monkeypatch.setitem(chain.STAGE_FUNCTIONS, "optimize", optimize)
+    monkeypatch.setitem(chain.STAGE_FUNCTIONS, "translate", translate)
 
 
 def test_round_whose_ligt_solve_collapses_is_undone(monkeypatch):
@@ -183,8 +185,8 @@ def test_stage_times_add_up_over_the_re_solves(monkeypatch):
     def translate(run):
         run.reports["translate"] = {"baselines": {"views_off": {}}, "time_s": 3.0, "solve": "after the round"}
 
-    monkeypatch.setattr(chain, "optimize_stage", optimize)
-    monkeypatch.setattr(chain, "translate_stage", translate)
+    monkeypatch.setitem(chain.STAGE_FUNCTIONS, "optimize", optimize)
+    monkeypatch.setitem(chain.STAGE_FUNCTIONS, "translate", translate)
     reject_stage(run)
     assert len(run.reports["reject"]["rounds"]) == 2  # the second round finds nothing more
     assert run.reports["optimize"] == {"time_s": 3.0, "solve": "after the round", "solves": 2}
@@ -340,7 +342,7 @@ def test_refutation_spares_pairs_whose_loss_leaves_bridges(monkeypatch):
     """The others refute a pair only where they stay redundant: the most refuted pair, if its
     loss would leave a pair on no cycle, ends the test (those below it may be the ones it
     bent); a filtered pair after which LiGT leaves a view out is put back, and the test ends."""
-    from rotonly_cli import chain
+    from rotonly_cli.chain import reject as rounds
     from rotonly_cli.stages import reject
 
     rng = np.random.default_rng(0)
@@ -350,7 +352,7 @@ def test_refutation_spares_pairs_whose_loss_leaves_bridges(monkeypatch):
                                                 scene_kind="REGULAR") for i, j in pairs])
     R = so3.exp(rng.normal(scale=0.1, size=(5, 3)))
     run = _run_for_reject_stage(graph, {v: np.zeros((1, 2)) for v in range(5)}, R, rng.normal(size=(5, 3)))
-    closing = [k for k in graph.active_edges() if chain._leaves_new_bridges(graph, k, set())]
+    closing = [k for k in graph.active_edges() if rounds._leaves_new_bridges(graph, k, set())]
     assert [pairs[k] for k in closing] == [(3, 4), (0, 4)]
     order = []
     monkeypatch.setattr("rotonly_cli.stages.optimize.grrm_inputs", lambda *a: None)
@@ -365,9 +367,9 @@ def test_refutation_spares_pairs_whose_loss_leaves_bridges(monkeypatch):
                                     "views_without_centre": [2] if len(solves) == 2 else []}
     run.reports["translate"] = {"robust_rounds": [{"sigma_px": 1.0}]}
     order[:] = [6, 2, 0]  # a closing pair most refuted: nothing filtered
-    assert chain._refutation_rounds(run, resolve)["rounds"] == [] and not solves
+    assert rounds._refutation_rounds(run, resolve)["rounds"] == [] and not solves
     order[:] = [2, 0, 6]  # (0, 3), then (0, 1): LiGT loses view 2, put back
-    report = chain._refutation_rounds(run, resolve)
+    report = rounds._refutation_rounds(run, resolve)
     assert [tuple(r["edge"]) for r in report["rounds"]] == [(0, 3), (0, 1)]
     assert [r["kept"] for r in report["rounds"]] == [True, False] and report["rounds"][1]["views_left_out"] == [2]
     assert [k for k, e in enumerate(run.graph.edges) if e.status != "active"] == [2]
@@ -387,7 +389,7 @@ def test_refutation_warning_names_the_pairs():
 def test_refutation_runs_where_the_first_solve_misfits_the_tracks():
     """Its cue is the misfit alone: views LiGT left out while the rotations fit the tracks (a
     weak link short of tracks) are no sign of a pair bending them."""
-    from rotonly_cli.chain import _rotations_bent, _rotations_misfit_tracks
+    from rotonly_cli.chain.reject import _rotations_bent, _rotations_misfit_tracks
 
     graph, normalized, R, C = _graph(np.random.default_rng(0), wrong_px=15.0, num_wrong=60)
     run = _run_for_reject_stage(graph, normalized, R, C)

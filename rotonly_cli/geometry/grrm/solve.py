@@ -247,8 +247,8 @@ def _levenberg_marquardt(problem: GRRMSystem, R: np.ndarray, edge_views: np.ndar
             retry = True
             if remainder is not None:
                 # the exact Hessian's model failed: the clamped PSD model at the same
-                # damping before any more damping (castle-P19: at 1e-7 it is accepted,
-                # where the exact model failed five times up to 1e-2)
+                # damping before any more damping (it is accepted where the exact model fails
+                # up to far more damping)
                 remainder = None
                 continue
             mu *= 10.0
@@ -334,9 +334,7 @@ def _levenberg_marquardt(problem: GRRMSystem, R: np.ndarray, edge_views: np.ndar
     result = descend(R, first, start)
     if R is not R_input:
         # The λ_min phase's start has the lower cost, but the descent from it can end in a
-        # worse minimum than the descent from the input start would have (castle-P19, a
-        # 6-view subset: views turned 1.2 deg off against a 412-match pair; from the averaged
-        # start 0.03-0.14 deg at a lower final cost). Both descents; the lower final cost
+        # worse minimum than the descent from the input start would have. Both descents; the lower final cost
         # (the same loss scale, without the start-dependent translation weights) is kept.
         problem.batch = from_input[0]
         other = descend(R_input, *from_input[1:])

@@ -259,7 +259,7 @@ def _fill_database(pycolmap, database, scene: SfMScene, view_offset: int,
         camera.has_prior_focal_length = intrinsic.prior_focal is not False
         camera_ids[intrinsic_id] = database.write_camera(camera, use_camera_id=True)
     # a view without intrinsic (OpenMVG's listing found no EXIF focal): COLMAP's no-EXIF
-    # default, one camera per image size (§4.4; stages.intrinsics.guess_missing_cameras)
+    # default, one camera per image size (§4.4; calibration.guess_missing_cameras)
     from rotonly_cli.io.cameras import guessed_cameras_per_size
 
     guesses, guessed_of_view = guessed_cameras_per_size(

@@ -1,30 +1,108 @@
-"""The reject stage's rounds beside its outlier rounds (chain.reject_stage): the test of each
-pair's rotation by the others (refutation), the rounds that confirm matches by their tracks,
-and the snapshot a round that is undone restores. Split out of chain.py (issue 52's rooms)."""
+"""The reject stage's rounds (chain/stages.reject_stage runs them): the test of each pair's
+rotation by the others (refutation), the rounds that confirm matches by their tracks
+(confirmation), the outlier rounds of stages/reject with GRRM and LiGT re-solved after each,
+and the snapshot a round that is undone restores."""
 
 from __future__ import annotations
 
 import logging
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rotonly_cli.errors import AlgorithmError
-from rotonly_cli.scene.view_graph import ViewGraph, largest_component
+from rotonly_cli.chain.run import Run, ensure_two_views
+from rotonly_cli.scene.view_graph import ViewGraph
 
-if TYPE_CHECKING:
-    from rotonly_cli.chain import Run
-
-
-logger = logging.getLogger("rotonly_cli.chain")
+logger = logging.getLogger(__name__)
 
 
-def _ensure_two_views(graph: ViewGraph, after: str) -> None:
-    if len(largest_component(graph)) < 2:
-        usable = len(graph.views) - len(graph.unregistered_views)
-        raise AlgorithmError(f"fewer than two usable images after {after} ({usable} of {len(graph.views)} "
-                             f"connected by an edge); nothing to reconstruct")
+def rejection(run: Run, solve: Callable[[str], None]) -> None:
+    """Multi-view outlier rejection (the reject stage; ``solve(name)`` runs the optimize or
+    translate stage on ``run`` again). First, where LiGT's first solve says a pair bends the
+    rotations (:func:`_rotations_bent`), the test of each pair by the others
+    (:func:`_refutation_rounds`); then, when LiGT's solve says the rotations disagree with
+    the tracks (:func:`_rotations_misfit_tracks`), rounds that confirm matches by their tracks
+    (:func:`_confirmation_rounds`). Then rounds of stages/reject (drop the matches inconsistent
+    with the global poses) followed by GRRM and LiGT on what is left, until a round drops
+    nothing (RejectOptions.max_rounds). The optimize and translate reports are those of the last
+    solve, with ``time_s`` the time of every solve (first and re-solves, undone ones too) and
+    ``solves`` their number; the reject report's ``time_s`` is its own checks: the stage
+    times add up to the run's."""
+    from rotonly_cli.scene.view_graph import view_index
+    from rotonly_cli.stages.reject import reject_round
+    from rotonly_cli.stages.translate import ligt_centres, views_lost, views_off
+
+    run.options.reject.validate()
+    start = time.perf_counter()
+    solve_time = {k: float((run.reports.get(k) or {}).get("time_s") or 0.0) for k in ("optimize", "translate")}
+    resolving = 0.0  # seconds of this stage spent in GRRM and LiGT re-solves
+    solves = {"optimize": 1, "translate": 1}
+
+    def resolve(stages: tuple[str, ...] = ("optimize", "translate")) -> None:
+        """GRRM and LiGT (``stages``) again on the graph as it is now, timed into the reports'
+        totals."""
+        nonlocal resolving
+        resolve_start = time.perf_counter()
+        for key in stages:
+            solve(key)
+            solves[key] += 1
+            solve_time[key] += float((run.reports.get(key) or {}).get("time_s") or 0.0)
+        resolving += time.perf_counter() - resolve_start
+
+    misfit = _rotations_misfit_tracks(run)  # judged on the first solve, before either changes it
+    refutation = _refutation_rounds(run, resolve) if _rotations_bent(run) else None
+    confirmation = _confirmation_rounds(run, resolve) if misfit else None
+    rounds = []
+    focal_px = run.scene.focal_px(run.graph.view_ids())
+    for _ in range(run.options.reject.max_rounds):
+        if run.rotations is None or run.centers is None:
+            break
+        before = _snapshot(run)  # what an undone round restores (reject_round changes the graph in place)
+        # matches are judged under LiGT's own centres: a resected view's centre carries the error
+        # of the points it was resected from (docs/tuning.md "Measurements behind the code")
+        judged = ligt_centres(run.centers, run.reports.get("translate"), view_index(run.graph))
+        report = reject_round(run.graph, run.scene.normalized, run.rotations, judged, focal_px,
+                              run.options.reject, run.options.load.min_inliers, run.options.average.max_residual_deg)
+        rounds.append(report)
+        if report["num_matches"] == 0:  # a capture of pure rotations: no baseline to judge a match by
+            logger.info("reject: no match on a REGULAR edge between views with a centre: nothing to judge")
+            break
+        logger.info("reject: %d of %d matches inconsistent with the global poses (threshold %.2f px), edges "
+                    "filtered %s", report["num_dropped"], report["num_matches"], report["threshold_px"] or 0.0,
+                    report["edges_filtered"] or "none")
+        if report["num_dropped"] == 0 and not report["edges_filtered"]:
+            break
+        fewest = run.options.reject.fewest_dropped_to_resolve(report["num_edges"])
+        if report["num_dropped"] < fewest and not report["edges_filtered"]:
+            run.graph = before.graph  # too few to move the rotations: not worth a re-solve, not applied
+            report["not_applied"] = f"fewer than {fewest} matches"
+            break
+        ensure_two_views(run.graph, "multi-view rejection")
+        resolve()
+        off_after = list(views_off(run.reports.get("translate")))
+        # views resected after the solve count as lost: the round's drops cut them out of the
+        # tracks' rigid set, and their rotations are the ones those drops spoiled
+        lost = views_lost(before.reports["translate"], run.reports.get("translate"))
+        if len(off_after) > len(views_off(before.reports["translate"])) or lost:
+            # LiGT's solve on the cleaned tracks collapsed where the previous one had not, or the
+            # dropped matches cut views out of the set that tracks tie together: the round is undone
+            _restore(run, before)
+            report["undone"] = {"views_off": off_after, "views_without_centre": lost}
+            logger.info("reject: round undone, its LiGT solve %s",
+                        f"put view(s) {', '.join(off_after)} off their pairs' baselines" if off_after else
+                        f"left view(s) {', '.join(map(str, lost))} without a centre")
+            break
+    for key, seconds in solve_time.items():
+        if solves[key] > 1 and isinstance(run.reports.get(key), dict) and "time_s" in run.reports[key]:
+            run.reports[key] = {**run.reports[key], "time_s": seconds, "solves": solves[key]}
+    run.reports["reject"] = {"rounds": rounds,  # an undone round's drops were put back
+                             "num_dropped": int(sum(r["num_dropped"] for r in rounds
+                                                    if "undone" not in r and "not_applied" not in r)),
+                             **({"refutation": refutation} if refutation else {}),
+                             **({"confirmation": confirmation} if confirmation else {}),
+                             "time_s": time.perf_counter() - start - resolving}
 
 
 @dataclass(frozen=True)
@@ -58,8 +136,8 @@ def _rotations_misfit_tracks(run: Run) -> bool:
     """Whether LiGT's solve says the rotations disagree with the tracks, the cue for the
     confirmation rounds: it left views out of the set the tracks tie together, or its first
     solve (every observation in) misfits them by ``confirm_misfit_sigmas`` times the sigma of
-    its last round's (the noise of the observations it kept). Clean inputs: 1-3 times;
-    castle-P19 from OpenMVG's default preset: 20-70 times (docs/tuning.md)."""
+    its last round's (the noise of the observations it kept): clean inputs stay at a few times
+    (docs/tuning.md)."""
     from rotonly_cli.stages.translate import tracks_misfit, views_ligt_left_out
 
     options = run.options.reject
@@ -73,8 +151,7 @@ def _rotations_bent(run: Run) -> bool:
     """The refutation's cue: LiGT's first solve misfits the tracks by ``confirm_misfit_sigmas``
     times its last round's sigma (the misfit half of :func:`_rotations_misfit_tracks`). Views
     left out with the rotations fitting the tracks (a weak link short of tracks) are no sign of a
-    pair bending them: an OpenMVG subset of castle-P19 (12 views, 0.71 px) lost a pair 5 deg
-    from the others' rotation and three views to it (0.097 -> 0.113 deg)."""
+    pair bending them: filtering a pair there cost views and accuracy."""
     from rotonly_cli.stages.translate import tracks_misfit
 
     options = run.options.reject
@@ -100,8 +177,7 @@ def _refutation_rounds(run: Run, resolve) -> dict:
     other pairs refute are filtered (stages/reject.refuted_edges, geometry/refutation): a pair whose
     matches are consistently wrong (repeated structure that fits its own epipolar geometry)
     bends GRRM's rotations until its own matches fit them, and where it is weakly tied, no
-    residual under the bent rotations shows it (castle-P19 from OpenMVG's F-verified matches:
-    pairs 12-17 and 15-17, 0.22-0.28 deg). Left out, its matches misfit the rotation the
+    residual under the bent rotations shows it. Left out, its matches misfit the rotation the
     others imply: the most refuted pair beyond ``refute_max_ratio`` is filtered and GRRM and
     LiGT re-solved, at most ``refute_max_edges`` times. A filtered pair is put back, and the
     test ends, when LiGT then leaves out a view it tied in (the pair was a link the tracks
@@ -122,8 +198,7 @@ def _refutation_rounds(run: Run, resolve) -> dict:
                       if entry["fit_ratio"] > options.refute_max_ratio]
         # the others refute a pair only where they stay redundant: a pair whose loss would
         # leave other pairs on no cycle had one path to disagree with, and nothing would check
-        # those pairs afterwards (castle-P19's OpenMVG matches, an 8-view subset: two pairs
-        # filtered left five bridges, 0.18 -> 0.34 deg). Then the test ends: the pairs below
+        # those pairs afterwards. Then the test ends: the pairs below
         # the most refuted one may be the ones it bent (a simulated pair turned 1.5 deg: 31x,
         # its neighbours up to 11x)
         if not candidates or _leaves_new_bridges(run.graph, candidates[0]["edge_index"],
@@ -134,7 +209,7 @@ def _refutation_rounds(run: Run, resolve) -> dict:
         misfit_before = first_solve_sigma_px(before.reports["translate"])
         run.graph.edges[worst["edge_index"]].filter(f"{REFUTE_REASON}: its matches fit the others' rotation "
                                                     f"{worst['fit_ratio']:.3g}x worse than its own")
-        _ensure_two_views(run.graph, "leave-one-out refutation")
+        ensure_two_views(run.graph, "leave-one-out refutation")
         resolve()
         misfit = first_solve_sigma_px(run.reports.get("translate"))
         lost = views_lost(before.reports["translate"], run.reports.get("translate"))
@@ -158,9 +233,8 @@ def _confirmation_rounds(run: Run, resolve) -> dict:
     """Where LiGT's solve says the rotations disagree with the tracks
     (:func:`_rotations_misfit_tracks`), GRRM's objective, which takes every match of a pair,
     may have been bent by wrong matches that fit their own pair's epipolar geometry (repeated
-    structure a few pixels off the right line, no third view to refute them): castle-P19 from
-    OpenMVG's default preset, 0.27-0.29 deg, LiGT's first solve 5-25 px off the tracks and
-    views 11-18 left out.
+    structure a few pixels off the right line, no third view to refute them; docs/tuning.md
+    "Confirmation by tracks").
 
     Each round triangulates the tracks under the current poses (every view with a centre,
     resected ones too), keeps on every edge only the matches a track of ``confirm_min_views``
@@ -204,12 +278,11 @@ def _confirmation_rounds(run: Run, resolve) -> dict:
         graph, report = confirm_round(original, confirmed, edges)
         if report["num_dropped"] > (1.0 - options.confirm_min_fraction) * report["num_matches"]:
             # most matches unconfirmed: tracks of three views are too few for a consistency
-            # test, and GRRM on the rest would be a thin subsample (castle-P19's database, a
-            # 6-view subset: 28 % confirmed, 0.09 -> 0.27 deg)
+            # test, and GRRM on the rest would be a thin subsample
             result = {"too_few_confirmed": report}
             break
         run.graph = graph
-        _ensure_two_views(run.graph, "multi-view confirmation")
+        ensure_two_views(run.graph, "multi-view confirmation")
         resolve()
         report["views_left_out"] = sorted(views_ligt_left_out(run.reports.get("translate")))
         rounds.append(report)
@@ -227,14 +300,12 @@ def _confirmation_rounds(run: Run, resolve) -> dict:
     # the test: LiGT on every match's tracks (the graph before the rounds) under the new
     # rotations. Where wrong matches had bent the rotations, the tracks now agree with them
     # and LiGT ties every view in; where views were left out for want of tracks (a weak
-    # link: castle-P19 matched sequentially, 7 views out, 6 after), some stay out, and the
-    # rounds are undone
+    # link), some stay out, and the rounds are undone
     run.graph = original.copy()
     resolve(("translate",))
     left_all = sorted(views_ligt_left_out(run.reports.get("translate")))
     # ... and the new rotations may not put a pair beyond the averaging's outlier residual
-    # (an 8-view subset of castle-P19's database: a leaf turned 24 deg) nor a
-    # view off its pairs' baselines (LiGT shrinking the centres fits every track)
+    # (a leaf can turn far) nor a view off its pairs' baselines (LiGT shrinking the centres fits every track)
     outlier = run.options.average.max_residual_deg
     new_outliers = int(np.sum((residuals() > outlier) & ~(residual_before > outlier)))
     off = sorted(set(views_off(run.reports.get("translate"))) - set(views_off(saved.reports["translate"])))

@@ -1,4 +1,4 @@
-"""stages/intrinsics.py and the calibrated chain of chain.py (issue 20): guessed focal lengths
+"""calibration/ and the calibrated chain of chain/calibrate.py (issue 20): guessed focal lengths
 and unknown distortion, on simulated user inputs (simulation/user_cameras.py) and the bundled
 calibrated fixtures. The small, fast version of scripts/bench/intrinsics.py is here."""
 
@@ -11,6 +11,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from rotonly_cli.calibration import adjustment, guesses, noise
+from rotonly_cli.calibration import focals as vg_focals
+from rotonly_cli.calibration import rounds as cal_rounds
+from rotonly_cli.calibration.adjustment import _parameter_std
 from rotonly_cli.errors import InputError
 from rotonly_cli.evaluation.quality import evaluate
 from rotonly_cli.io.detect import read_scene
@@ -19,7 +23,6 @@ from rotonly_cli.options import IntrinsicsOptions, LoadOptions, RunOptions
 from rotonly_cli.pipeline import STAGES, resume, run_pipeline
 from rotonly_cli.scene.types import Intrinsics, SfMScene, View
 from rotonly_cli.simulation.user_cameras import camera_per_view, simulate_user_cameras, write_inputs
-from rotonly_cli.stages import intrinsics as stage
 
 from helpers import DATA_FIXTURES
 
@@ -49,39 +52,39 @@ def test_options_reject_a_negative_centre_tolerance():
 
 
 def test_a_principal_point_at_the_image_centre_reads_as_a_default():
-    assert stage.centred_principal_point(CAMERA, 0.5)  # COLMAP's default: (w/2, h/2)
+    assert guesses.centred_principal_point(CAMERA, 0.5)  # COLMAP's default: (w/2, h/2)
     # OpenMVG's image listing writes (w/2, h/2) in its convention: +0.5 px in COLMAP's
     openmvg = Intrinsics(0, "pinhole_radial_k3", 1536, 1024, np.array([1380.0, 768.5, 512.5, 0.0, 0.0, 0.0]))
-    assert stage.centred_principal_point(openmvg, 0.5)
+    assert guesses.centred_principal_point(openmvg, 0.5)
     calibrated = Intrinsics(1, "PINHOLE", 1536, 1024, np.array([1379.74, 1382.08, 760.595, 503.655]))
-    assert not stage.centred_principal_point(calibrated, 0.5)
-    assert not stage.centred_principal_point(replace(CAMERA, params=np.array([1380.0, 768.0, 513.0, 0.0])), 0.5)
+    assert not guesses.centred_principal_point(calibrated, 0.5)
+    assert not guesses.centred_principal_point(replace(CAMERA, params=np.array([1380.0, 768.0, 513.0, 0.0])), 0.5)
 
 
 def test_cameras_to_calibrate_by_mode():
     scene = SfMScene(intrinsics={1: CAMERA, 2: Intrinsics(2, "PINHOLE", 10, 10, np.ones(4), prior_focal=False)})
-    assert stage.cameras_to_calibrate(scene, Mode.FIXED) == set()
-    assert stage.cameras_to_calibrate(scene, Mode.AUTO) == {2}
-    assert stage.cameras_to_calibrate(scene, Mode.REFINE) == {1, 2}
+    assert guesses.cameras_to_calibrate(scene, Mode.FIXED) == set()
+    assert guesses.cameras_to_calibrate(scene, Mode.AUTO) == {2}
+    assert guesses.cameras_to_calibrate(scene, Mode.REFINE) == {1, 2}
 
 
 def test_shift_px_measures_how_far_a_change_moves_the_image():
     moved = Intrinsics(1, "SIMPLE_RADIAL", 1536, 1024, np.array([1380.0, 771.0, 508.0, 0.0]))
-    assert stage.shift_px(CAMERA, moved) == pytest.approx(5.0)
+    assert adjustment.shift_px(CAMERA, moved) == pytest.approx(5.0)
     longer = Intrinsics(1, "SIMPLE_RADIAL", 1536, 1024, np.array([1380.0 * 1.01, 768.0, 512.0, 0.0]))
-    assert stage.shift_px(CAMERA, longer) == pytest.approx(0.01 * stage.half_diagonal(CAMERA), rel=1e-6)
+    assert adjustment.shift_px(CAMERA, longer) == pytest.approx(0.01 * adjustment.half_diagonal(CAMERA), rel=1e-6)
 
 
 def test_gate_keeps_only_significant_groups():
     options = IntrinsicsOptions()  # 0.5 % of the half diagonal: 4.6 px here
     estimate = Intrinsics(1, "SIMPLE_RADIAL", 1536, 1024, np.array([1380.0 * 1.002, 760.0, 511.0, 1e-4]))
-    gated, shifts = stage.gate(CAMERA, estimate, options)
+    gated, shifts = adjustment.gate(CAMERA, estimate, options)
     assert gated.params.tolist() == [1380.0, 760.0, 511.0, 0.0]  # only the principal point moved enough
     assert shifts["principal_point"] == pytest.approx(np.hypot(8, 1)) and shifts["focal"] < 4.6
     big = Intrinsics(1, "SIMPLE_RADIAL", 1536, 1024, np.array([1500.0, 768.5, 512.0, -0.2]))
-    assert stage.gate(CAMERA, big, options)[0].params.tolist() == [1500.0, 768.0, 512.0, -0.2]
+    assert adjustment.gate(CAMERA, big, options)[0].params.tolist() == [1500.0, 768.0, 512.0, -0.2]
     # a guessed focal takes the estimate however small the change
-    assert stage.gate(CAMERA, estimate, options, frozenset({"focal"}))[0].params.tolist() == \
+    assert adjustment.gate(CAMERA, estimate, options, frozenset({"focal"}))[0].params.tolist() == \
         [1380.0 * 1.002, 760.0, 511.0, 0.0]
 
 
@@ -92,13 +95,15 @@ def test_a_change_within_its_uncertainty_is_not_significant():
     from above: the focal trades for the flying height)."""
     options = IntrinsicsOptions()
     estimate = Intrinsics(1, "SIMPLE_RADIAL", 1536, 1024, np.array([1364.0, 768.0, 512.0, 0.0]))
-    assert stage.gate(CAMERA, estimate, options)[0].params[0] == 1364.0
-    assert stage.gate(CAMERA, estimate, options, parameter_std=np.array([2.0, 1.0, 1.0, 1e-3]))[0].params[0] == 1364.0
-    assert stage.gate(CAMERA, estimate, options, parameter_std=np.array([16.0, 1.0, 1.0, 1e-3]))[0].params[0] == 1380.0
+    assert adjustment.gate(CAMERA, estimate, options)[0].params[0] == 1364.0
+    assert adjustment.gate(CAMERA, estimate, options,
+                           parameter_std=np.array([2.0, 1.0, 1.0, 1e-3]))[0].params[0] == 1364.0
+    assert adjustment.gate(CAMERA, estimate, options,
+                           parameter_std=np.array([16.0, 1.0, 1.0, 1e-3]))[0].params[0] == 1380.0
     # a guess is taken whatever its uncertainty
-    assert stage.gate(CAMERA, estimate, options, frozenset({"focal"}),
+    assert adjustment.gate(CAMERA, estimate, options, frozenset({"focal"}),
                       parameter_std=np.array([16.0, 1.0, 1.0, 1e-3]))[0].params[0] == 1364.0
-    assert stage.change_sigmas(CAMERA, estimate, np.array([16.0, 1.0, 0.0, 1e-3])) == {
+    assert adjustment.change_sigmas(CAMERA, estimate, np.array([16.0, 1.0, 0.0, 1e-3])) == {
         "focal": 1.0, "principal_point": 0.0, "distortion": 0.0}
     with pytest.raises(InputError):
         IntrinsicsOptions(min_change_sigmas=-1.0).validate()
@@ -116,41 +121,41 @@ def test_the_noise_of_a_flat_field_comes_from_its_homographies():
     assert {pair.config for pair in pairs.values()} <= {"PLANAR_OR_PANORAMIC", "WATERMARK"}
     scene = user_scene(problem, problem.true, pairs)
     options = IntrinsicsOptions()
-    assert stage.homography_noise_sigma_px(scene, options) == pytest.approx(0.5, rel=0.05)
-    assert stage.projective_noise_sigma_px(scene, options) == stage.homography_noise_sigma_px(scene, options)
-    assert stage.suspect_threshold_px(stage.projective_noise_sigma_px(scene, options), options) > 0.7
+    assert noise.homography_noise_sigma_px(scene, options) == pytest.approx(0.5, rel=0.05)
+    assert noise.projective_noise_sigma_px(scene, options) == noise.homography_noise_sigma_px(scene, options)
+    assert guesses.suspect_threshold_px(noise.projective_noise_sigma_px(scene, options), options) > 0.7
 
 
 def test_significance_grows_with_the_keypoint_noise():
     """An estimate from noisier matches scatters more: above ``min_shift_noise_px`` the limit
     grows in proportion (0.75 px: 3 x 4.6 px here), below it and unmeasured it is as given."""
     options = IntrinsicsOptions()
-    limit = options.min_shift * stage.half_diagonal(CAMERA)
-    assert stage.shift_limit_px(CAMERA, options) == stage.shift_limit_px(CAMERA, options, 0.2) == limit
-    assert stage.shift_limit_px(CAMERA, options, 0.75) == pytest.approx(3 * limit)
+    limit = options.min_shift * adjustment.half_diagonal(CAMERA)
+    assert adjustment.shift_limit_px(CAMERA, options) == adjustment.shift_limit_px(CAMERA, options, 0.2) == limit
+    assert adjustment.shift_limit_px(CAMERA, options, 0.75) == pytest.approx(3 * limit)
     estimate = Intrinsics(1, "SIMPLE_RADIAL", 1536, 1024, np.array([1380.0, 776.0, 512.0, 0.0]))  # 8 px
-    assert stage.gate(CAMERA, estimate, options, noise_sigma_px=0.2)[0].params[1] == 776.0
-    assert stage.gate(CAMERA, estimate, options, noise_sigma_px=0.75)[0].params[1] == 768.0
+    assert adjustment.gate(CAMERA, estimate, options, noise_sigma_px=0.2)[0].params[1] == 776.0
+    assert adjustment.gate(CAMERA, estimate, options, noise_sigma_px=0.75)[0].params[1] == 768.0
     with pytest.raises(InputError):
         IntrinsicsOptions(min_shift_noise_px=0.0).validate()
 
 
 def test_suspect_threshold_follows_the_noise():
     options = IntrinsicsOptions()
-    assert stage.suspect_threshold_px(None, options) == options.suspect_reprojection_px
-    assert stage.suspect_threshold_px(0.1, options) == options.suspect_reprojection_px
-    assert stage.suspect_threshold_px(1.0, options) == pytest.approx(1.5)
-    assert stage.suspect_cameras({1: 0.2, 2: 4.0}, 1.0) == {2}
+    assert guesses.suspect_threshold_px(None, options) == options.suspect_reprojection_px
+    assert guesses.suspect_threshold_px(0.1, options) == options.suspect_reprojection_px
+    assert guesses.suspect_threshold_px(1.0, options) == pytest.approx(1.5)
+    assert guesses.suspect_cameras({1: 0.2, 2: 4.0}, 1.0) == {2}
 
 
 def test_warnings_name_the_reprojection_error_and_a_given_focal_that_moved():
     given = {1: CAMERA, 2: Intrinsics(2, "PINHOLE", 10, 10, np.array([100.0, 100.0, 5.0, 5.0]), prior_focal=False)}
     final = {1: Intrinsics(1, "SIMPLE_RADIAL", 1536, 1024, np.array([1450.0, 768.0, 512.0, 0.0])),
              2: Intrinsics(2, "PINHOLE", 10, 10, np.array([150.0, 150.0, 5.0, 5.0]))}
-    warnings = stage.warnings_for(given, final, {1, 2}, 1.5, IntrinsicsOptions())
+    warnings = cal_rounds.warnings_for(given, final, {1, 2}, 1.5, IntrinsicsOptions())
     assert len(warnings) == 2  # camera 2 was a guess: moving it is the point
     assert "reprojection error 1.50 px" in warnings[0] and "camera 1: focal moved +5.1 %" in warnings[1]
-    assert stage.warnings_for(given, given, set(), 0.3, IntrinsicsOptions()) == []
+    assert cal_rounds.warnings_for(given, given, set(), 0.3, IntrinsicsOptions()) == []
 
 
 # ============================================================================ simulated user inputs
@@ -181,7 +186,7 @@ def test_view_graph_focal_of_the_simulated_guess(user_inputs):
     from rotonly_cli.simulation.user_cameras import user_scene, verified_pairs
 
     scene = user_scene(problem, problem.guessed, verified_pairs(problem))
-    calibrated, report = stage.view_graph_focals(scene, {1}, IntrinsicsOptions())
+    calibrated, report = vg_focals.view_graph_focals(scene, {1}, IntrinsicsOptions())
     assert report["success"] and report["num_pairs"] >= 10
     assert calibrated[1].focal_px == pytest.approx(1380.0, rel=0.005)
     assert calibrated[1].params[1:].tolist() == scene.intrinsics[1].params[1:].tolist()  # only the focal
@@ -195,7 +200,7 @@ def test_view_graph_focal_of_twin_guesses_is_one():
 
     problem = simulate_user_cameras(5, -0.25, 0.0, num_views=6, num_points=2000)
     scene = camera_per_view(user_scene(problem, problem.guessed, verified_pairs(problem)))
-    calibrated, report = stage.view_graph_focals(scene, set(scene.intrinsics), IntrinsicsOptions())
+    calibrated, report = vg_focals.view_graph_focals(scene, set(scene.intrinsics), IntrinsicsOptions())
     assert report["success"] and sorted(calibrated) == sorted(scene.intrinsics)
     focals = {k.focal_px for k in calibrated.values()}
     assert len(focals) == 1 and focals.pop() == pytest.approx(1380.0, rel=0.005)
@@ -218,10 +223,10 @@ def test_per_image_focals_name_the_images_of_another_zoom(zoom):
 
     problem = _zoomed(simulate_user_cameras(5, -0.25, 0.0, num_views=8, num_points=2000), (2, 5, 7), zoom)
     scene = user_scene(problem, problem.guessed, verified_pairs(problem))
-    calibrated, _ = stage.view_graph_focals(scene, {1}, IntrinsicsOptions())
-    scene = stage.with_intrinsics(scene, calibrated)
-    fundamentals = stage.refit_fundamentals(scene, IntrinsicsOptions())
-    per_image = stage.per_image_focals(scene, [[1]], fundamentals, IntrinsicsOptions())
+    calibrated, _ = vg_focals.view_graph_focals(scene, {1}, IntrinsicsOptions())
+    scene = cal_rounds.with_intrinsics(scene, calibrated)
+    fundamentals = vg_focals.refit_fundamentals(scene, IntrinsicsOptions())
+    per_image = vg_focals.per_image_focals(scene, [[1]], fundamentals, IntrinsicsOptions())
     assert per_image["success"] and sorted(per_image["focal_px"]["1"]) == [str(v) for v in range(1, 9)]
     if zoom == 1.0:
         assert per_image["disagree"] == []
@@ -233,11 +238,11 @@ def test_per_image_focals_name_the_images_of_another_zoom(zoom):
     assert low["views"] == [1, 3, 4, 6, 8] and high["views"] == [2, 5, 7]
     assert low["focal_px"] == pytest.approx(1380.0, rel=0.01)
     assert high["focal_px"] == pytest.approx(1380.0 * zoom, rel=0.01)
-    warning = stage.zoom_warning(finding)
+    warning = vg_focals.zoom_warning(finding)
     assert "3 (sim_0002.jpg, sim_0005.jpg, sim_0007.jpg)" in warning and "single_camera 0" in warning
-    assert "were given camera 9" in stage.zoom_warning(finding, 9)
+    assert "were given camera 9" in vg_focals.zoom_warning(finding, 9)
     # images with fewer fundamental matrices than zoom_min_pairs are not judged; too few left: no check
-    assert stage.per_image_focals(scene, [[1]], fundamentals, IntrinsicsOptions(zoom_min_pairs=100)) == {}
+    assert vg_focals.per_image_focals(scene, [[1]], fundamentals, IntrinsicsOptions(zoom_min_pairs=100)) == {}
 
 
 @pytest.fixture(scope="module")
@@ -326,7 +331,7 @@ def test_strong_distortion_is_no_zoom(tmp_path):
 def test_focal_groups_are_a_zoom_not_the_calibration_scatter(relative, groups):
     """The measured per-image view-graph focals (per cent from the shared one) of docs/tuning.md."""
     focals = {v: 1380.0 * (1 + r / 100) for v, r in enumerate(relative)}
-    assert stage.focal_groups(focals, IntrinsicsOptions()) == groups
+    assert vg_focals.focal_groups(focals, IntrinsicsOptions()) == groups
 
 
 def test_options_reject_a_zoom_check_that_cannot_split():
@@ -369,8 +374,8 @@ def test_twin_cameras_are_cameras_given_the_same_intrinsics():
     guess = Intrinsics(1, "SIMPLE_RADIAL", 1536, 1024, np.array([1843.2, 768.0, 512.0, 0.0]), prior_focal=False)
     given = {1: guess, 2: replace(guess, id=2), 3: replace(guess, id=3, prior_focal=True),
              4: replace(guess, id=4, params=np.array([1843.7, 768.0, 512.0, 0.0])), 5: replace(guess, id=5)}
-    assert stage.twin_cameras(given, {5, 4, 3, 2, 1}) == [[1, 2, 5], [3], [4]]
-    assert stage.twin_cameras(given, {2, 4}) == [[2], [4]]
+    assert guesses.twin_cameras(given, {5, 4, 3, 2, 1}) == [[1, 2, 5], [3], [4]]
+    assert guesses.twin_cameras(given, {2, 4}) == [[2], [4]]
 
 
 def test_a_camera_per_image_shares_its_principal_point(tmp_path):
@@ -490,9 +495,9 @@ def test_a_principal_point_seen_in_one_image_is_kept(tmp_path):
         given[camera_id] = Intrinsics(camera_id, "SIMPLE_RADIAL", 1536, 1024,
                                       np.array([1380.0 + camera_id, 768.0, 512.0, 0.0]))
         posed.views[view_id] = replace(posed.views[view_id], intrinsics_id=camera_id)
-    posed = stage.with_intrinsics(replace(posed, intrinsics=given), {})
-    estimated, report = stage.estimate_intrinsics(posed, set(given), IntrinsicsOptions(),
-                                                  stage.twin_cameras(given, set(given)))
+    posed = cal_rounds.with_intrinsics(replace(posed, intrinsics=given), {})
+    estimated, report = adjustment.estimate_intrinsics(posed, set(given), IntrinsicsOptions(),
+                                                  guesses.twin_cameras(given, set(given)))
     assert report["principal_point_groups"] == [] and report["principal_point_kept"] == sorted(given)
     assert report["adjustments"] == 1
     for camera_id, estimate in estimated.items():
@@ -547,7 +552,7 @@ def test_views_of_one_camera_change_together():
         scene.views[view_id] = View(view_id, f"{view_id}.jpg", 1)
         scene.keypoints[view_id] = np.array([[768.0 + 138.0, 512.0]])
         scene.normalized[view_id] = np.array([[0.1, 0.0]])
-    copy = stage.with_intrinsics(scene, {1: Intrinsics(1, "SIMPLE_RADIAL", 1536, 1024,
+    copy = cal_rounds.with_intrinsics(scene, {1: Intrinsics(1, "SIMPLE_RADIAL", 1536, 1024,
                                                        np.array([690.0, 768.0, 512.0, 0.0]))})
     np.testing.assert_allclose(copy.normalized[1], [[0.2, 0.0]])
     np.testing.assert_allclose(copy.normalized[2], [[0.2, 0.0]])
@@ -564,11 +569,11 @@ def test_a_round_that_moves_the_focal_by_more_than_one_and_a_half_percent_has_no
         scene.views[view_id] = View(view_id, f"{view_id}.jpg", 1)
         scene.keypoints[view_id] = np.array([[900.0, 600.0]])
         scene.normalized[view_id] = np.array([[0.1, 0.05]])
-    calibration = stage.Calibration(IntrinsicsOptions(), {1: CAMERA}, scene, calibrate={1: "guess"})
-    estimate = stage.with_focal(CAMERA, focal_factor * CAMERA.focal_px)
+    calibration = cal_rounds.Calibration(IntrinsicsOptions(), {1: CAMERA}, scene, calibrate={1: "guess"})
+    estimate = cal_rounds.with_focal(CAMERA, focal_factor * CAMERA.focal_px)
     calibration._gated_estimates = lambda *args: ({1: estimate}, {"time_s": 0.0})
     assert calibration.estimate(scene) is settled
-    report = calibration.rounds[-1]
+    report = calibration.steps.rounds[-1]
     assert report["moved"] < IntrinsicsOptions().converged_shift
     assert report["focal_change"] == pytest.approx(focal_factor - 1.0)
 
@@ -581,19 +586,19 @@ def test_rounds_that_do_not_settle_take_the_round_converged_on_the_most_points()
     scene.views[1] = View(1, "1.jpg", 1)
     scene.keypoints[1] = np.array([[900.0, 600.0]])
     scene.normalized[1] = np.array([[0.1, 0.05]])
-    calibration = stage.Calibration(IntrinsicsOptions(), {1: CAMERA}, scene, calibrate={1: "suspect"})
+    calibration = cal_rounds.Calibration(IntrinsicsOptions(), {1: CAMERA}, scene, calibrate={1: "suspect"})
     rounds = [(1480.6, 229, "NO_CONVERGENCE"), (1380.7, 1547, "CONVERGENCE"), (1427.5, 3000, "NO_CONVERGENCE"),
               (1568.5, 285, "NO_CONVERGENCE")]
-    calibration.rounds = [{"num_points": points, "termination": termination} for _, points, termination in rounds]
-    calibration.round_scenes = [stage.with_intrinsics(scene, {1: stage.with_focal(CAMERA, focal)})
+    calibration.steps.rounds = [{"num_points": points, "termination": termination} for _, points, termination in rounds]
+    calibration.round_scenes = [cal_rounds.with_intrinsics(scene, {1: cal_rounds.with_focal(CAMERA, focal)})
                                 for focal, _, _ in rounds]
     calibration.scene = calibration.round_scenes[-1]
     calibration.take_best_round()
     assert calibration.scene.intrinsics[1].focal_px == pytest.approx(1380.7)
-    assert calibration.unsettled["taken_round"] == 2
+    assert calibration.steps.unsettled["taken_round"] == 2
     assert calibration.finish(calibration.scene)["unsettled"]["taken_round"] == 2
     # none converged: the most points
-    calibration.rounds = [dict(report, termination="NO_CONVERGENCE") for report in calibration.rounds]
+    calibration.steps.rounds = [dict(report, termination="NO_CONVERGENCE") for report in calibration.steps.rounds]
     calibration.take_best_round()
     assert calibration.scene.intrinsics[1].focal_px == pytest.approx(1427.5)
 
@@ -601,11 +606,11 @@ def test_rounds_that_do_not_settle_take_the_round_converged_on_the_most_points()
 def test_a_failed_quick_estimation_pass_falls_back_to_the_full_chain(user_inputs, tmp_path, monkeypatch):
     """The quick pass runs on intrinsics that may be far off; if it finds no reconstruction,
     the run goes on as without it (the full chain with the given intrinsics decides)."""
-    from rotonly_cli import chain
+    from rotonly_cli.chain import calibrate
     from rotonly_cli.errors import AlgorithmError
 
     _, guessed, _ = user_inputs
-    rerun, calls = chain._rerun, []
+    rerun, calls = calibrate._rerun, []
 
     def failing_first(*args, **kwargs):
         calls.append(1)
@@ -613,7 +618,7 @@ def test_a_failed_quick_estimation_pass_falls_back_to_the_full_chain(user_inputs
             raise AlgorithmError("fewer than two usable images after scene identification")
         return rerun(*args, **kwargs)
 
-    monkeypatch.setattr(chain, "_rerun", failing_first)
+    monkeypatch.setattr(calibrate, "_rerun", failing_first)
     summary = run_pipeline(guessed["openmvg"], tmp_path / "out", _options())
     assert summary["num_registered"] == 6 and len(calls) > 1
     log = (tmp_path / "out" / "run.log").read_text()
@@ -788,26 +793,26 @@ def test_parameter_std_from_the_adjustment_covariance_and_its_image_cap():
     [camera] = reconstruction.cameras.values()
     camera.params = camera.params * np.where(np.arange(len(camera.params)) == 0, 1.02, 1.0)  # the focal 2 % long
     reconstruction.update_point_3d_errors()
-    adjustment = pycolmap.BundleAdjustmentOptions()
-    adjustment.refine_focal_length = adjustment.refine_principal_point = adjustment.refine_extra_params = True
+    ba_options = pycolmap.BundleAdjustmentOptions()
+    ba_options.refine_focal_length = ba_options.refine_principal_point = ba_options.refine_extra_params = True
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in reconstruction.reg_image_ids():
         config.add_image(image_id)
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
-    adjuster = pycolmap.create_default_ceres_bundle_adjuster(adjustment, config, reconstruction)
+    adjuster = pycolmap.create_default_ceres_bundle_adjuster(ba_options, config, reconstruction)
     adjuster.solve()
     [camera_id] = list(reconstruction.cameras)
-    std = stage._parameter_std(reconstruction, adjuster, [camera_id], 0, IntrinsicsOptions())
+    std = _parameter_std(reconstruction, adjuster, [camera_id], 0, IntrinsicsOptions())
     assert std[camera_id].shape == (len(reconstruction.cameras[camera_id].params),)
     assert np.all(std[camera_id] > 0) and np.all(np.isfinite(std[camera_id]))
-    sigma = stage.residual_sigma_px(reconstruction)
+    sigma = adjustment.residual_sigma_px(reconstruction)
     assert abs(sigma / 0.5 - 1) < 0.08
     assert reconstruction.compute_mean_reprojection_error() > 4 * sigma  # the stored errors: before
     far = next(iter(reconstruction.points3D.values()))
     far.xyz = far.xyz * 1e6
-    assert stage.residual_sigma_px(reconstruction) == pytest.approx(sigma, rel=0.02)
+    assert adjustment.residual_sigma_px(reconstruction) == pytest.approx(sigma, rel=0.02)
     capped = IntrinsicsOptions(covariance_max_images=5)
-    assert stage._parameter_std(reconstruction, adjuster, [camera_id], 0, capped) == {}
+    assert _parameter_std(reconstruction, adjuster, [camera_id], 0, capped) == {}
 
 
 def test_bad_intrinsics_options_of_the_flat_ground_checks():
@@ -839,7 +844,7 @@ def test_views_without_a_camera_share_a_guess_per_image_size():
                                     width=width, height=height)
         scene.keypoints[view_id] = np.array([[width / 2, height / 2], [width / 2 + 100.0, height / 2]])
     scene.normalized[3] = np.zeros((2, 2))
-    out, guessed = stage.guess_missing_cameras(scene, Mode.AUTO, openmvg=True)
+    out, guessed = guesses.guess_missing_cameras(scene, Mode.AUTO, openmvg=True)
     assert guessed == [0, 1, 2] and scene.views[0].intrinsics_id == UNDEFINED_INDEX  # the input is untouched
     assert out.views[0].intrinsics_id == out.views[1].intrinsics_id == 4 and out.views[2].intrinsics_id == 5
     assert out.views[3].intrinsics_id == 3 and out.intrinsics[3] is given
@@ -848,13 +853,13 @@ def test_views_without_a_camera_share_a_guess_per_image_size():
     np.testing.assert_allclose(wide.params, [1.2 * 1536, 760.0, 505.0, 0.0])
     np.testing.assert_allclose(small.params, [1.2 * 800, 400.0, 300.0, 0.0])
     np.testing.assert_allclose(out.normalized[2], [[0.0, 0.0], [100.0 / 960.0, 0.0]], atol=1e-12)
-    assert stage.cameras_to_calibrate(out, Mode.AUTO) == {4, 5}
-    assert stage.guess_missing_cameras(scene, Mode.FIXED, openmvg=True) == (scene, [])
-    colmap = stage.guess_missing_cameras(scene, Mode.REFINE, openmvg=False)[0]
+    assert guesses.cameras_to_calibrate(out, Mode.AUTO) == {4, 5}
+    assert guesses.guess_missing_cameras(scene, Mode.FIXED, openmvg=True) == (scene, [])
+    colmap = guesses.guess_missing_cameras(scene, Mode.REFINE, openmvg=False)[0]
     assert colmap.intrinsics[4].model == "SIMPLE_RADIAL"
     scene.views[1] = replace(scene.views[1], width=None)
     with pytest.raises(InputError, match="image size"):
-        stage.guess_missing_cameras(scene, Mode.AUTO, openmvg=True)
+        guesses.guess_missing_cameras(scene, Mode.AUTO, openmvg=True)
 
 
 def _without_intrinsics(tmp_path, views=None):

@@ -134,7 +134,7 @@ def rigid_views(obs_track: np.ndarray, obs_view: np.ndarray, num_views: int,
     # Each component is rigid, but two of them can share two views without a track holding
     # both: (0, 1, 2), (0, 2, 3) and (1, 3, 4) tie 1-3 in the first two bodies and in the
     # third, so the third shares their baseline. Merge bodies that share two views until none
-    # do (sequential captures: castle-P19 matched to its two neighbours lost views 14-19)
+    # do (sequential captures otherwise lose their far end)
     while num_components > 1:
         shared = (views_of @ views_of.T).tocoo()
         link = (shared.data >= 2) & (shared.row < shared.col)

@@ -1,0 +1,58 @@
+"""One mapping from the names of `rotonly run`'s options to the RunOptions fields they set: the
+CLI's long options (``--ransac-max-error`` is ``ransac_max_error``; click passes them under these
+names) and the keywords of the Python API (``rotonly_cli.run``) are the same names, and both build
+their RunOptions with :func:`with_settings`."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from rotonly_cli.options import RunOptions
+from rotonly_cli.options.common import INTRINSICS_MODES, Intrinsics, Reestimate
+
+#: name -> (the part of RunOptions it sets: "" for RunOptions itself, else its field holding
+#: that stage's options; the field)
+SETTINGS = {
+    "matches_dir": ("", "matches_dir"),
+    "matches": ("", "matches_file"),
+    "image_path": ("", "image_path"),
+    "gt": ("", "gt"),
+    "grrm": ("", "grrm"),
+    "jobs": ("", "jobs"),
+    "progress": ("", "progress"),
+    "max_memory": ("", "max_memory_gb"),
+    "min_inliers": ("load", "min_inliers"),
+    "reestimate": ("load", "reestimate"),
+    "ransac_max_error": ("load", "ransac_max_error_px"),
+    "seed": ("load", "seed"),
+    "max_residual_deg": ("average", "max_residual_deg"),
+    "intrinsics": ("intrinsics", "mode"),
+}
+
+
+#: the fields that hold a path, as text
+PATHS = ("matches_dir", "matches_file", "image_path", "gt")
+
+
+def _value(field: str, value):
+    """``value`` as the field holds it: paths as text, the choices as their StrEnum (a mode
+    that is not one stays as given, for the options' validate() to name)."""
+    if field in PATHS:
+        return str(value)
+    if field == "reestimate":
+        return Reestimate(value)
+    if field == "mode":
+        return Intrinsics(value) if value in INTRINSICS_MODES else value
+    return value
+
+
+def with_settings(options: RunOptions, settings: dict) -> RunOptions:
+    """``options`` with the ``settings`` ({name of :data:`SETTINGS`: value}) applied; a None
+    value leaves its field as it is in ``options``."""
+    changes: dict[str, dict] = {}
+    for name, value in settings.items():
+        if value is not None:
+            part, field = SETTINGS[name]
+            changes.setdefault(part, {})[field] = _value(field, value)
+    parts = {part: replace(getattr(options, part), **fields) for part, fields in changes.items() if part}
+    return replace(options, **changes.get("", {}), **parts)
