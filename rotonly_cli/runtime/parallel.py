@@ -269,6 +269,9 @@ def _child(conn, fn: Callable, item, parent: int) -> None:
     _enter_child(parent)
     try:
         _send_outcome(conn, fn, item)
+    except BaseException:  # noqa: BLE001 - nothing could be sent (no memory left even for the error,
+        # the parent gone): the parent sees EOF and does the work itself; no traceback on the run's stderr
+        os._exit(1)
     finally:
         conn.close()
 
@@ -385,14 +388,17 @@ def shared_array(shape: tuple[int, ...], dtype=np.float64) -> np.ndarray:
 def _serve(conn, handler: Callable, parent: int) -> None:
     # the parent owns Ctrl-C: it stops this child when it unwinds (ForkedPeer.close)
     _enter_child(parent, sigint=signal.SIG_IGN)
-    while True:
-        try:
-            message = conn.recv()
-        except EOFError:  # the parent is gone
-            return
-        if message is None:
-            return
-        _send_outcome(conn, handler, message)
+    try:
+        while True:
+            try:
+                message = conn.recv()
+            except EOFError:  # the parent is gone
+                return
+            if message is None:
+                return
+            _send_outcome(conn, handler, message)
+    except BaseException:  # noqa: BLE001 - as in _child: the parent sees EOF and answers itself
+        os._exit(1)
 
 
 class ForkedPeer:
