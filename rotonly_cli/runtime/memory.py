@@ -282,12 +282,18 @@ def scene_counts(scene, graph) -> Counts:
 
 def database_counts(path: str | Path) -> Counts | None:
     """:class:`Counts` of a COLMAP database before it is read (the load stage reads the
-    verified and the raw matches both); None where the tables cannot be counted."""
+    verified and the raw matches both); None where the tables cannot be counted. Read as
+    io/colmap/database_check reads an input: a rollback-journal file under SQLite's locks (a
+    writer's pages half written would count wrong), for a second at most; WAL ``immutable``."""
     import sqlite3
 
     try:
-        connection = sqlite3.connect(f"{Path(path).resolve().as_uri()}?mode=ro&immutable=1", uri=True)
-    except (sqlite3.Error, ValueError):
+        path = Path(path).resolve()
+        with open(path, "rb") as stream:
+            header = stream.read(20)
+        wal = len(header) == 20 and header[18] == 2  # the file format's versions: 2 WAL, 1 rollback journal
+        connection = sqlite3.connect(f"{path.as_uri()}?mode=ro{'&immutable=1' if wal else ''}", uri=True, timeout=1.0)
+    except (OSError, sqlite3.Error, ValueError):
         return None
     try:
         one = lambda sql: connection.execute(sql).fetchone()  # noqa: E731
