@@ -215,8 +215,10 @@ def out_of_memory_line(exc: BaseException) -> str:
     """``error: <stage> ran out of memory (<the allocation>); it needs about ...`` (runtime/memory:
     the guarded stage the error happened in, and its prediction)."""
     try:
-        from rotonly_cli.runtime.memory import LAST_STAGE, out_of_memory_error
+        from rotonly_cli.runtime.memory import LAST_DONE, LAST_STAGE, out_of_memory_error
 
+        if LAST_STAGE[0] is None and LAST_DONE[0] is not None:  # between stages: the last one's need
+            return f"error: {out_of_memory_error(None, exc, LAST_DONE[1], after=LAST_DONE[0])}"
         return f"error: {out_of_memory_error(LAST_STAGE[0], exc, LAST_STAGE[1])}"
     except MemoryError:  # not even the module could be imported
         return "error: out of memory"
