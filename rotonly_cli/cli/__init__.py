@@ -253,7 +253,10 @@ def main(argv: list[str] | None = None) -> None:
 
 def _exit_on(exc: BaseException, written: bool) -> None:
     """Exit with one line for Ctrl-C (130; 0 when the output was ``written`` already), running
-    out of memory (1) and an unusable or full destination; re-raise anything else (a bug)."""
+    out of memory (1) and an unusable or full destination; re-raise anything else (a bug, or an
+    exit already decided)."""
+    if isinstance(exc, SystemExit):
+        raise exc
     if _interrupted(exc):
         if written:  # OUT holds the new result: the command succeeded
             sys.exit(0)
