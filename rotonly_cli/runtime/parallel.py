@@ -170,13 +170,14 @@ def _enter_child(parent: int, sigint=None) -> None:
 
 def _reap(process, conn, delivered: bool = True) -> None:
     """Close this end of the child's pipe and end the child: one that delivered its result
-    exits by itself (SIGTERM would race its exit; pycolmap's failure handler then prints a
-    stack trace), the others are stopped."""
+    exits by itself, the others are killed (SIGKILL: pycolmap's failure handler answers SIGTERM
+    with a stack trace on the run's stderr, seen after a Ctrl-C; a child holds nothing that
+    needs cleaning up, its files are in the run's staging folder)."""
     conn.close()
     if delivered:
         process.join(timeout=DELIVERED_EXIT_TIMEOUT_S)
     if process.is_alive():
-        process.terminate()
+        process.kill()
     process.join()
 
 
@@ -474,7 +475,8 @@ class ForkedPeer:
             self._conn.send(None)
         except OSError:  # the child is gone already
             pass
-        _reap(process, self._conn)
+        # a request still pending (the parent unwinds from an error or Ctrl-C): not waited for
+        _reap(process, self._conn, delivered=self._pending is None)
 
     def __enter__(self) -> ForkedPeer:
         return self

@@ -89,7 +89,8 @@ def _locked(exc: sqlite3.Error, shown: str) -> InputLockedError | None:
 
 
 def _hot_journal(exc: sqlite3.Error) -> bool:
-    return getattr(exc, "sqlite_errorcode", None) == _SQLITE_READONLY_ROLLBACK
+    code = getattr(exc, "sqlite_errorcode", None)  # Python 3.11+; 3.10 has the message only
+    return code == _SQLITE_READONLY_ROLLBACK or (code is None and "attempt to write a readonly database" in str(exc))
 
 
 def _connect(path: Path, options: str) -> sqlite3.Connection:
