@@ -64,3 +64,15 @@ def write_error(exc: OSError, path, field: str | None = "-o") -> RotonlyError:
 class OutOfMemoryError(AlgorithmError):
     """A stage would not fit in the memory limit (predicted before it ran: runtime/memory.py),
     or ran out of memory: exit code 1, OUT as it was."""
+
+
+class InputLockedError(RotonlyError):
+    """The input is being written by another process (a COLMAP database under its writer's
+    lock) for longer than rotonly waits: exit code 1, nothing written; run again once the
+    writer is done."""
+
+    exit_code = 1
+
+    def __init__(self, message: str, path: str | None = None):
+        self.path = None if path is None else str(path)
+        super().__init__(f"{path}: {message}" if path else message)

@@ -60,7 +60,7 @@ from rotonly_cli.io.workspace import (
     write_view_graph_json,
 )
 from rotonly_cli.options import RunOptions
-from rotonly_cli.runtime import heartbeat, memory
+from rotonly_cli.runtime import heartbeat, interrupts, memory
 from rotonly_cli.runtime.startup import collector_paused
 from rotonly_cli.scene.types import SfMScene
 
@@ -147,13 +147,15 @@ def check_input(input_path: Path) -> InputKind:
 
 
 class _LogFile(logging.FileHandler):
-    """run.log: a write error is kept (and raised by _RunLog), not printed as a traceback;
-    file names that are not UTF-8 are written with backslash escapes."""
+    """run.log: a write error is kept (and raised by _RunLog), not printed as a traceback; a
+    MemoryError is raised to the code that logged; file names that are not UTF-8 are written with backslash escapes."""
 
     error: OSError | None = None
 
     def handleError(self, record: logging.LogRecord) -> None:
         error = sys.exc_info()[1]
+        if isinstance(error, MemoryError):  # the run ends with one line (cli.main), not a "Logging error"
+            raise  # noqa: PLE0704 - called inside emit()'s except block: the error being handled
         if self.error is None and isinstance(error, OSError):
             self.error = error
 
@@ -218,9 +220,9 @@ def run_into(input_path: str | Path | SfMScene, out_dir: str | Path, options: Ru
     gt = ground_truth_for(options, stages)
     if not in_memory:
         kind = check_input(input_path)  # before anything is made: a bad input leaves no folder behind
-    staging = atomic.Staging(out_dir)  # parents made here are removed again by discard()
     start = time.perf_counter()
     guard = memory.MemoryGuard(options.max_memory_gb)
+    staging = atomic.Staging(out_dir)  # parents made here are removed again by discard()
     try:
         with _RunLog(staging.new), collector_paused():
             logger.info("rotonly run %s -> %s", label or input_path, out_dir)
@@ -230,7 +232,9 @@ def run_into(input_path: str | Path | SfMScene, out_dir: str | Path, options: Ru
                     guard.stage("export", memory.scene_counts(run.scene, run.graph) if stages[-1] == "triangulate"
                                 else None):
                 summary = _written(out_dir, _finish, staging.new, out_dir, run, list(stages), start, gt, guard)
-        _written(out_dir, staging.commit, check_out_dir)
+        # the CLI's exit code follows OUT from the instant it is the new workspace (Ctrl-C deferred
+        # until the commit is done: io/atomic, runtime/interrupts)
+        _written(out_dir, staging.commit, check_out_dir, interrupts.outcome_written)
     finally:
         staging.discard()
     return summary, run

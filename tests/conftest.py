@@ -6,3 +6,18 @@ __init__.py files). This file puts its folder on sys.path (pytest's rootdir conf
 every test imports the shared helpers as ``from helpers import ...``: the bundled fixtures'
 path (the tests read data_fixtures/ only) and the simulated scenes of the geometry tests.
 """
+
+import signal
+
+import pytest
+
+
+@pytest.fixture(autouse=True)
+def _sigint_handler_restored():
+    """Each test starts and ends with the Ctrl-C handler it found: ``cli.console_main``, called
+    in this process by some tests, installs the CLI's handler for the rest of the process
+    (runtime/interrupts), which would then ignore Ctrl-C in the tests after it."""
+    handler = signal.getsignal(signal.SIGINT)
+    yield
+    if handler is not None:
+        signal.signal(signal.SIGINT, handler)

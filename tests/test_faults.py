@@ -213,3 +213,92 @@ def test_out_that_is_a_mount_point_is_refused_before_the_run(tmp_path):
         assert err.strip().splitlines() == [f"error: {out}: -o: is a mount point: it cannot be replaced in one step "
                                             "(give a folder inside it)"]
         assert list(out.iterdir()) == [] and leftovers(out) == []
+
+
+# ============================================================================ Ctrl-C around the commit (issue 53)
+
+#: the console script with SIGINT sent to itself at one moment around the commit of OUT
+INTERRUPTED_RUN = """if True:
+    import os, signal, sys
+    from rotonly_cli import pipeline
+    from rotonly_cli.cli import run
+    from rotonly_cli.io import atomic
+
+    def around(owner, name, before):
+        original = getattr(owner, name)
+
+        def patched(*args, **kwargs):
+            # Staging._exchange: OUT's only (the models' folders inside the workspace are staged too)
+            now = not isinstance(args[0], atomic.Staging) or args[0].target.name == "out"
+            if before and now:
+                os.kill(os.getpid(), signal.SIGINT)
+            result = original(*args, **kwargs)
+            if not before and now:
+                os.kill(os.getpid(), signal.SIGINT)
+            return result
+
+        setattr(owner, name, patched)
+
+    where = sys.argv.pop(1)
+    {"before the workspace is finished": lambda: around(pipeline, "_finish", before=False),
+     "as the commit starts": lambda: around(atomic.Staging, "_exchange", before=True),
+     "right after the exchange": lambda: around(atomic.Staging, "_exchange", before=False),
+     "while the summary is printed": lambda: around(run, "echo_summary", before=True)}[where]()
+    from rotonly_cli.cli import console_main
+    sys.argv[0] = "rotonly"
+    console_main()
+"""
+
+
+@pytest.mark.parametrize("moment, new", [("before the workspace is finished", False), ("as the commit starts", True),
+                                         ("right after the exchange", True), ("while the summary is printed", True)])
+def test_ctrl_c_around_the_commit_exits_130_with_out_as_before_or_0_with_out_new(tmp_path, previous, moment, new):
+    out = _fresh_out(tmp_path, previous)
+    completed = subprocess.run([sys.executable, "-c", INTERRUPTED_RUN, moment, "run", str(DB), "-o", str(out)],
+                               capture_output=True, text=True, timeout=300)
+    assert "Traceback" not in completed.stderr and "Exception ignored" not in completed.stderr, completed.stderr
+    if new:  # the commit had begun: the command succeeded, and says so
+        assert completed.returncode == 0, completed.stderr
+        assert "error" not in completed.stderr
+        assert completed.stdout.startswith(f"{out}: 4/4 views registered"), completed.stdout
+        assert (out / "run.log").read_text() != "the previous workspace\n"
+        assert_complete_workspace(out)
+    else:
+        assert completed.returncode == 130, completed.stderr
+        assert completed.stderr.strip().splitlines()[-1] == "error: interrupted"
+        assert (out / "run.log").read_text() == "the previous workspace\n"
+    assert leftovers(out) == []
+
+
+# ============================================================================ kill -9 with workers alive (issue 53)
+
+@pytest.fixture(scope="module")
+def fault_scripts():
+    """scripts/faults/processes.py and kill_workers.py (process groups, bounded waits)."""
+    folder = str(Path(__file__).resolve().parents[1] / "scripts" / "faults")
+    sys.path.insert(0, folder)
+    try:
+        import kill_workers
+        import processes
+    finally:
+        sys.path.remove(folder)
+    return processes, kill_workers
+
+
+@pytest.mark.parametrize("nth", [1, 3])  # the first worker (identification), the third (GRRM's helper)
+def test_kill_9_of_the_main_process_leaves_no_worker_alive_and_the_next_run_cleans_up(tmp_path, previous,
+                                                                                       fault_scripts, nth):
+    processes, kill_workers = fault_scripts
+    out = _fresh_out(tmp_path, previous)
+    tmpdir = tmp_path / "tmp"
+    tmpdir.mkdir()
+    # 500 matches per part: the 4-view fixture forks its workers as a large input does
+    run = processes.start(["-q", "run", DB, "-o", out], tmpdir, min_matches_per_job=500)
+    alive, _ = kill_workers.kill_when_a_worker_lived(run, nth, 0.0, 120)
+    killed = processes.finish(run, 30)
+    assert alive, "no worker was alive at the kill"
+    assert killed.orphans == [], f"processes of the killed run alive {processes.ORPHAN_GRACE_S} s later"
+    assert_complete_workspace(out)  # old or new, whole
+    after = processes.finish(processes.start(["-q", "run", DB, "-o", out], tmpdir, min_matches_per_job=500), 300)
+    assert after.code == 0 and not after.orphans, after.stderr
+    assert leftovers(out) == [] and list(tmpdir.iterdir()) == []

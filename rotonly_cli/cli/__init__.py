@@ -12,6 +12,7 @@ import gc
 import importlib
 import logging
 import sys
+from collections.abc import Iterator
 
 import click
 
@@ -71,6 +72,17 @@ Shell completion (bash): eval "$(_ROTONLY_COMPLETE=bash_source rotonly)" in ~/.b
 zsh: zsh_source in ~/.zshrc; fish: fish_source into ~/.config/fish/completions/rotonly.fish."""
 
 
+class _StderrHandler(logging.StreamHandler):
+    """The console's log handler: a MemoryError while a record is formatted or written is
+    raised to the code that logged (the run then ends with one error line, :func:`main`)
+    instead of being printed as a "Logging error" traceback while the run goes on."""
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        if isinstance(sys.exc_info()[1], MemoryError):
+            raise  # noqa: PLE0704 - called inside emit()'s except block: the error being handled
+        super().handleError(record)
+
+
 def setup_logging(verbosity: int) -> None:
     """-q (-1): warnings and errors; default (0): one line per stage; -v (1): rotonly's per-stage
     detail (edge counts per reason, GRRM iterations, timings) with logger names; -vv: every
@@ -78,7 +90,9 @@ def setup_logging(verbosity: int) -> None:
     level = {-1: logging.WARNING, 0: logging.INFO, 1: logging.INFO}.get(verbosity, logging.DEBUG)
     fmt = ("%(asctime)s %(levelname)s %(name)s: %(message)s" if verbosity > 0
            else "%(levelname)s: %(message)s" if verbosity < 0 else "%(asctime)s %(message)s")
-    logging.basicConfig(level=level, format=fmt, datefmt="%H:%M:%S", stream=sys.stderr, force=True)
+    handler = _StderrHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter(fmt, datefmt="%H:%M:%S"))
+    logging.basicConfig(level=level, handlers=[handler], force=True)
     for name in ROTONLY_LOGGERS:
         logging.getLogger(name).setLevel(logging.DEBUG if verbosity > 0 else logging.NOTSET)
 
@@ -167,59 +181,99 @@ DESTINATION_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errn
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports
 
 
+def _causes(exc: BaseException | None) -> Iterator[BaseException]:
+    """``exc`` and the exceptions it was raised from or while handling (unless suppressed)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        yield exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or (None if exc.__suppress_context__ else exc.__context__)
+
+
 def _interrupted(exc: BaseException) -> bool:
     """Whether ``exc`` is Ctrl-C, or what a library made of it (click's Abort; pycolmap turns
     a KeyboardInterrupt during its import into RuntimeError)."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        if isinstance(exc, KeyboardInterrupt):
-            return True
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
-    return False
+    return any(isinstance(cause, KeyboardInterrupt) for cause in _causes(exc))
+
+
+def _out_of_memory(exc: BaseException) -> BaseException | None:
+    """The exception in ``exc``'s chain that says memory ran out, or None: a MemoryError
+    (numpy's _ArrayMemoryError, pybind11's std::bad_alloc), ENOMEM (fork, mmap), a thread
+    whose stack could not be mapped, a library that could not be mapped under an address-space
+    limit; also when a library made another exception of it."""
+    for cause in _causes(exc):
+        if isinstance(cause, MemoryError) or (isinstance(cause, OSError) and cause.errno == errno.ENOMEM):
+            return cause
+        if isinstance(cause, RuntimeError) and str(cause) == "can't start new thread":
+            return cause
+        if isinstance(cause, ImportError) and "failed to map segment" in str(cause):
+            return cause
+    return None
+
+
+def out_of_memory_line(exc: BaseException) -> str:
+    """``error: <stage> ran out of memory (<the allocation>); it needs about ...`` (runtime/memory:
+    the guarded stage the error happened in, and its prediction)."""
+    try:
+        from rotonly_cli.runtime.memory import LAST_DONE, LAST_STAGE, out_of_memory_error
+
+        if LAST_STAGE[0] is None and LAST_DONE[0] is not None:  # between stages: the last one's need
+            return f"error: {out_of_memory_error(None, exc, LAST_DONE[1], after=LAST_DONE[0])}"
+        return f"error: {out_of_memory_error(LAST_STAGE[0], exc, LAST_STAGE[1])}"
+    except MemoryError:  # not even the module could be imported
+        return "error: out of memory"
 
 
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry: maps rotonly's typed errors to one line and an exit code
-    (architecture.md "Exit codes"); Ctrl-C to one line and 130; running out of memory to one
-    line and 1 (runtime/memory). Other exceptions are bugs and keep their traceback."""
+    (architecture.md "Exit codes"); Ctrl-C to one line and 130 (0 once the command's output is
+    in place: runtime/interrupts); running out of memory, anywhere, to one line and 1
+    (runtime/memory). Other exceptions are bugs and keep their traceback."""
+    from rotonly_cli.runtime import interrupts
     from rotonly_cli.runtime.invocation import invoked_with
 
-    try:
-        with invoked_with(sys.argv[1:] if argv is None else argv):
-            cli.main(args=argv, prog_name="rotonly", standalone_mode=False)
-    except click.exceptions.Exit as exc:
-        sys.exit(exc.exit_code)
-    except click.ClickException as exc:  # usage: one line too (`rotonly CMD -h` has the rest)
-        context = getattr(exc, "ctx", None)
-        where = f"{context.command_path}: " if context is not None else ""
-        click.echo(f"error: {where}{exc.format_message()}", err=True)
-        sys.exit(2)
-    except RotonlyError as exc:
-        click.echo(f"error: {exc}", err=True)
-        sys.exit(exc.exit_code)
-    except (MemoryError, ImportError) as exc:  # numpy's _ArrayMemoryError too (a stage's: OutOfMemoryError)
-        if isinstance(exc, ImportError) and "failed to map segment" not in str(exc):  # a library's mmap failed
-            raise
-        from rotonly_cli.runtime.memory import LAST_STAGE, out_of_memory_error
+    with interrupts.cli_handling():
+        try:
+            with invoked_with(sys.argv[1:] if argv is None else argv):
+                cli.main(args=argv, prog_name="rotonly", standalone_mode=False)
+        except click.exceptions.Exit as exc:
+            sys.exit(exc.exit_code)
+        except click.ClickException as exc:  # usage: one line too (`rotonly CMD -h` has the rest)
+            context = getattr(exc, "ctx", None)
+            where = f"{context.command_path}: " if context is not None else ""
+            click.echo(f"error: {where}{exc.format_message()}", err=True)
+            sys.exit(2)
+        except RotonlyError as exc:
+            click.echo(f"error: {exc}", err=True)
+            sys.exit(exc.exit_code)
+        except BaseException as exc:  # noqa: BLE001 - Ctrl-C, memory, a destination: one line; the rest re-raised
+            _exit_on(exc, interrupts.written())
+        sys.exit(0)
 
-        click.echo(f"error: {out_of_memory_error(LAST_STAGE[0], exc, LAST_STAGE[1])}", err=True)
+
+def _exit_on(exc: BaseException, written: bool) -> None:
+    """Exit with one line for Ctrl-C (130; 0 when the output was ``written`` already), running
+    out of memory (1) and an unusable or full destination; re-raise anything else (a bug, or an
+    exit already decided)."""
+    if isinstance(exc, SystemExit):
+        raise exc
+    if _interrupted(exc):
+        if written:  # OUT holds the new result: the command succeeded
+            sys.exit(0)
+        click.echo("error: interrupted", err=True)
+        sys.exit(EXIT_INTERRUPTED)
+    memory_error = _out_of_memory(exc)
+    if memory_error is not None:
+        click.echo(out_of_memory_line(memory_error), err=True)
         sys.exit(1)
-    except OSError as exc:
-        if exc.errno not in DESTINATION_ERRORS or _interrupted(exc):
-            raise
+    if isinstance(exc, OSError) and exc.errno in DESTINATION_ERRORS:
         error = write_error(exc, exc.filename or "output", field=None)
         click.echo(f"error: {error}", err=True)
         sys.exit(error.exit_code)
-    except BaseException as exc:  # noqa: BLE001 - only Ctrl-C is answered here, the rest re-raised
-        if not _interrupted(exc):
-            if isinstance(exc, click.exceptions.Abort):
-                click.echo("Aborted.", err=True)
-                sys.exit(1)
-            raise
-        click.echo("error: interrupted", err=True)
-        sys.exit(EXIT_INTERRUPTED)
-    sys.exit(0)
+    if isinstance(exc, click.exceptions.Abort):
+        click.echo("Aborted.", err=True)
+        sys.exit(1)
+    raise exc
 
 
 def console_main() -> None:
@@ -234,15 +288,17 @@ def console_main() -> None:
     Before ``main``, BLAS is held to one thread per process, freed heap memory is kept for
     reuse, and numpy submodules that no command needs at start-up are registered as lazily
     loaded (:mod:`rotonly_cli.runtime.startup`). Ctrl-C during that start-up is
-    answered like one during the command (one line, exit 130)."""
+    answered like one during the command (one line, exit 130), running out of memory too (one
+    line, exit 1). The CLI's Ctrl-C handler stays for the rest of the process
+    (runtime/interrupts: after the command's output is written, Ctrl-C is ignored)."""
     try:
-        from rotonly_cli.runtime import startup
+        from rotonly_cli.runtime import interrupts, startup
 
+        interrupts.install()
         startup.rotonly_process_settings()  # before numpy is imported
         startup.defer_unused_numpy_submodules()
-    except KeyboardInterrupt:
-        click.echo("error: interrupted", err=True)
-        sys.exit(EXIT_INTERRUPTED)
+    except BaseException as exc:  # noqa: BLE001 - Ctrl-C or memory: one line; the rest re-raised
+        _exit_on(exc, written=False)
     try:
         main()
     finally:

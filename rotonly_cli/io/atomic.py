@@ -12,6 +12,10 @@ renamed into place, so a failed or interrupted write never leaves a partial outp
 
 Temporary files and folders get the permissions of ordinary ones (``mkstemp`` makes 0600,
 ``mkdtemp`` 0700), so outputs look as if ``open``/``mkdir`` had made them.
+
+Ctrl-C during :meth:`Staging.commit` is deferred to its end (:func:`deferred_interrupts`): the
+target is never left half-committed with the staging folder half-removed, and the caller learns
+the outcome (``committed``) before the Ctrl-C is delivered.
 """
 
 from __future__ import annotations
@@ -23,8 +27,10 @@ import json
 import os
 import re
 import shutil
+import signal
 import sys
 import tempfile
+import threading
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -102,10 +108,46 @@ def unreported_write_error(path: PathLike, what: str) -> OSError:
     return OSError(errno.EIO, what, str(path))
 
 
+@contextmanager
+def deferred_interrupts() -> Iterator[None]:
+    """Ctrl-C (SIGINT) held back while the block runs, then delivered again (``raise_signal``) to
+    the handler in place before it: the block's work is done, or its error raised, first (the
+    KeyboardInterrupt then carries that error as its context). Only in the main thread, where
+    Python runs its signal handlers; elsewhere, or under a handler not set from Python, a no-op."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is None:
+        yield
+        return
+    received = []
+    previous = signal.signal(signal.SIGINT, lambda number, frame: received.append(number))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if received:
+            signal.raise_signal(signal.SIGINT)
+
+
 # ============================================================================ staging folders
 
 #: the file that marks a staging folder as rotonly's; locked (flock) by the run that uses it
 STAGING_MARKER = ".rotonly-staging"
+#: descriptors holding the markers' locks in this process. A forked child closes its copies at
+#: once (:func:`_close_locks_in_child`): a flock belongs to the open file, so a child that kept
+#: one, and outlived a killed run, would keep the run's staging folder locked (never removed)
+_LOCKS: set[int] = set()
+
+
+def _close_locks_in_child() -> None:
+    for handle in _LOCKS:
+        try:
+            os.close(handle)
+        except OSError:
+            pass
+    _LOCKS.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_close_locks_in_child)
 _AT_FDCWD = -100
 _RENAME_NOREPLACE, _RENAME_EXCHANGE = 1, 2
 
@@ -157,8 +199,9 @@ class Staging:
     partial ``target``: ``.{target.name}.XXXXXXXX.tmp/`` holding ``new/`` (the future
     target), ``scratch/`` (private files of the run: never moved) and :data:`STAGING_MARKER`,
     which names the target and stays locked (``flock``) while this process lives. A run that
-    is killed leaves the folder with an unlocked marker; the next staging of the same target
-    removes it (:func:`remove_stale`). Folders without the marker are never touched.
+    is killed leaves the folder with an unlocked marker (its forked children close their copies
+    of the lock at once), or locked by a process that outlived it; the next staging of the same
+    target removes it (:func:`remove_stale`). Folders without the marker are never touched.
 
     :meth:`commit` puts ``new/`` at ``target`` so that at every instant ``target`` is either
     the old folder or the new one: ``renameat2(RENAME_EXCHANGE)`` swaps them in one step
@@ -175,27 +218,12 @@ class Staging:
         self.committed = False
         self.lock = None
         self.created_parents: list[Path] = []
+        self.owner = os.getpid()  # a forked child inherits the object, never the folder's removal
         try:
-            self.created_parents = _create_parents(self.target.parent)
-            if self.target.is_dir() and os.stat(self.target).st_dev != os.stat(self.target.parent).st_dev:
-                raise InputError("is a mount point: it cannot be replaced in one step (give a folder inside it)",
-                                 path=str(self.target), field="-o")
-            remove_stale(self.target)
-            for _ in range(10):
-                self.root = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.", suffix=".tmp",
-                                                  dir=self.target.parent))
-                try:
-                    self.lock = _locked_marker(self.root, self.target.name)
-                    break
-                except FileNotFoundError:  # another run's remove_stale took it before its marker existed
-                    continue
-            else:
-                raise OSError(errno.EBUSY, "the staging folder keeps vanishing (other runs into it?)",
-                              str(self.target))
-            self.new = self.root / "new"
-            self.scratch = self.root / "scratch"
-            self.new.mkdir()
-            self.scratch.mkdir()
+            # Ctrl-C deferred while the folder is made: raised inside mkdtemp, it would leave a
+            # folder whose name this object never learnt, so that discard() could not remove it
+            with deferred_interrupts():
+                self._make()
         except OSError as exc:
             self.discard()
             raise write_error(exc, self.target) from None
@@ -203,9 +231,41 @@ class Staging:
             self.discard()
             raise
 
-    def commit(self, check: Callable[[Path], None] | None = None) -> None:
+    def _make(self) -> None:
+        self.created_parents = _create_parents(self.target.parent)
+        if self.target.is_dir() and os.stat(self.target).st_dev != os.stat(self.target.parent).st_dev:
+            raise InputError("is a mount point: it cannot be replaced in one step (give a folder inside it)",
+                             path=str(self.target), field="-o")
+        remove_stale(self.target)
+        for _ in range(10):
+            self.root = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.", suffix=".tmp", dir=self.target.parent))
+            try:
+                self.lock = _locked_marker(self.root, self.target.name)
+                break
+            except FileNotFoundError:  # another run's remove_stale took it before its marker existed
+                continue
+        else:
+            raise OSError(errno.EBUSY, "the staging folder keeps vanishing (other runs into it?)", str(self.target))
+        self.new = self.root / "new"
+        self.scratch = self.root / "scratch"
+        self.new.mkdir()
+        self.scratch.mkdir()
+
+    def commit(self, check: Callable[[Path], None] | None = None,
+               committed: Callable[[], None] | None = None) -> None:
         """Put ``new/`` at the target (class docstring), then discard the rest. ``check``:
-        called on an existing target just before it is replaced (it may raise)."""
+        called on an existing target just before it is replaced (it may raise); ``committed``:
+        called once the target is the new one. Ctrl-C is deferred until all of this is done
+        (:func:`deferred_interrupts`): then the new target is in place, the staging folder
+        gone, and ``committed`` has told the caller (the CLI then exits 0 under a Ctrl-C)."""
+        with deferred_interrupts():
+            self._exchange(check)
+            self.committed = True
+            if committed is not None:
+                committed()
+            self.discard()
+
+    def _exchange(self, check: Callable[[Path], None] | None) -> None:
         for _ in range(100):  # a concurrent run may create or swap the target in between
             if not os.path.lexists(self.target):
                 try:
@@ -225,15 +285,17 @@ class Staging:
                 continue
         else:
             raise OSError(errno.EBUSY, "the target keeps changing (other runs into it?)", str(self.target))
-        self.committed = True
-        self.discard()
 
     def discard(self) -> None:
-        """Remove the staging folder (and the parents made for it, unless committed)."""
+        """Remove the staging folder (and the parents made for it, unless committed); in the
+        process that made it only."""
+        if os.getpid() != self.owner:
+            return
         root = getattr(self, "root", None)
         if root is not None:
             shutil.rmtree(root, ignore_errors=True)
         if self.lock is not None:
+            _LOCKS.discard(self.lock)
             os.close(self.lock)
             self.lock = None
         if not self.committed:
@@ -249,14 +311,42 @@ def _locked_marker(root: Path, target_name: str) -> int:
     """Create ``root``/STAGING_MARKER already locked: it is written and locked under a
     temporary name first, so no other run ever sees it unlocked while this one lives."""
     handle, name = tempfile.mkstemp(prefix=".lock.", dir=root)
+    _LOCKS.add(handle)
     try:
         fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        os.write(handle, json.dumps({"target": target_name, "pid": os.getpid()}).encode() + b"\n")
+        marker = {"target": target_name, "pid": os.getpid(), **_process_identity(os.getpid())}
+        os.write(handle, json.dumps(marker).encode() + b"\n")
         os.rename(name, root / STAGING_MARKER)
     except BaseException:
+        _LOCKS.discard(handle)
         os.close(handle)
         raise
     return handle
+
+
+def _process_identity(pid: int) -> dict:
+    """What tells process ``pid`` from a later one given the same number: its start time (clock
+    ticks since boot, /proc/PID/stat field 22) and its PID namespace; {} where /proc does not
+    tell."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as stat:
+            fields = stat.read().rsplit(b")", 1)[1].split()
+        return {"started": int(fields[19]), "pid_namespace": os.readlink(f"/proc/{pid}/ns/pid")}
+    except (OSError, IndexError, ValueError):
+        return {}
+
+
+def _run_is_dead(marker: dict) -> bool:
+    """Whether the run a marker names is gone although someone holds its lock: a process it
+    forked that outlived it (rotonly's own die with it: runtime/parallel). Judged only where
+    the marker's PID namespace is this one's, by the PID's start time (a PID is reused)."""
+    pid, started = marker.get("pid"), marker.get("started")
+    if not isinstance(pid, int) or not isinstance(started, int):
+        return False
+    mine = _process_identity(os.getpid())
+    if not mine or marker.get("pid_namespace") != mine["pid_namespace"]:
+        return False
+    return _process_identity(pid).get("started") != started
 
 
 #: what follows ``.{target name}.`` in a staging folder's name (tempfile.mkdtemp's 8 characters)
@@ -312,8 +402,9 @@ def _remove_unmarked(folder: Path) -> bool:
 def remove_stale(target: PathLike) -> list[Path]:
     """Remove the staging folders of ``target`` left by runs that died (module docstring of
     :class:`Staging`): siblings ``.{name}.*.tmp`` whose marker names ``target`` and is not
-    locked. A folder holding the old target of a run that died between its two fallback
-    renames gives it back first. Returns the folders removed."""
+    locked, or is locked but names a run that is gone (:func:`_run_is_dead`). A folder holding
+    the old target of a run that died between its two fallback renames gives it back first.
+    Returns the folders removed."""
     target = Path(os.path.abspath(target))
     removed = []
     try:
@@ -332,10 +423,11 @@ def remove_stale(target: PathLike) -> list[Path]:
                 removed.append(folder)
             continue
         with _unlocked(marker_path) as handle:
-            if handle is None:  # its run is alive
+            if handle is None and not _run_is_dead(_read_marker(marker_path)):  # its run is alive
                 continue
             try:
-                marker = json.loads(os.read(handle, 4096) or b"{}")
+                marker = json.loads(os.read(handle, 4096) or b"{}") if handle is not None \
+                    else _read_marker(marker_path)
                 if not isinstance(marker, dict) or marker.get("target") != target.name:
                     continue
                 old = folder / "old"
@@ -346,6 +438,17 @@ def remove_stale(target: PathLike) -> list[Path]:
             except (OSError, ValueError):
                 continue
     return removed
+
+
+def _read_marker(path: Path) -> dict:
+    """A marker's content without its lock ({} if unreadable): written before the marker got
+    its name, so it is whole."""
+    try:
+        with open(path, "rb") as marker:
+            content = json.loads(marker.read(4096) or b"{}")
+    except (OSError, ValueError):
+        return {}
+    return content if isinstance(content, dict) else {}
 
 
 def check_replaceable(target: PathLike, allowed: set[str] | frozenset[str], what: str) -> None:

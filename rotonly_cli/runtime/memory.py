@@ -227,6 +227,38 @@ def _address_space_headroom(own_rss: int) -> int | None:
     return max(0, soft - mapped * 1024 + own_rss)
 
 
+#: what the two OpenBLAS libraries (numpy's, scipy's) map for their buffers at their first call,
+#: 32 MiB each (measured: VmSize +32 MiB at numpy's first gemm and at scipy's first trsv). Under an
+#: address-space limit a failed mapping is not a MemoryError: OpenBLAS retries for ever (scipy's:
+#: a run hung at 100 % CPU in SuperLU's first solve) or exits with its own message (numpy's)
+BLAS_BUFFERS = 64 * MB
+#: room a run needs beyond what is mapped at its start: the BLAS buffers and the stacks of the
+#: load stage's threads (8 MiB each; a thread that cannot map its stack fails in a way Python
+#: cannot always report: Thread.start() may wait for ever)
+START_ROOM = BLAS_BUFFERS + 64 * MB
+
+
+def reserve_blas_buffers() -> None:
+    """Make numpy's and scipy's OpenBLAS map their buffers now, at the start of a run, when
+    the room for them is checked: OutOfMemoryError when an address-space limit leaves less
+    than :data:`START_ROOM` (their first use later in a run, under the limit, would hang or
+    end the process without rotonly's error line). The buffers are kept for the process's
+    life (and inherited by its forked workers); a second call costs nothing."""
+    import resource
+
+    soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+    mapped = _status_kb("VmSize")
+    if soft != resource.RLIM_INFINITY and mapped is not None and soft - mapped * 1024 < START_ROOM:
+        need, limit = gb_texts(mapped * 1024 + START_ROOM, soft)
+        raise OutOfMemoryError(f"the run needs about {need} GB of address space to start (the BLAS buffers and "
+                               f"threads), above the limit of {limit} GB (address-space limit)")
+    import scipy.linalg.blas
+
+    identity = np.eye(64)
+    identity @ identity  # numpy's: its gemm takes the buffer
+    scipy.linalg.blas.dtrsv(identity[:4, :4], np.ones(4))  # scipy's (SuperLU's solves use trsv)
+
+
 def available_bytes() -> int | None:
     """The memory this process may grow to: MemAvailable + its own RSS, within a cgroup
     memory limit and an address-space limit if set; None where none is known (not Linux)."""
@@ -282,12 +314,18 @@ def scene_counts(scene, graph) -> Counts:
 
 def database_counts(path: str | Path) -> Counts | None:
     """:class:`Counts` of a COLMAP database before it is read (the load stage reads the
-    verified and the raw matches both); None where the tables cannot be counted."""
+    verified and the raw matches both); None where the tables cannot be counted. Read as
+    io/colmap/database_check reads an input: a rollback-journal file under SQLite's locks (a
+    writer's pages half written would count wrong), for a second at most; WAL ``immutable``."""
     import sqlite3
 
     try:
-        connection = sqlite3.connect(f"{Path(path).resolve().as_uri()}?mode=ro&immutable=1", uri=True)
-    except (sqlite3.Error, ValueError):
+        path = Path(path).resolve()
+        with open(path, "rb") as stream:
+            header = stream.read(20)
+        wal = len(header) == 20 and header[18] == 2  # the file format's versions: 2 WAL, 1 rollback journal
+        connection = sqlite3.connect(f"{path.as_uri()}?mode=ro{'&immutable=1' if wal else ''}", uri=True, timeout=1.0)
+    except (OSError, sqlite3.Error, ValueError):
         return None
     try:
         one = lambda sql: connection.execute(sql).fetchone()  # noqa: E731
@@ -332,6 +370,8 @@ def _reset_peak() -> None:
 
 #: [stage, Prediction | None] of the guarded stage in progress, or of the one an error left
 LAST_STAGE: list = [None, None]
+#: [the last guarded stage that ended, its prediction]: named by an error between stages
+LAST_DONE: list = [None, None]
 
 
 @dataclass
@@ -346,7 +386,8 @@ class MemoryGuard:
     current: Prediction | None = None
 
     def __post_init__(self) -> None:
-        LAST_STAGE[:] = [None, None]  # a new run: no stage of an earlier one is named
+        LAST_STAGE[:] = LAST_DONE[:] = [None, None]  # a new run: no stage of an earlier one is named
+        reserve_blas_buffers()
 
     def check(self, stage: str, counts: Counts, options=None):
         """The options ``stage`` runs with (``options``, or with a smaller LiGT chunk); raises
@@ -392,6 +433,7 @@ class MemoryGuard:
             if MEASURE_PEAKS and self.current is not None:
                 self.current.measured_bytes = (_status_kb("VmHWM") or 0) * 1024.0
         LAST_STAGE[:] = previous  # left as it was on an error: the CLI names the stage of a stray one
+        LAST_DONE[:] = [stage, self.current]
 
     def out_of_memory(self, stage: str, exc: MemoryError) -> OutOfMemoryError:
         """The one-line error of a MemoryError raised in ``stage``."""
@@ -403,12 +445,13 @@ class MemoryGuard:
                 "max_memory_gb": self.max_memory_gb, "stages": [p.record() for p in self.predictions]}
 
 
-def out_of_memory_error(stage: str | None, exc: BaseException, prediction: Prediction | None = None
-                        ) -> OutOfMemoryError:
+def out_of_memory_error(stage: str | None, exc: BaseException, prediction: Prediction | None = None,
+                        after: str | None = None) -> OutOfMemoryError:
     """``error: <stage> ran out of memory (<the allocation's message>)``, with the predicted
-    need where known."""
+    need where known; outside any guarded stage, ``out of memory after the <after> stage``."""
     message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
     need = "" if prediction is None else (f"; it needs about {gb_texts(prediction.bytes)[0]} GB "
                                           f"({prediction.counts.text()})")
-    where = f"{stage} ran out of memory" if stage else "out of memory"
+    where = (f"{stage} ran out of memory" if stage else f"out of memory after the {after} stage" if after
+             else "out of memory")
     return OutOfMemoryError(f"{where} ({message}){need}")

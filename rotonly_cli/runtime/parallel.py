@@ -15,12 +15,21 @@ Python thread (a fork copies only the calling thread; the point colours are deco
 forked child for that reason), and with at least ``MIN_MATCHES_PER_JOB`` matches per part.
 Otherwise the same code runs serially, so ``jobs`` never changes the numbers beyond the last
 bits (per-edge results are the same functions of the same data). A child that dies without
-its result (killed, out of memory) costs time, not the run: this process computes its part,
-after a warning.
+its result (killed, out of memory), or that the system refuses to start (fork failing with
+EAGAIN / ENOMEM), costs time, not the run: this process computes its part, after a warning.
+
+No child outlives the run (issue 53): each child first asks the kernel for SIGKILL when its
+parent dies (``PR_SET_PDEATHSIG``; the parent is the main thread, the only one alive when
+forking is safe) and checks that the parent is still there (it may have died before the
+request), then closes its copies of the parent's ends of every child's pipe, so that a child
+blocked reading sees EOF once the parent is gone. Ctrl-C is deferred while a child is forked
+and delivered right after: raised inside the at-fork hooks (logging's), a KeyboardInterrupt
+is only printed ("Exception ignored") and lost.
 """
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 import functools
 import logging
@@ -30,7 +39,9 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Callable, Sequence
+import weakref
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -69,21 +80,104 @@ def _start_child(ctx, fn: Callable, item):
     """A forked child sending ``fn(item)``'s outcome (:func:`_send_outcome`): (process, the
     read end of its pipe, which reaches EOF when the child dies)."""
     receive, send = ctx.Pipe(duplex=False)
-    process = ctx.Process(target=_child, args=(send, fn, item), daemon=True)
-    process.start()
-    send.close()  # the child holds the write end
+    _PARENT_ENDS.add(receive)  # before the fork: the child closes its copy
+    process = ctx.Process(target=_child, args=(send, fn, item, os.getpid()), daemon=True)
+    try:
+        process.start()
+    except BaseException:
+        receive.close()
+        raise
+    finally:
+        send.close()  # the child holds the write end
     return process, receive
+
+
+def _start_into(children: list, ctx, fn: Callable, item) -> None:
+    """Append :func:`_start_child`'s (process, pipe) to ``children`` with Ctrl-C deferred during
+    the fork (:func:`_interrupts_deferred`; appended before a deferred Ctrl-C is raised, so the
+    caller reaps the child), or None, after a warning, when the system refuses a process (the caller then
+    computes ``fn(item)`` itself)."""
+    try:
+        with _interrupts_deferred():
+            children.append(_start_child(ctx, fn, item))
+    except OSError as exc:  # fork: EAGAIN (process limit), ENOMEM
+        logger.warning("no worker process could be started (%s): its work is done in this process",
+                       exc.strerror or exc)
+        children.append(None)
+
+
+#: prctl(2) option: the signal a process gets when the thread that forked it ends (Linux)
+_PR_SET_PDEATHSIG = 1
+
+
+def _libc_prctl():
+    try:
+        return ctypes.CDLL(None, use_errno=True).prctl
+    except (AttributeError, OSError):  # not glibc / not Linux
+        return None
+
+
+_prctl = _libc_prctl() if sys.platform.startswith("linux") else None
+
+#: this process's (open) ends of its children's pipes. A child forked later inherits copies of
+#: them; were they kept, a child blocked reading its own pipe would never see EOF after the
+#: parent died (the parent's end would still be open, in the child itself or a sibling)
+_PARENT_ENDS: weakref.WeakSet = weakref.WeakSet()
+
+#: the SIGINT handler in force before :func:`_interrupts_deferred` replaced it (None outside
+#: it): a forked child takes it back
+_SIGINT_BEFORE_FORK: list = [None]
+
+
+@contextmanager
+def _interrupts_deferred() -> Iterator[None]:
+    """Ctrl-C recorded, not raised, while the block forks a child; delivered again
+    (``raise_signal``) when the block ends, its KeyboardInterrupt raised there. Python runs
+    signal handlers between bytecodes, also inside the at-fork hooks that ``os.fork`` calls
+    (logging's), which print an exception raised there ("Exception ignored") and drop it: a
+    Ctrl-C during a fork was lost. Blocking SIGINT (pthread_sigmask) would not do: the kernel
+    gives a process's signal to any thread that does not block it (a BLAS pool's)."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is None:
+        yield
+        return
+    received = []
+    _SIGINT_BEFORE_FORK[0] = signal.signal(signal.SIGINT, lambda number, frame: received.append(number))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, _SIGINT_BEFORE_FORK[0])
+        _SIGINT_BEFORE_FORK[0] = None
+        if received:
+            signal.raise_signal(signal.SIGINT)
+
+
+def _enter_child(parent: int, sigint=None) -> None:
+    """What a forked child does first: be killed when ``parent`` dies (PR_SET_PDEATHSIG, then a
+    check that it did not die before the request: the kernel would not send the signal), close
+    its copies of the parent's pipe ends, then take ``sigint`` as its Ctrl-C handler (default:
+    the parent's before the fork, :func:`_interrupts_deferred`)."""
+    if _prctl is not None:
+        _prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    if os.getppid() != parent:  # the parent is gone already: nobody reads this child's result
+        os._exit(1)
+    for end in list(_PARENT_ENDS):
+        end.close()
+    handler = sigint if sigint is not None else _SIGINT_BEFORE_FORK[0]
+    if handler is not None:
+        signal.signal(signal.SIGINT, handler)
+        _SIGINT_BEFORE_FORK[0] = None
 
 
 def _reap(process, conn, delivered: bool = True) -> None:
     """Close this end of the child's pipe and end the child: one that delivered its result
-    exits by itself (SIGTERM would race its exit; pycolmap's failure handler then prints a
-    stack trace), the others are stopped."""
+    exits by itself, the others are killed (SIGKILL: pycolmap's failure handler answers SIGTERM
+    with a stack trace on the run's stderr, seen after a Ctrl-C; a child holds nothing that
+    needs cleaning up, its files are in the run's staging folder)."""
     conn.close()
     if delivered:
         process.join(timeout=DELIVERED_EXIT_TIMEOUT_S)
     if process.is_alive():
-        process.terminate()
+        process.kill()
     process.join()
 
 
@@ -148,8 +242,15 @@ def _send_outcome(conn, fn: Callable, arg) -> None:
         message = ("error", exc)
     try:
         conn.send(message)
-    except Exception as exc:  # the result or the exception did not pickle
-        conn.send(("error", RuntimeError(f"worker result could not be sent back: {exc}")))
+    except Exception as exc:  # the result or the exception did not pickle, or no memory was left for it
+        failed = message[1] if message[0] == "error" else None
+        if isinstance(failed, MemoryError) or isinstance(exc, MemoryError):
+            # out of memory stays out of memory in the parent (one error line, cli.main), whatever
+            # the numpy subclass or the pickling made of it
+            memory_error = failed if isinstance(failed, MemoryError) else exc
+            conn.send(("error", MemoryError(str(memory_error) or "out of memory in a worker process")))
+        else:
+            conn.send(("error", RuntimeError(f"worker result could not be sent back: {exc}")))
 
 
 def _receive_outcome(conn, process):
@@ -165,9 +266,13 @@ def _receive_outcome(conn, process):
     return value
 
 
-def _child(conn, fn: Callable, item) -> None:
+def _child(conn, fn: Callable, item, parent: int) -> None:
+    _enter_child(parent)
     try:
         _send_outcome(conn, fn, item)
+    except BaseException:  # noqa: BLE001 - nothing could be sent (no memory left even for the error,
+        # the parent gone): the parent sees EOF and does the work itself; no traceback on the run's stderr
+        os._exit(1)
     finally:
         conn.close()
 
@@ -180,19 +285,24 @@ def fork_map(fn: Callable, items: Sequence) -> list:
     if len(items) <= 1 or not fork_safe():
         return [fn(x) for x in items]
     ctx = mp.get_context("fork")
-    children = []
+    children = []  # (process, pipe), or None where no process could be started
     delivered = False
     try:
         for item in items[1:]:
-            children.append(_start_child(ctx, fn, item))
+            _start_into(children, ctx, fn, item)
         results = [fn(items[0])]
-        for (process, receive), item in zip(children, items[1:]):
+        for child, item in zip(children, items[1:]):
+            if child is None:
+                results.append(fn(item))
+                continue
+            process, receive = child
             results.append(_receive_or_take_over(receive, process, "worker process", functools.partial(fn, item)))
         delivered = True
         return results
     finally:
-        for process, receive in children:
-            _reap(process, receive, delivered)
+        for child in children:
+            if child is not None:
+                _reap(*child, delivered)
 
 
 def concat_results(parts: Sequence):
@@ -276,17 +386,20 @@ def shared_array(shape: tuple[int, ...], dtype=np.float64) -> np.ndarray:
     return np.frombuffer(buffer, dtype=dtype, count=count).reshape(shape)
 
 
-def _serve(conn, handler: Callable) -> None:
+def _serve(conn, handler: Callable, parent: int) -> None:
     # the parent owns Ctrl-C: it stops this child when it unwinds (ForkedPeer.close)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    while True:
-        try:
-            message = conn.recv()
-        except EOFError:  # the parent is gone
-            return
-        if message is None:
-            return
-        _send_outcome(conn, handler, message)
+    _enter_child(parent, sigint=signal.SIG_IGN)
+    try:
+        while True:
+            try:
+                message = conn.recv()
+            except EOFError:  # the parent is gone
+                return
+            if message is None:
+                return
+            _send_outcome(conn, handler, message)
+    except BaseException:  # noqa: BLE001 - as in _child: the parent sees EOF and answers itself
+        os._exit(1)
 
 
 class ForkedPeer:
@@ -310,10 +423,24 @@ class ForkedPeer:
         ctx = mp.get_context("fork")
         self._handler = handler
         self._pending = None
+        self._process = None
         self._conn, child_end = ctx.Pipe(duplex=True)
-        self._process = ctx.Process(target=_serve, args=(child_end, handler), daemon=True)
-        self._process.start()
-        child_end.close()
+        _PARENT_ENDS.add(self._conn)  # before the fork: the child closes its copy
+        process = ctx.Process(target=_serve, args=(child_end, handler, os.getpid()), daemon=True)
+        try:
+            with _interrupts_deferred():
+                try:
+                    process.start()
+                    self._process = process
+                except OSError as exc:  # fork refused (EAGAIN, ENOMEM): this process answers every request
+                    logger.warning("no helper process could be started (%s): its work is done in this process",
+                                   exc.strerror or exc)
+                    self._conn.close()
+                finally:
+                    child_end.close()
+        except BaseException:  # a Ctrl-C deferred during the fork: the child is stopped before it is raised
+            self.close()
+            raise
 
     @property
     def alive(self) -> bool:
@@ -348,7 +475,8 @@ class ForkedPeer:
             self._conn.send(None)
         except OSError:  # the child is gone already
             pass
-        _reap(process, self._conn)
+        # a request still pending (the parent unwinds from an error or Ctrl-C): not waited for
+        _reap(process, self._conn, delivered=self._pending is None)
 
     def __enter__(self) -> ForkedPeer:
         return self
@@ -370,7 +498,18 @@ class ForkedCall:
         if not (fork and fork_safe()):
             self._value = fn()
             return
-        self._process, self._receive = _start_child(mp.get_context("fork"), lambda _: fn(), None)
+        children = []
+        try:
+            _start_into(children, mp.get_context("fork"), lambda _: fn(), None)
+        except BaseException:  # a Ctrl-C deferred during the fork: the child is stopped before it is raised
+            for child in children:
+                if child is not None:
+                    _reap(*child, delivered=False)
+            raise
+        if children[0] is None:
+            self._value = fn()
+            return
+        self._process, self._receive = children[0]
 
     def result(self, timeout: float | None = None):
         """``fn()``'s value; TimeoutError if the child has not sent it within ``timeout`` s."""

@@ -2,7 +2,9 @@
 """`rotonly run` onto a full disk (issue 21): OUT's parent, then $TMPDIR, on a small tmpfs.
 
 For every size the run must either finish (exit 0, a complete workspace) or stop with one
-line and exit 1, leaving nothing on the small file system. Needs root (it mounts tmpfs).
+line and exit 1, leaving nothing on the small file system, and no process of it alive 3 s
+after it ended (processes.py: each run a process group, every wait bounded). Needs root (it
+mounts tmpfs).
 
     sudo python scripts/faults/full_disk.py [--input DB] [--sizes 64k 256k 1m 2m 4m]
 """
@@ -10,24 +12,24 @@ line and exit 1, leaving nothing on the small file system. Needs root (it mounts
 from __future__ import annotations
 
 import argparse
-import os
 import shutil
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-REPOSITORY = Path(__file__).resolve().parents[2]
+import processes
+
+REPOSITORY = processes.REPOSITORY
 DEFAULT_INPUT = REPOSITORY / "data_fixtures" / "herzjesu_p8" / "database.db"
-RUN = "from rotonly_cli.cli import console_main; console_main()"
 DEFAULT_SIZES = ["64k", "256k", "512k", "1m", "1536k", "2m", "3m", "4m", "6m", "8m", "16m"]
 
 
-def run(input_path: Path, out: Path, tmpdir: Path | None = None) -> tuple[int, list[str]]:
-    env = {**os.environ, **({"TMPDIR": str(tmpdir)} if tmpdir else {})}
-    result = subprocess.run([sys.executable, "-c", RUN, "-q", "run", str(input_path), "-o", str(out)],
-                            capture_output=True, text=True, env=env, timeout=900)
-    return result.returncode, result.stderr.strip().splitlines()
+def run(input_path: Path, out: Path, tmpdir: Path | None = None) -> tuple[int | None, list[str], list[int]]:
+    """(exit code, None if the run hung; its stderr lines; its processes alive 3 s after it ended)."""
+    outcome = processes.finish(processes.start(["-q", "run", input_path, "-o", out],
+                                               tmpdir or Path(tempfile.gettempdir())), timeout=900)
+    return outcome.code, outcome.stderr.strip().splitlines(), outcome.orphans
 
 
 def mounted(folder: Path, size: str):
@@ -54,7 +56,9 @@ def complete(out: Path) -> bool:
     return True
 
 
-def verdict(code: int, lines: list[str], left: list[str], out: Path) -> bool:
+def verdict(code: int | None, lines: list[str], left: list[str], out: Path, orphans: list[int]) -> bool:
+    if orphans:
+        return False
     if code == 0:
         return complete(out)
     return code == 1 and len(lines) == 1 and lines[0].startswith("error: ") and not left
@@ -76,16 +80,17 @@ def main(argv: list[str] | None = None) -> int:
                         (small / "filler").write_bytes(b"")
                         subprocess.run(["dd", "if=/dev/zero", f"of={small / 'filler'}", "bs=4k"], capture_output=True)
                         out = root / f"out{k}"
-                        code, lines = run(args.input, out, tmpdir=small)
+                        code, lines, orphans = run(args.input, out, tmpdir=small)
                         left = sorted(p.name for p in small.iterdir() if p.name != "filler")
                     else:
                         out = small / "deep" / "out"
-                        code, lines = run(args.input, out)
+                        code, lines, orphans = run(args.input, out)
                         left = [] if code == 0 else sorted(p.name for p in small.iterdir())
-                    clean = verdict(code, lines, left, out)
+                    clean = verdict(code, lines, left, out, orphans)
                     failures += not clean
                     print(f"{where} on a {size:>5} tmpfs: exit {code}, {lines[-1] if lines else 'no message'}, "
-                          f"left {left or 'nothing'}{'' if clean else '  <-- NOT CLEAN ' + str(lines[:3])}")
+                          f"left {left or 'nothing'}, {len(orphans)} orphans"
+                          + ("" if clean else "  <-- NOT CLEAN " + str(lines[:3])))
                 finally:
                     subprocess.run(["umount", str(small)], check=True)
     finally:

@@ -176,3 +176,93 @@ def test_replaceable_allows_the_temporary_files_of_a_killed_stage_command(tmp_pa
     (tmp_path / ".thesis.tex.swp").write_bytes(b"")
     with pytest.raises(InputError, match="thesis"):
         check_replaceable(tmp_path, {"state.npz"}, "a rotonly workspace")
+
+
+# ============================================================================ faults of issue 53
+
+def _dead_run_with_a_live_child(target: Path, keep_lock: bool) -> tuple[Path, int]:
+    """A run that made a staging folder of ``target``, forked a child and died (os._exit), the
+    child alive: (the folder, the child's pid). ``keep_lock``: the child holds a copy of the
+    lock's descriptor that no at-fork hook knows (made by os.dup before the fork), as a child
+    forked by other code, or by rotonly before issue 53, did."""
+    code = textwrap.dedent(f"""
+        import os, time
+        from rotonly_cli.io.atomic import Staging
+        staging = Staging({str(target)!r})
+        kept = os.dup(staging.lock) if {keep_lock!r} else None
+        child = os.fork()
+        if child == 0:
+            for stream in (1, 2):  # the test reads the parent's output to its end
+                os.dup2(os.open(os.devnull, os.O_RDWR), stream)
+            time.sleep(60)
+            os._exit(0)
+        print(staging.root, child, flush=True)
+        os._exit(0)
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    return Path(out[0]), int(out[1])
+
+
+@pytest.mark.parametrize("keep_lock", [False, True])
+def test_a_dead_runs_folder_is_removed_although_its_child_lives(tmp_path, keep_lock):
+    # the child closes its copy of the lock at the fork; one that kept it (an orphan of a killed
+    # run) holds the lock, and the marker's run being dead (pid and start time) decides
+    target = _workspace(tmp_path / "out", "old")
+    left, child = _dead_run_with_a_live_child(target, keep_lock)
+    try:
+        assert left.is_dir()
+        assert remove_stale(target) == [left]
+        assert _siblings(target) == []
+    finally:
+        os.kill(child, 9)
+
+
+def test_a_live_runs_folder_is_kept_whoever_else_holds_its_lock(tmp_path):
+    target = tmp_path / "out"
+    live = Staging(target)
+    kept = os.dup(live.lock)
+    try:
+        assert remove_stale(target) == [] and live.root.is_dir()
+    finally:
+        os.close(kept)
+        live.discard()
+
+
+def _interrupt_once(monkeypatch, owner, name: str, before: bool) -> None:
+    """``owner.name`` sends this process SIGINT once, before or after doing its work."""
+    import signal
+
+    original = getattr(owner, name)
+    sent = []
+
+    def interrupted(*args, **kwargs):
+        if before and not sent:
+            sent.append(signal.raise_signal(signal.SIGINT))
+        result = original(*args, **kwargs)
+        if not before and not sent:
+            sent.append(signal.raise_signal(signal.SIGINT))
+        return result
+
+    monkeypatch.setattr(owner, name, interrupted)
+
+
+@pytest.mark.parametrize("before", [True, False])
+def test_ctrl_c_during_the_commit_is_raised_once_the_target_is_new_and_the_folder_gone(tmp_path, monkeypatch,
+                                                                                        before):
+    target = _workspace(tmp_path / "out", "old")
+    staging = Staging(target)
+    _workspace(staging.new, "new")
+    _interrupt_once(monkeypatch, atomic, "_renameat2", before)
+    told = []
+    with pytest.raises(KeyboardInterrupt):
+        staging.commit(committed=lambda: told.append((target / "run.log").read_text()))
+    assert told == ["new"]  # the caller learnt of the new target before the Ctrl-C was raised
+    assert (target / "run.log").read_text() == "new" and _siblings(target) == []
+
+
+def test_ctrl_c_while_the_staging_folder_is_made_leaves_no_folder(tmp_path, monkeypatch):
+    target = _workspace(tmp_path / "out", "old")
+    _interrupt_once(monkeypatch, atomic.tempfile, "mkdtemp", before=False)  # the folder exists, unnamed
+    with pytest.raises(KeyboardInterrupt):
+        Staging(target)
+    assert _siblings(target) == []

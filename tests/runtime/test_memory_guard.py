@@ -207,9 +207,12 @@ def test_address_space_limit_lowers_the_available_memory(monkeypatch):
 
 def test_address_space_cap_in_a_child_is_one_line(tmp_path, previous_out):
     """`prlimit --as` below the run's need (issue 53): exit 1, one error line, OUT as it was."""
+    # room for the start (BLAS buffers, threads: memory.START_ROOM) and 10 MiB more; the load stage's
+    # base raised to 1 GiB, so that its prediction meets the limit the address space leaves
     script = ("import resource, sys; import numpy, scipy.sparse.linalg, pycolmap; import rotonly_cli.pipeline; "
               "from rotonly_cli.runtime import memory; "
-              "cap = memory._status_kb('VmSize') * 1024 + 10 * 1024 * 1024; "
+              "memory.STAGE_FOOTPRINTS['load'] = memory.Footprint(memory.GB, per_match=34.0, per_keypoint=48.0); "
+              "cap = memory._status_kb('VmSize') * 1024 + int(memory.START_ROOM) + 10 * 1024 * 1024; "
               "resource.setrlimit(resource.RLIMIT_AS, (cap, cap)); "
               "from rotonly_cli.cli import main; main(sys.argv[1:])")
     before = _snapshot(previous_out)
@@ -218,6 +221,6 @@ def test_address_space_cap_in_a_child_is_one_line(tmp_path, previous_out):
                                env={"PYTHONPATH": str(REPOSITORY), "PATH": "/usr/bin:/bin"})
     assert completed.returncode == 1, completed.stderr[-2000:]
     lines = completed.stderr.splitlines()
-    assert len(lines) == 1 and re.fullmatch(r"error: load needs about 0\.16 GB \(26225 matches, .*\), above the limit "
-                                            r"of 0\.1\d GB \(available memory\)", lines[0]), lines
+    assert len(lines) == 1 and re.fullmatch(r"error: load needs about 1\.0\d GB \(26225 matches, .*\), above the limit "
+                                            r"of 0\.[1-3]\d GB \(available memory\)", lines[0]), lines
     assert _snapshot(previous_out) == before

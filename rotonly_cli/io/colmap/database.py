@@ -5,7 +5,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import shutil
 import sqlite3
 import tempfile
 from collections.abc import Iterator
@@ -17,8 +16,8 @@ import numpy as np
 from rotonly_cli.errors import InputError, write_error
 from rotonly_cli.io import atomic
 from rotonly_cli.io.colmap.cameras import import_pycolmap, normalize_keypoints, pycolmap_camera, to_colmap_intrinsics
-from rotonly_cli.io.colmap.database_check import check_database
-from rotonly_cli.io.inputs import check_finite, check_regular_file
+from rotonly_cli.io.colmap.database_check import check_database, check_sqlite_file, snapshot_database
+from rotonly_cli.io.inputs import check_finite
 from rotonly_cli.scene.types import Intrinsics, PairMatches, SfMScene, View
 
 PathLike = str | os.PathLike
@@ -63,23 +62,20 @@ _COLMAP38_COLUMNS = {
 def _open_database_copy(path: Path, scratch_dir: PathLike | None = None) -> Iterator:
     """pycolmap Database on a private copy of ``path`` (pycolmap's ``Database.open`` writes to
     the file it opens; the input stays byte-identical) in ``scratch_dir`` (default: a
-    temporary folder), removed when the block ends."""
+    temporary folder), removed when the block ends. The copy is a consistent state of the
+    input although another process may be writing it (:func:`snapshot_database`), and it is
+    the copy that is checked (:func:`check_database`): what pycolmap reads is what was checked."""
     pycolmap = import_pycolmap()
     with (contextlib.nullcontext(scratch_dir) if scratch_dir is not None
           else tempfile.TemporaryDirectory(prefix="rotonly-db-")) as scratch:
         copy = Path(scratch) / "database.db"
         copies = [copy, Path(f"{copy}-wal"), Path(f"{copy}-shm"), Path(f"{copy}-journal")]
         try:
-            wal = Path(f"{path}-wal")  # committed-but-not-checkpointed pages of a WAL database
             try:
-                shutil.copyfile(path, copy)
-                if wal.is_file():
-                    check_regular_file(wal)
-                    shutil.copyfile(wal, copies[1])
+                snapshot_database(path, copy, shown=path)
             except OSError as exc:
                 raise write_error(exc, scratch, field=None) from None
-            if wal.is_file():
-                check_database(copy, shown=path, immutable=False)  # the pages the input check did not see
+            check_database(copy, shown=path, is_input=False)
             try:
                 database = pycolmap.Database.open(str(copy))
             except Exception:  # noqa: BLE001 - the copy passed check_database: the disk, not the input
@@ -101,16 +97,16 @@ def read_database(path: PathLike, include_unverified: bool = True, scratch_dir: 
     stored, ``cam2_from_cam1`` as R_j_from_i / unit t_j_from_i); pairs verified and rejected
     (UNDEFINED, DEGENERATE, WATERMARK or no inlier) are dropped; with
     ``include_unverified`` the raw ``matches`` of pairs never verified come with
-    ``verified=False``. The database is checked first (:func:`check_database`: nothing is
-    read that pycolmap would refuse), then read from a private copy in ``scratch_dir``
-    (default: a temporary folder). ``path`` may also be an open ``pycolmap.Database``
-    (read in place).
+    ``verified=False``. The database is read from a private copy in ``scratch_dir`` (default:
+    a temporary folder), a consistent state of it although another process may be writing
+    it, checked first (:func:`check_database`: nothing is read that pycolmap would refuse).
+    ``path`` may also be an open ``pycolmap.Database`` (read in place).
     """
     pycolmap = import_pycolmap()
     if isinstance(path, pycolmap.Database):
         opened, path = nullcontext(path), Path("<pycolmap.Database>")
     else:
-        path = check_database(path)
+        path = check_sqlite_file(path)
         opened = _open_database_copy(path, scratch_dir)
     scene = SfMScene(source="colmap-db")
     with opened as database:

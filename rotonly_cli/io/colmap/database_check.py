@@ -3,9 +3,9 @@
 pycolmap trusts the database: a blob shorter than its ``rows``/``cols`` say, a parameter
 count that does not fit the camera model or an unknown model id stop it with an internal
 ``Check failed`` message, and NaN values pass through to the maths. :func:`check_database`
-reads the tables through Python's ``sqlite3`` (read-only; ``immutable`` for an input, so
-that not even a lock file appears beside it) and raises an InputError naming the file, the
-table and the row for every layout pycolmap would not read (formats.md §4.1-§4.5):
+reads the tables through Python's ``sqlite3``, read-only and in one read transaction, and
+raises an InputError naming the file, the table and the row for every layout pycolmap would
+not read (formats.md §4.1-§4.5):
 
 * ``cameras``: a known model, a params blob of 8 bytes per parameter of that model, and
   values that make a camera (io/inputs.check_camera);
@@ -19,18 +19,36 @@ table and the row for every layout pycolmap would not read (formats.md §4.1-§4
 
 Values that need the blobs themselves (finite keypoints) are checked by the reader on what
 pycolmap returns.
+
+An input may be written by another process meanwhile (COLMAP's feature extractor or matcher,
+issue 53); rotonly never writes to it and reads a consistent state of it:
+
+* a rollback-journal database (COLMAP 3.x's, rotonly's own) is read under SQLite's locks
+  (``mode=ro``, no lock file or journal is made): a writer that holds its lock for more than
+  :data:`BUSY_TIMEOUT_S` ends the run with exit 1, "database is locked by another process"
+  (:class:`~rotonly_cli.errors.InputLockedError`), and the private copy the reader works on
+  is made by SQLite's backup, under a shared lock (:func:`snapshot_database`). A hot journal
+  (a writer killed mid-transaction) is rolled back in the private copy, never in the input.
+  Opened ``immutable`` (as before issue 53), a database whose writer had already written
+  some pages read as "malformed";
+* a WAL database is read ``immutable`` (a reader would otherwise make -wal / -shm files
+  beside it): its file holds committed pages only, and its -wal, copied beside the private
+  copy, is checked there.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import sqlite3
 import struct
+import tempfile
+from contextlib import closing
 from pathlib import Path
 
 import numpy as np
 
-from rotonly_cli.errors import InputError
+from rotonly_cli.errors import InputError, InputLockedError
 from rotonly_cli.io.colmap.cameras import check_colmap_camera, colmap_camera_models
 from rotonly_cli.io.detect import is_sqlite
 from rotonly_cli.io.inputs import check_regular_file
@@ -47,29 +65,125 @@ KEYPOINT_COLUMNS = (2, 4, 6)
 _CAMERA_BLOB_HEAD = struct.Struct("<IiQQBQ")  # camera_id, model, width, height, prior flag, num params
 
 
-def check_database(path: PathLike, shown: PathLike | None = None, immutable: bool = True) -> Path:
+#: seconds a read of an input database waits for another process's write lock to be released
+#: (a COLMAP writer commits in well under a second), then gives up (InputLockedError, exit 1)
+BUSY_TIMEOUT_S = 10.0
+#: sqlite3 extended result codes: a lock held by another connection; a hot journal (a writer died
+#: mid-transaction) that a read-only connection may not roll back
+_SQLITE_BUSY, _SQLITE_READONLY_ROLLBACK = 5, 776
+
+
+def is_wal(path: PathLike) -> bool:
+    """Whether the database file is in WAL mode (header bytes 18-19, the file format's read
+    and write versions: 2 for WAL, 1 for a rollback journal)."""
+    with open(path, "rb") as stream:
+        header = stream.read(20)
+    return len(header) == 20 and header[18] == 2
+
+
+def _locked(exc: sqlite3.Error, shown: str) -> InputLockedError | None:
+    if getattr(exc, "sqlite_errorcode", None) == _SQLITE_BUSY or "database is locked" in str(exc):
+        return InputLockedError(f"database is locked by another process (waited {BUSY_TIMEOUT_S:g} s for its "
+                                "write to end); run again when it is done", path=shown)
+    return None
+
+
+def _hot_journal(exc: sqlite3.Error) -> bool:
+    code = getattr(exc, "sqlite_errorcode", None)  # Python 3.11+; 3.10 has the message only
+    return code == _SQLITE_READONLY_ROLLBACK or (code is None and "attempt to write a readonly database" in str(exc))
+
+
+def _connect(path: Path, options: str) -> sqlite3.Connection:
+    connection = sqlite3.connect(f"{path.resolve().as_uri()}?{options}", uri=True, timeout=BUSY_TIMEOUT_S,
+                                 isolation_level=None)
+    connection.text_factory = bytes
+    return connection
+
+
+def check_database(path: PathLike, shown: PathLike | None = None, is_input: bool = True) -> Path:
     """InputError unless ``path`` is a regular SQLite file holding COLMAP's tables in a layout
     pycolmap reads (module docstring). ``shown``: the path named in errors (the input, when
-    ``path`` is its private copy); ``immutable``: open without any lock or sidecar file
-    (an input; a private copy is opened normally so that its ``-wal`` is read)."""
+    ``path`` is its private copy); ``is_input``: another process may be writing it, and
+    nothing may be made beside it (module docstring); a private copy is opened normally, so
+    that its ``-wal`` is read. InputLockedError when a writer holds the input locked longer
+    than :data:`BUSY_TIMEOUT_S`."""
     path = Path(path)
     shown = str(path if shown is None else shown)
-    info = check_regular_file(path)
-    if info.st_size == 0 or not is_sqlite(path):
-        raise InputError("not an SQLite file (expected a COLMAP database)", path=shown)
-    options = "mode=ro&immutable=1" if immutable else "mode=ro"
+    check_sqlite_file(path, shown)
+    wal = is_input and is_wal(path)
     try:
-        connection = sqlite3.connect(f"{path.resolve().as_uri()}?{options}", uri=True)
+        connection = _connect(path, "mode=ro&immutable=1" if wal else "mode=ro")
     except sqlite3.Error as exc:
         raise InputError(f"unreadable SQLite database ({exc})", path=shown) from None
-    connection.text_factory = bytes
     try:
+        connection.execute("BEGIN")  # one read transaction: the tables as of one moment
         _Tables(connection, shown).check()
     except sqlite3.Error as exc:
-        raise InputError(f"unreadable SQLite database ({exc})", path=shown) from None
+        locked = _locked(exc, shown)
+        if locked is not None:
+            raise locked from None
+        if not (is_input and _hot_journal(exc)):
+            raise InputError(f"unreadable SQLite database ({exc})", path=shown) from None
+    else:
+        return path
     finally:
         connection.close()
+    with tempfile.TemporaryDirectory(prefix="rotonly-db-") as scratch:  # a hot journal: check the rolled-back copy
+        copy = Path(scratch) / "database.db"
+        snapshot_database(path, copy, shown)
+        check_database(copy, shown=shown, is_input=False)
     return path
+
+
+def check_sqlite_file(path: PathLike, shown: PathLike | None = None) -> Path:
+    """InputError unless ``path`` is a regular file starting with SQLite's magic."""
+    path = Path(path)
+    info = check_regular_file(path)
+    if info.st_size == 0 or not is_sqlite(path):
+        raise InputError("not an SQLite file (expected a COLMAP database)", path=str(path if shown is None else shown))
+    return path
+
+
+def snapshot_database(path: PathLike, copy: PathLike, shown: PathLike | None = None) -> None:
+    """A consistent copy of the input database ``path`` at ``copy`` (a new file), the input
+    untouched: WAL, the file and its -wal copied as they are; a rollback journal, SQLite's
+    backup under a shared lock (a writer's uncommitted pages are never read;
+    InputLockedError past :data:`BUSY_TIMEOUT_S`), or, behind a hot journal, the file and
+    the journal copied and the journal rolled back in the copy. OSError: the copy could not
+    be written."""
+    path, copy = Path(path), Path(copy)
+    shown = str(path if shown is None else shown)
+    if is_wal(path):
+        shutil.copyfile(path, copy)
+        wal = Path(f"{path}-wal")  # committed-but-not-checkpointed pages
+        if wal.is_file():
+            check_regular_file(wal)
+            shutil.copyfile(wal, f"{copy}-wal")
+        return
+    for _ in range(3):  # a hot journal that another reader rolls back meanwhile: again
+        try:
+            with closing(_connect(path, "mode=ro")) as source, closing(sqlite3.connect(str(copy))) as target:
+                source.backup(target)  # every page in one step: one read transaction of the source
+            return
+        except sqlite3.Error as exc:
+            copy.unlink(missing_ok=True)
+            locked = _locked(exc, shown)
+            if locked is not None:
+                raise locked from None
+            if not _hot_journal(exc):
+                raise InputError(f"unreadable SQLite database ({exc})", path=shown) from None
+        try:
+            shutil.copyfile(path, copy)
+            shutil.copyfile(f"{path}-journal", f"{copy}-journal")
+        except FileNotFoundError:  # rolled back meanwhile by another process
+            continue
+        try:
+            with closing(sqlite3.connect(str(copy))) as rolled_back:
+                rolled_back.execute("SELECT COUNT(*) FROM sqlite_master").fetchone()  # rolls the journal back
+            return
+        except sqlite3.Error as exc:
+            raise InputError(f"unreadable SQLite database ({exc})", path=shown) from None
+    raise InputLockedError("database keeps changing (its writers keep dying mid-transaction?)", path=shown)
 
 
 class _Tables:
