@@ -37,3 +37,39 @@ def test_run_help_describes_the_default_reestimate(capsys):
     assert "every edge re-estimated by calibrated RANSAC; --reestimate auto keeps stored E-based ones" in text
     assert "all = every edge" in text and "[default: all]" in text
     assert "stored E-based ones kept, others re-estimated" not in text
+
+
+def test_a_camera_without_an_openmvg_twin_is_a_debug_line_naming_its_colmap_id(caplog):
+    """A PINHOLE camera with fx != fy is written to sfm_data.json as OpenMVG's one-focal pinhole,
+    its keypoints placed for it (nothing lost): a -v line, numbered as the summary numbers it
+    (COLMAP's camera 1), not an info line of every COLMAP run naming a "camera 0"."""
+    import logging
+
+    from rotonly_cli.io import colmap
+
+    scene = colmap.read_database(HERZ_JESU / "database.db")
+    assert scene.intrinsics[1].model == "PINHOLE" and scene.intrinsics[1].params[0] != scene.intrinsics[1].params[1]
+    with caplog.at_level(logging.DEBUG, logger="rotonly_cli"):
+        colmap.colmap_to_openmvg(scene)
+    lines = [r for r in caplog.records if r.name == "rotonly_cli.io.colmap.cameras"]
+    assert lines and all(r.levelno == logging.DEBUG for r in lines)
+    assert lines[0].getMessage().startswith("camera 1 (PINHOLE) in sfm_data.json: OpenMVG's pinhole f=")
+    assert "the same rays" in lines[0].getMessage()
+
+
+def test_first_report_on_a_machine_prints_no_font_cache_line(tmp_path):
+    """matplotlib builds its font cache on the first figure of a machine and logs "generated
+    new fontManager" at info level: rotonly's output shows the library's warnings only."""
+    import os
+    import subprocess
+    import sys
+
+    gt = DATA_FIXTURES / "evalquality" / "entry-P10"
+    code = ("from rotonly_cli.cli import main; "
+            f"main(['eval', '--gt', {str(gt)!r}, {str(gt / 'openmvg/global/sfm_data.json')!r}, "
+            f"'-o', {str(tmp_path / 'eval')!r}])")
+    env = {**os.environ, "MPLCONFIGDIR": str(tmp_path / "fresh_matplotlib")}
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert any((tmp_path / "fresh_matplotlib").iterdir())  # the font cache was built by this run
+    assert "fontManager" not in result.stderr and "font" not in result.stderr.lower(), result.stderr
