@@ -73,3 +73,20 @@ def test_first_report_on_a_machine_prints_no_font_cache_line(tmp_path):
     assert result.returncode == 0, result.stderr
     assert any((tmp_path / "fresh_matplotlib").iterdir())  # the font cache was built by this run
     assert "fontManager" not in result.stderr and "font" not in result.stderr.lower(), result.stderr
+
+
+@pytest.mark.parametrize("command", ["run", "convert"])
+def test_a_folder_holding_a_database_points_at_it(tmp_path, capsys, command):
+    folder = tmp_path / "project"
+    folder.mkdir()
+    (folder / "database.db").write_bytes((HERZ_JESU / "database.db").read_bytes())
+    code, _, err = _rotonly(capsys, command, folder, "-o", tmp_path / "out")
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert err.strip().endswith(f"; it holds a COLMAP database: give {folder / 'database.db'}")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["project"]
+    # another name is suggested when it is the folder's only database; two others, none
+    (folder / "database.db").rename(folder / "scene.db")
+    assert _rotonly(capsys, command, folder, "-o", tmp_path / "out")[2].strip().endswith(
+        f"give {folder / 'scene.db'}")
+    (folder / "other.db").write_bytes((folder / "scene.db").read_bytes())
+    assert "COLMAP database" not in _rotonly(capsys, command, folder, "-o", tmp_path / "out")[2]
