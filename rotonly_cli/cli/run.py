@@ -105,9 +105,10 @@ command = chain_command("run", """Reconstruct camera poses and 3D points from fe
 
     INPUT is a COLMAP database (.db) or an OpenMVG sfm_data.json (with --matches-dir).
     Chain: relative poses (every edge re-estimated by calibrated RANSAC; --reestimate auto
-    keeps stored E-based ones) -> scene identification -> TRRM per edge -> robust rotation averaging -> GRRM -> LiGT centres ->
-    triangulation. OUT receives sfm_data.json (OpenMVG), sparse/ (COLMAP model),
-    view_graph.json, reports/<stage>.json, run.log and state.npz (for the stage commands).
+    keeps stored E-based ones) -> scene identification -> TRRM per edge -> robust rotation
+    averaging -> GRRM -> LiGT centres -> triangulation. OUT receives sfm_data.json (OpenMVG),
+    sparse/ (COLMAP model), view_graph.json, reports/<stage>.json, run.log and state.npz (for
+    the stage commands).
     Views outside the largest connected view graph component are reported, not registered.
     """, None, cli_options.gt, cli_options.load_options, cli_options.max_residual_deg,
                         click.option("--no-grrm", is_flag=True, help="Skip GRRM (keep the averaged rotations)."),
