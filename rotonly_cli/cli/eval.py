@@ -34,7 +34,7 @@ def command(gt_path: Path, estimate_path: Path, out_dir: Path, as_json: bool) ->
     rotation error over all pairs, the centre error after a similarity, and evalQuality's own
     numbers (trace/3 angle, distance residuals).
     """
-    from rotonly_cli.evaluation.quality import evaluate
+    from rotonly_cli.evaluation.quality import evaluate, unmatched_warning
     from rotonly_cli.evaluation.report import format_table, write_report
 
     gt = load_scene(gt_path, "gt")
@@ -44,5 +44,8 @@ def command(gt_path: Path, estimate_path: Path, out_dir: Path, as_json: bool) ->
     write_report(report, out_dir)
     click.echo(format_table(report), err=as_json)
     click.echo(f"report: {out_dir / 'report.html'}", err=as_json)
+    warning = unmatched_warning(report.to_dict())
+    if warning:
+        click.echo(f"warning: {warning}", err=True)
     if as_json:
         click.echo(json.dumps(report.to_dict(), indent=2))

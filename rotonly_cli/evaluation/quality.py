@@ -141,6 +141,31 @@ def match_views(gt: SfMScene, estimate: SfMScene) -> tuple[list[tuple[str, int, 
     return matched, missing, extra
 
 
+#: the share of GT cameras, or of estimated images, that may find no partner by name before the
+#: comparison warns: a ground truth of another scene with the same file names (0000.jpg, ...)
+#: matches some cameras and gives errors of tens of degrees
+UNMATCHED_SHARE_WARNING = 0.1
+
+
+def unmatched_warning(report: dict, input_names=None) -> str | None:
+    """A warning when more than :data:`UNMATCHED_SHARE_WARNING` of the GT cameras or of the
+    estimated images are not matched by name (``report``: :meth:`QualityReport.to_dict`), else
+    None. ``input_names``: the names of every image of the input (`rotonly run`), so that a GT
+    camera whose image was given but not registered is not counted (a warning of its own says so)."""
+    missing, extra = report["missing_in_estimate"], report["not_in_gt"]
+    if input_names is not None:
+        given = set(input_names) | {posixpath.basename(str(n).replace("\\", "/")) for n in input_names}
+        missing = [name for name in missing if name not in given]
+    matched, num_gt = report["num_matched"], report["num_gt"]
+    share = UNMATCHED_SHARE_WARNING
+    if len(missing) <= share * num_gt and len(extra) <= share * (matched + len(extra)):
+        return None
+    where = "name none of the input's images" if input_names is not None else "have no estimated pose"
+    return (f"only {matched} of {num_gt} GT cameras matched an image by name ({len(missing)} GT cameras {where}, "
+            f"{len(extra)} posed images are not in the GT): is the GT this scene's? The errors cover the "
+            f"{matched} matched")
+
+
 def _openmvg_strecha_centres(R_gt_raw: np.ndarray, c_gt: np.ndarray) -> np.ndarray:
     """GT centres as evalQuality holds them for a Strecha folder: ``R_fileR_fileᵀ C``.
 

@@ -90,3 +90,50 @@ def test_a_folder_holding_a_database_points_at_it(tmp_path, capsys, command):
         f"give {folder / 'scene.db'}")
     (folder / "other.db").write_bytes((folder / "scene.db").read_bytes())
     assert "COLMAP database" not in _rotonly(capsys, command, folder, "-o", tmp_path / "out")[2]
+
+
+def test_gt_of_another_scene_is_warned_about(tmp_path, capsys):
+    """Herz-Jesu's database against fountain-P11's ground truth: the names 0000-0007.jpg match
+    8 of its 11 cameras and the errors are tens of degrees. The run still succeeds (the result is
+    fine), with a warning on the terminal, in run.log, reports/run.json and report.html."""
+    import json
+
+    out = tmp_path / "out"
+    other = DATA_FIXTURES / "evalquality" / "fountain-P11"
+    code, stdout, _ = _rotonly(capsys, "-q", "run", HERZ_JESU / "database.db", "-o", out, "--gt", other)
+    assert code == 0
+    expected = ("--gt: only 8 of 11 GT cameras matched an image by name (3 GT cameras name none of the input's "
+                "images, 0 posed images are not in the GT): is the GT this scene's? The errors cover the 8 matched")
+    assert f"warning: {expected}" in stdout.splitlines()
+    assert expected in json.loads((out / "reports" / "run.json").read_text())["warnings"]
+    assert expected in (out / "run.log").read_text()
+    assert expected.replace("'", "&#x27;") in (out / "report.html").read_text()
+
+
+def test_eval_warns_when_few_cameras_match(tmp_path, capsys):
+    estimate = DATA_FIXTURES / "evalquality" / "Herz-Jesus-P8" / "openmvg" / "global" / "sfm_data.json"
+    code, _, err = _rotonly(capsys, "eval", "--gt", DATA_FIXTURES / "evalquality" / "fountain-P11", estimate,
+                            "-o", tmp_path / "other")
+    assert code == 0
+    assert err.strip().splitlines() == [
+        "warning: only 8 of 11 GT cameras matched an image by name (3 GT cameras have no estimated pose, "
+        "0 posed images are not in the GT): is the GT this scene's? The errors cover the 8 matched"]
+    code, _, err = _rotonly(capsys, "eval", "--gt", DATA_FIXTURES / "evalquality" / "Herz-Jesus-P8", estimate,
+                            "-o", tmp_path / "same")
+    assert code == 0 and "warning" not in err
+
+
+def test_unmatched_share_that_warns():
+    from rotonly_cli.evaluation.quality import unmatched_warning
+
+    def report(gt: int, matched: int, extra: int) -> dict:
+        return {"num_gt": gt, "num_matched": matched, "missing_in_estimate": [f"{k}.jpg" for k in range(matched, gt)],
+                "not_in_gt": [f"x{k}.jpg" for k in range(extra)]}
+
+    assert unmatched_warning(report(19, 19, 0)) is None
+    assert unmatched_warning(report(20, 18, 2)) is None  # a tenth on either side: no warning
+    assert unmatched_warning(report(19, 11, 0)).startswith("only 11 of 19 GT cameras matched")
+    assert unmatched_warning(report(10, 10, 3)) is not None  # the estimate holds images the GT lacks
+    # a GT camera whose image was given but not registered is not another scene's (its own warning says so)
+    assert unmatched_warning(report(19, 11, 0), input_names=[f"{k}.jpg" for k in range(19)]) is None
+    assert unmatched_warning(report(19, 11, 0), input_names=[f"images/{k}.jpg" for k in range(19)]) is None
