@@ -166,3 +166,44 @@ def test_checks_without_the_cli(report):
     for bad in ("ten", "-5%", "2", "inf"):
         with pytest.raises(InputError):
             gate.parse_tolerance(bad)
+
+
+def test_readme_ci_lines_run_as_written(tmp_path, capsys, monkeypatch):
+    """The README's two CI lines on the Herz-Jesus fixture (data/ = the fixture, the baseline a
+    report of the same run: within 10 %); what the run gives is what the README's quick start
+    says it prints."""
+    import re
+    import shlex
+    import shutil
+
+    from rotonly_cli.cli import main
+
+    from helpers import REPOSITORY
+
+    readme = (REPOSITORY / "README.md").read_text()
+    (block,) = [b for b in re.findall(r"```bash\n(.*?)```", readme, re.S) if "rotonly eval" in b]
+    lines = block.strip().splitlines()
+    assert len(lines) == 2 and "--baseline" in lines[1] and "--tolerance" in lines[1]
+    herz_jesu = DATA_FIXTURES / "herzjesu_p8"
+    (tmp_path / "data").mkdir()
+    shutil.copyfile(herz_jesu / "database.db", tmp_path / "data" / "database.db")
+    (tmp_path / "data" / "gt").symlink_to(herz_jesu)
+    monkeypatch.chdir(tmp_path)
+
+    def run(line: str) -> int:
+        with pytest.raises(SystemExit) as exit_info:
+            main(shlex.split(line)[1:])
+        return exit_info.value.code
+
+    assert run(lines[0]) == 0
+    summary = json.loads((tmp_path / "OUT" / "reports" / "run.json").read_text())
+    printed = capsys.readouterr().out.strip().splitlines()[0]
+    (quick_start,) = re.findall(r"prints `([^`]+), …`", readme.replace("\n", " "))
+    assert quick_start.startswith(f"{summary['num_registered']}/{summary['num_views']} views registered, "
+                                  f"{summary['num_points']} points, {summary['num_active_edges']} active edges")
+    assert quick_start.split(", … ")[0] in printed
+    assert run(f"rotonly eval --gt data/gt OUT -o {tmp_path / 'baseline'} -q") == 0
+    mean = json.loads((tmp_path / "baseline" / "report.json").read_text())["rotation_error_deg"]["mean"]
+    assert quick_start.endswith(f"rotation error mean {mean:.4f} deg")
+    assert run(lines[1]) == 0, capsys.readouterr().err
+    assert "limits held: rotation error mean" in capsys.readouterr().err
