@@ -102,8 +102,8 @@ def test_gt_of_another_scene_is_warned_about(tmp_path, capsys):
     other = DATA_FIXTURES / "evalquality" / "fountain-P11"
     code, stdout, _ = _rotonly(capsys, "-q", "run", HERZ_JESU / "database.db", "-o", out, "--gt", other)
     assert code == 0
-    expected = ("--gt: only 8 of 11 GT cameras matched an image by name (3 GT cameras name none of the input's "
-                "images, 0 posed images are not in the GT): is the GT this scene's? The errors cover the 8 matched")
+    expected = ("--gt: 3 of the 11 GT cameras name none of the input's images: is the GT this scene's? The errors "
+                "cover the 8 images matched by name")
     assert f"warning: {expected}" in stdout.splitlines()
     assert expected in json.loads((out / "reports" / "run.json").read_text())["warnings"]
     assert expected in (out / "run.log").read_text()
@@ -116,8 +116,8 @@ def test_eval_warns_when_few_cameras_match(tmp_path, capsys):
                             "-o", tmp_path / "other")
     assert code == 0
     assert err.strip().splitlines() == [
-        "warning: only 8 of 11 GT cameras matched an image by name (3 GT cameras have no estimated pose, "
-        "0 posed images are not in the GT): is the GT this scene's? The errors cover the 8 matched"]
+        "warning: 3 of the 11 GT cameras have no estimated pose: is the GT this scene's? The errors cover the 8 "
+        "images matched by name"]
     code, _, err = _rotonly(capsys, "eval", "--gt", DATA_FIXTURES / "evalquality" / "Herz-Jesus-P8", estimate,
                             "-o", tmp_path / "same")
     assert code == 0 and "warning" not in err
@@ -132,8 +132,12 @@ def test_unmatched_share_that_warns():
 
     assert unmatched_warning(report(19, 19, 0)) is None
     assert unmatched_warning(report(20, 18, 2)) is None  # a tenth on either side: no warning
-    assert unmatched_warning(report(19, 11, 0)).startswith("only 11 of 19 GT cameras matched")
-    assert unmatched_warning(report(10, 10, 3)) is not None  # the estimate holds images the GT lacks
+    assert unmatched_warning(report(8, 8, 1)) is None  # one image more than the GT (a still frame): none
+    assert unmatched_warning(report(19, 11, 0)) == ("8 of the 19 GT cameras have no estimated pose: is the GT this "
+                                                    "scene's? The errors cover the 11 images matched by name")
+    assert unmatched_warning(report(11, 11, 8)).startswith("8 of the 19 posed images are not in the GT: ")
+    assert unmatched_warning(report(19, 11, 3)).startswith("8 of the 19 GT cameras have no estimated pose and 3 of "
+                                                           "the 14 posed images are not in the GT: ")
     # a GT camera whose image was given but not registered is not another scene's (its own warning says so)
     assert unmatched_warning(report(19, 11, 0), input_names=[f"{k}.jpg" for k in range(19)]) is None
     assert unmatched_warning(report(19, 11, 0), input_names=[f"images/{k}.jpg" for k in range(19)]) is None
