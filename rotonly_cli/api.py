@@ -164,6 +164,7 @@ def run(input, out: str | os.PathLike | None = None, *, gt=None, matches_dir=Non
 
             evaluation = evaluate(gt_scene, scene).to_dict()
             summary["rotation_error_deg"] = evaluation.get("rotation_error_deg")
+            pipeline.gt_warning(result, evaluation, summary)
     if out is not None and options.gt:
         import json
 

@@ -1,5 +1,6 @@
 """Typed errors. The CLI maps them to exit codes (architecture.md "Exit codes"): bad input or
-usage 2, everything rotonly reports on purpose otherwise 1. Any other exception is a bug."""
+usage 2, an accuracy regression found by `rotonly eval`'s limits 3, everything rotonly reports
+on purpose otherwise 1. Any other exception is a bug."""
 
 from __future__ import annotations
 
@@ -33,6 +34,13 @@ class AlgorithmError(RotonlyError):
     """The algorithm could not produce a result (exit code 1)."""
 
     exit_code = 1
+
+
+class RegressionError(RotonlyError):
+    """`rotonly eval`'s regression gate: a number crossed its limit (exit code 3). The message
+    is one line naming each such metric, its value and the limit (evaluation/gate.py)."""
+
+    exit_code = 3
 
 
 class OutputError(RotonlyError):

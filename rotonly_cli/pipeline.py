@@ -128,6 +128,17 @@ def evaluate_against(gt_path: str | Path, gt: SfMScene, estimate: SfMScene, repo
     return report.to_dict()
 
 
+def gt_warning(run: Run, evaluation: dict, summary: dict) -> None:
+    """After :func:`summarize_outcome`, into ``summary["warnings"]`` and logged: --gt names few
+    of the input's images, as a ground truth of another scene does."""
+    from rotonly_cli.evaluation.quality import unmatched_warning
+
+    warning = unmatched_warning(evaluation, [view.name for view in run.scene.views.values()])
+    if warning:
+        summary["warnings"] = [*summary.get("warnings", []), f"--gt: {warning}"]
+        logger.warning("%s", summary["warnings"][-1])
+
+
 # ============================================================================ OUT handling
 
 def check_out_dir(out_dir: Path) -> None:
@@ -390,6 +401,8 @@ def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: fl
                                               str(out_dir / "sfm_data.json"))
                 summary["rotation_error_deg"] = evaluation.get("rotation_error_deg")
             summarize_outcome(run, scene, summary)
+            if gt is not None:
+                gt_warning(run, evaluation, summary)
         summary["num_active_edges"] = len(run.graph.active_edges())
         summary["time_s"] = time.perf_counter() - start
         if guard is not None or recorded is not None:

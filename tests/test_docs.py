@@ -60,5 +60,7 @@ def test_every_cited_equation_is_in_the_paper_map():
 def test_readme_links_resolve_and_readme_is_short():
     readme = (REPOSITORY / "README.md").read_text()
     assert len(readme.splitlines()) <= 150
+    wide = [(number, len(line)) for number, line in enumerate(readme.splitlines(), 1) if len(line) > 120]
+    assert not wide, f"README lines over 120 columns: {wide}"
     for target in re.findall(r"\]\(((?:docs/)?[\w./-]+\.(?:md|png))\)", readme):
         assert (REPOSITORY / target).is_file(), target

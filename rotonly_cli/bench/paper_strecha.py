@@ -26,6 +26,7 @@ import numpy as np
 from rotonly_cli.bench.common import error_deg, fmt, markdown_table, parallel_map, result_dir, stats, write_json
 from rotonly_cli.bench.paper_twoview import METHODS as TWOVIEW_METHODS
 from rotonly_cli.bench.paper_twoview import refine_per_edge
+from rotonly_cli.bench.results_md import portable_path
 from rotonly_cli.errors import InputError
 
 GLOBAL_METHODS = ("Chatterjee", "ROBA", "GRRM", "pycolmap global mapper")
@@ -191,8 +192,8 @@ def run(out_dir, root, jobs: int = 1, seed: int = 0, with_mapper: bool = True, m
     started = time.perf_counter()
     folders = find_scenes(root)
     rows = [run_scene(f, jobs, progress, with_mapper, max_pairs, seed) for f in folders]
-    table = (f"# rotonly bench strecha\n\nroot: {root}; COLMAP verified pairs, calibrated 5-point re-estimate "
-             f"(1 px), inliers only.\n\n" + format_tables(rows))
+    table = (f"# rotonly bench strecha\n\nroot: {portable_path(str(root), '--root')}; COLMAP verified pairs, "
+             f"calibrated 5-point re-estimate (1 px), inliers only.\n\n" + format_tables(rows))
     payload = dict(config=dict(root=str(root), seed=seed, with_mapper=with_mapper, max_pairs=max_pairs),
                    rows=rows, seconds=time.perf_counter() - started)
     with result_dir(out_dir) as tmp:

@@ -22,13 +22,46 @@ HEADER = """# Results
 
 Written by the benchmark commands (`--results-md docs/results.md`); each section says the
 command that wrote it and when. A rerun replaces its section: do not edit by hand. The
-reasons behind the defaults are in [tuning.md](tuning.md).
+reasons behind the defaults are in [tuning.md](tuning.md). In the commands, `DATA` is the
+folder of your data (`DATA/strecha`: the Strecha scenes), `OPENMVG_BIN` OpenMVG's `bin`
+folder and `RESULTS` an output folder of your choice; other paths are relative to the
+repository.
 """
 
+#: how an absolute path outside the working folder is written, by the option it follows; the
+#: others become ``DATA/...`` (:func:`portable_path`)
+PLACEHOLDERS = {"-o": "RESULTS", "--output": "RESULTS", "--openmvg-bin": "OPENMVG_BIN", "--cache": "CACHE"}
 
-def command_line(program: str, argv: list[str] | None = None) -> str:
-    """The command as a user would type it: ``program`` and the arguments (``sys.argv[1:]``)."""
-    return shlex.join([*program.split(), *(sys.argv[1:] if argv is None else argv)])
+
+def portable_path(value: str, option: str | None, cwd: Path | None = None) -> str:
+    """``value`` as any user can type it: an absolute path below ``cwd`` relative to it, another
+    absolute path the placeholder of ``option`` (:data:`PLACEHOLDERS`), else ``DATA/`` and its
+    part below a folder named ``data`` (``/srv/data/strecha/fountain-P11`` ->
+    ``DATA/strecha/fountain-P11``), else ``DATA/`` and its name. Anything else as given."""
+    if not os.path.isabs(value):
+        return value
+    path, cwd = Path(value), Path.cwd() if cwd is None else cwd
+    if path == cwd or cwd in path.parents:
+        return os.path.relpath(path, cwd)
+    if option in PLACEHOLDERS:
+        return PLACEHOLDERS[option]
+    parts = path.parts
+    below = max((k for k, part in enumerate(parts[:-1]) if part.lower() == "data"), default=None)
+    return "/".join(["DATA", *(parts[below + 1:] if below is not None else parts[-1:])])
+
+
+def command_line(program: str, argv: list[str] | None = None, cwd: Path | None = None) -> str:
+    """The command as a user would type it: ``program`` and the arguments (``sys.argv[1:]``),
+    one machine's absolute folders written as :func:`portable_path`."""
+    args, option = [], None
+    for arg in sys.argv[1:] if argv is None else argv:
+        if arg.startswith("-") and "=" in arg:
+            name, value = arg.split("=", 1)
+            args.append(f"{name}={portable_path(value, name, cwd)}")
+        else:
+            args.append(portable_path(arg, option, cwd))
+        option = arg if arg.startswith("-") else None
+    return shlex.join([*program.split(), *args])
 
 
 def machine() -> str:

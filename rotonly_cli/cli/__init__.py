@@ -63,6 +63,9 @@ class LazyGroup(click.Group):
 #: rotonly's own loggers (the package's modules and GRRM's "rotonly.grrm"): -v shows their debug
 #: lines, -vv every library's
 ROTONLY_LOGGERS = ("rotonly_cli", "rotonly")
+#: libraries that log at info level on their own (matplotlib: "generated new fontManager" on a
+#: machine's first report): their warnings only, every line with -vv
+CHATTY_LIBRARIES = ("matplotlib",)
 
 #: the closing text of every command's --help
 EPILOG = """\b
@@ -95,6 +98,8 @@ def setup_logging(verbosity: int) -> None:
     logging.basicConfig(level=level, handlers=[handler], force=True)
     for name in ROTONLY_LOGGERS:
         logging.getLogger(name).setLevel(logging.DEBUG if verbosity > 0 else logging.NOTSET)
+    for name in CHATTY_LIBRARIES:
+        logging.getLogger(name).setLevel(logging.WARNING if verbosity < 2 else logging.NOTSET)
 
 
 def _verbosity(ctx: click.Context, **change) -> None:

@@ -28,10 +28,19 @@ def _common(fn):
     fn = click.option("--jobs", type=click.IntRange(1, 64), default=1, show_default=True,
                       help="Worker processes.")(fn)
     fn = click.option("--quick", is_flag=True, help="Small smoke run (under a minute).")(fn)
-    fn = click.option("--no-progress", is_flag=True, help="No progress bar.")(fn)
+    fn = click.option("--no-progress", is_flag=True,
+                      help="No progress bar (there is none either when stderr is not a terminal, or with -q).")(fn)
     fn = click.option("--results-md", type=click.Path(dir_okay=False), default=None,
                       help="Also write the table into this file's section for this benchmark (docs/results.md).")(fn)
     return fn
+
+
+def _progress(no_progress: bool) -> bool:
+    """Progress bars: on a terminal, unless --no-progress or -q (in a log file tqdm's
+    carriage-return redraws would be kept line after line)."""
+    from rotonly_cli.cli.run import show_progress
+
+    return not no_progress and show_progress(click.get_current_context())
 
 
 def _record(results_md: str | None, key: str, title: str, table: str) -> None:
@@ -68,8 +77,8 @@ def twoview_cmd(out_dir, seed, jobs, quick, no_progress, results_md, trials, noi
     noise_levels = _floats(noise)
     if quick:  # the paper's two-view optimisation scenes, 3 trials
         scene_list, noise_levels, trials, points = ("standard", "planar"), (1.0, 5.0), 3, 300
-    table, _ = bench_twoview.run(out_dir, scene_list, noise_levels, trials, points, seed, jobs, not no_progress,
-                                 ("initial",) + method_list)
+    table, _ = bench_twoview.run(out_dir, scene_list, noise_levels, trials, points, seed, jobs,
+                                 _progress(no_progress), ("initial",) + method_list)
     click.echo(table)
     _record(results_md, "bench-twoview", "Two-view simulations (the paper's two-view tables)", table)
 
@@ -94,7 +103,7 @@ def multiview_cmd(out_dir, seed, jobs, quick, no_progress, results_md, trials, n
     if quick:
         noise_levels, trials, views, points, window = (1.0, 5.0), 1, 12, 1200, 3
     table, _ = bench_multiview.run(out_dir, setup_list, noise_levels, trials, views, points, window, seed, jobs,
-                                   not no_progress)
+                                   _progress(no_progress))
     click.echo(table)
     _record(results_md, "bench-multiview", "Multi-view simulations (the paper's multi-view tables)", table)
 
@@ -110,6 +119,6 @@ def strecha_cmd(out_dir, seed, jobs, quick, no_progress, results_md, root, no_ma
     if quick:
         max_pairs = max_pairs or 12
     table, _ = bench_strecha.run(out_dir, root, jobs, seed, with_mapper=not no_mapper, max_pairs=max_pairs,
-                                 progress=not no_progress)
+                                 progress=_progress(no_progress))
     click.echo(table)
     _record(results_md, "bench-strecha", "Strecha: the paper's two-view and global tables with the baselines", table)

@@ -73,8 +73,9 @@ min_inliers = click.option(
     help="Edges with fewer inlier matches are filtered.")
 reestimate = click.option(
     "--reestimate", type=click.Choice(REESTIMATE_MODES), default=LoadOptions.reestimate.value, show_default=True,
-    help="Re-estimate relative poses with calibrated RANSAC: auto = edges without an E-based stored pose "
-         "(PLANAR/UNCALIBRATED/... or none stored).")
+    help="Which relative poses calibrated RANSAC re-estimates: all = every edge; auto = edges without an "
+         "E-based stored pose (PLANAR/UNCALIBRATED/... or none stored), the others kept; none = stored poses "
+         "only (edges without one filtered).")
 ransac_max_error = click.option(
     "--ransac-max-error", type=FiniteFloatRange(min=0, min_open=True), default=LoadOptions.ransac_max_error_px,
     show_default=True, help="RANSAC inlier threshold in pixels for the relative poses (default: "

@@ -97,10 +97,11 @@ def chain_command(name: str, summary: str, stages: tuple[str, ...] | None, *opti
 command = chain_command("run", """Reconstruct camera poses and 3D points from feature matches.
 
     INPUT is a COLMAP database (.db) or an OpenMVG sfm_data.json (with --matches-dir).
-    Chain: relative poses (stored E-based ones kept, others re-estimated) -> scene
-    identification -> TRRM per edge -> robust rotation averaging -> GRRM -> LiGT centres ->
-    triangulation. OUT receives sfm_data.json (OpenMVG), sparse/ (COLMAP model),
-    view_graph.json, reports/<stage>.json, run.log and state.npz (for the stage commands).
+    Chain: relative poses (every edge re-estimated by calibrated RANSAC; --reestimate auto
+    keeps stored E-based ones) -> scene identification -> TRRM per edge -> robust rotation
+    averaging -> GRRM -> LiGT centres -> triangulation. OUT receives sfm_data.json (OpenMVG),
+    sparse/ (COLMAP model), view_graph.json, reports/<stage>.json, run.log and state.npz (for
+    the stage commands).
     Views outside the largest connected view graph component are reported, not registered.
     """, None, cli_options.gt, cli_options.load_options, cli_options.max_residual_deg,
                         click.option("--no-grrm", is_flag=True, help="Skip GRRM (keep the averaged rotations)."),

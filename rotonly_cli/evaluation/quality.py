@@ -141,6 +141,34 @@ def match_views(gt: SfMScene, estimate: SfMScene) -> tuple[list[tuple[str, int, 
     return matched, missing, extra
 
 
+#: the share of GT cameras, or of posed images, that may find no partner by name before the
+#: comparison warns (and at least two must not): a ground truth of another scene with the same
+#: file names (0000.jpg, ...) matches some cameras and gives errors of tens of degrees
+UNMATCHED_SHARE_WARNING = 0.1
+
+
+def unmatched_warning(report: dict, input_names=None) -> str | None:
+    """A warning when two or more, and more than :data:`UNMATCHED_SHARE_WARNING`, of the GT
+    cameras or of the posed images are not matched by name (``report``:
+    :meth:`QualityReport.to_dict`), else None. ``input_names``: the names of every image of the
+    input (`rotonly run`), so that a GT camera whose image was given but not registered is not
+    counted (a warning of its own says so)."""
+    missing, extra = report["missing_in_estimate"], report["not_in_gt"]
+    if input_names is not None:
+        given = set(input_names) | {posixpath.basename(str(n).replace("\\", "/")) for n in input_names}
+        missing = [name for name in missing if name not in given]
+    matched, num_gt = report["num_matched"], report["num_gt"]
+    found = []
+    if len(missing) >= 2 and len(missing) > UNMATCHED_SHARE_WARNING * num_gt:
+        where = "name none of the input's images" if input_names is not None else "have no estimated pose"
+        found.append(f"{len(missing)} of the {num_gt} GT cameras {where}")
+    if len(extra) >= 2 and len(extra) > UNMATCHED_SHARE_WARNING * (matched + len(extra)):
+        found.append(f"{len(extra)} of the {matched + len(extra)} posed images are not in the GT")
+    if not found:
+        return None
+    return (f"{' and '.join(found)}: is the GT this scene's? The errors cover the {matched} images matched by name")
+
+
 def _openmvg_strecha_centres(R_gt_raw: np.ndarray, c_gt: np.ndarray) -> np.ndarray:
     """GT centres as evalQuality holds them for a Strecha folder: ``R_fileR_fileᵀ C``.
 

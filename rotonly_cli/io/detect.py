@@ -76,6 +76,22 @@ def unread_format_hint(path: Path) -> str:
     return ""
 
 
+def database_hint(folder: Path) -> str:
+    """For a folder given where a COLMAP database is read: the database it holds
+    (``database.db`` first, else its only SQLite ``*.db``), as what to give instead; "" if none."""
+    candidates = [folder / "database.db"] + sorted(p for p in folder.glob("*.db") if p.name != "database.db")
+    found = []
+    for candidate in candidates:
+        try:
+            if candidate.is_file() and is_sqlite(candidate):
+                found.append(candidate)
+        except InputError:  # unreadable: not the one to suggest
+            pass
+    if not found or (found[0].name != "database.db" and len(found) > 1):
+        return ""
+    return f"; it holds a COLMAP database: give {found[0]}"
+
+
 def detect_input(path: Path) -> InputKind:
     """The kind of a `rotonly run` / `rotonly convert` input; InputError otherwise."""
     if not path.exists():
@@ -86,7 +102,8 @@ def detect_input(path: Path) -> InputKind:
         if (path / "sfm_data.json").is_file():
             return InputKind.OPENMVG
         raise InputError("folder is neither a COLMAP model (cameras/images/points3D .bin|.txt) "
-                         "nor an OpenMVG project (sfm_data.json)" + unread_format_hint(path), path=str(path))
+                         "nor an OpenMVG project (sfm_data.json)" + (database_hint(path) or unread_format_hint(path)),
+                         path=str(path))
     if is_sqlite(path):
         return InputKind.COLMAP_DB
     if path.suffix.lower() == ".json":

@@ -162,3 +162,27 @@ def test_bench_twoview_resumes_finished_cells(tmp_path: Path, monkeypatch: pytes
     assert not checkpoint.exists()
     resumed = json.loads((tmp_path / "cut" / "results.json").read_text())["rows"]
     assert [r["errors_deg"] for r in resumed] == [r["errors_deg"] for r in whole]
+
+
+def test_bench_draws_no_progress_bar_when_stderr_is_not_a_terminal(tmp_path: Path, monkeypatch) -> None:
+    """Into a log file or a pipe tqdm's carriage-return redraws would be kept line after line:
+    bars only on a terminal (CliRunner's stderr is none), unless --no-progress or -q."""
+    import sys
+
+    import click
+
+    from rotonly_cli.cli import bench
+
+    result = CliRunner().invoke(cli, ["bench", "twoview", "--scenes", "planar", "--noise", "2", "--trials", "2",
+                                      "--points", "100", "--methods", "TRRM", "-o", str(tmp_path / "b")],
+                                catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    assert "\r" not in result.output and "it/s" not in result.output
+
+    class Terminal:
+        def isatty(self):
+            return True
+
+    monkeypatch.setattr(sys, "stderr", Terminal())
+    with click.Context(bench.command):
+        assert bench._progress(no_progress=False) and not bench._progress(no_progress=True)

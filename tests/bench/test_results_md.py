@@ -43,3 +43,31 @@ def test_bench_command_writes_its_section(tmp_path: Path):
     assert result.exit_code == 0, result.output
     text = md.read_text()
     assert "<!-- results:bench-twoview -->" in text and "| standard" in text
+
+
+def test_command_line_writes_no_machine_folders(tmp_path: Path):
+    """docs/results.md's commands as any user types them: paths below the working folder
+    relative, other absolute ones as named placeholders (results_md.HEADER says which)."""
+    cwd = tmp_path / "repo"
+    argv = ["--root", "/srv/data/strecha", "--scene=/srv/data/strecha/fountain-P11", "--openmvg-bin",
+            "/opt/openmvg/bin", "-o", "/tmp/bench", "--results-md", str(cwd / "docs" / "results.md"),
+            "--cache", "/var/cache/x", "--model", "/home/me/model.json", "--trials", "3", "relative/path"]
+    assert results_md.command_line("python s.py", argv, cwd) == (
+        "python s.py --root DATA/strecha --scene=DATA/strecha/fountain-P11 --openmvg-bin OPENMVG_BIN -o RESULTS "
+        "--results-md docs/results.md --cache CACHE --model DATA/model.json --trials 3 relative/path")
+    for placeholder in ("`DATA`", "`OPENMVG_BIN`", "`RESULTS`"):
+        assert placeholder in results_md.HEADER
+
+
+def test_results_md_commands_name_no_machine_folders():
+    import re
+    import shlex
+
+    from helpers import REPOSITORY
+
+    document = (REPOSITORY / "docs" / "results.md").read_text()
+    commands = re.findall(r"^`((?:python|rotonly) [^`]*)`", document, re.M)
+    assert len(commands) >= 10
+    for command in commands:
+        assert not [arg for arg in shlex.split(command) if arg.startswith(("/", "../")) or "=/" in arg], command
+    assert "root: DATA/strecha;" in document and "../shared" not in document

@@ -10,6 +10,7 @@ import re
 import shutil
 import subprocess
 import tempfile
+from html import unescape
 from html.parser import HTMLParser
 from pathlib import Path
 
@@ -174,18 +175,38 @@ def chromium() -> str | None:
     return None
 
 
-def browser_images(page: Path) -> list:
-    """[alt, complete, naturalWidth] of every image of ``page`` as headless Chromium loads it."""
+#: what a reader sees first: the tab's title, and the warnings box (or the "No warnings." line)
+#: with its items, whether it is drawn, and whether it comes before the summary
+HEAD_PROBE = """<script>window.addEventListener('load', function () {
+  var box = document.getElementById('warnings');
+  var summary = Array.from(document.querySelectorAll('h2')).find(function (h) { return h.textContent === 'Summary'; });
+  var facts = {title: document.title, warnings: box && {
+    className: box.className, text: box.innerText, drawn: box.offsetHeight > 0,
+    items: Array.from(box.querySelectorAll('li')).map(function (li) { return li.textContent; }),
+    beforeSummary: !!summary && !!(box.compareDocumentPosition(summary) & Node.DOCUMENT_POSITION_FOLLOWING)}};
+  var out = document.createElement('pre'); out.id = 'image-probe'; out.textContent = JSON.stringify(facts);
+  document.body.appendChild(out);
+});</script>"""
+
+
+def browser_probe(page: Path, script: str = PROBE):
+    """What ``script`` (run after the load event) writes into ``<pre id="image-probe">``, as
+    headless Chromium renders ``page``."""
     with tempfile.TemporaryDirectory() as scratch:
         probe = Path(scratch) / "probe.html"
-        probe.write_text(page.read_text().replace("</body>", PROBE + "</body>"))
+        probe.write_text(page.read_text().replace("</body>", script + "</body>"))
         command = [chromium(), *CHROMIUM_FLAGS, f"--user-data-dir={scratch}/profile", "--dump-dom", probe.as_uri()]
         if os.geteuid() != 0:
             command.remove("--no-sandbox")
         dom = subprocess.run(command, capture_output=True, text=True, timeout=120, check=True).stdout
     found = re.search(r'<pre id="image-probe">(.*?)</pre>', dom, re.S)
     assert found, dom[-2000:]
-    return json.loads(found.group(1).replace("&quot;", '"').replace("&amp;", "&"))
+    return json.loads(unescape(found.group(1)))
+
+
+def browser_images(page: Path) -> list:
+    """[alt, complete, naturalWidth] of every image of ``page`` as headless Chromium loads it."""
+    return browser_probe(page, PROBE)
 
 
 @pytest.mark.skipif(chromium() is None, reason="headless Chromium not installed (Debian: apt-get install chromium)")
@@ -198,6 +219,27 @@ def test_every_figure_loads_in_chromium(full_run, tmp_path):
     broken.write_text((full_run / "report.html").read_text().replace(
         "</h1>", '</h1><img alt="broken" src="data:image/svg+xml;base64,PHN2Zz4=">', 1))
     assert [width for alt, _, width in browser_images(broken) if alt == "broken"] == [0]
+
+
+@pytest.mark.skipif(chromium() is None, reason="headless Chromium not installed (Debian: apt-get install chromium)")
+def test_title_and_warnings_box_as_a_browser_shows_them(full_run, tmp_path):
+    """The tab's title names the input; the warnings come first, before the summary: "No
+    warnings." on a clean run, a box of items on a run with warnings (here a GT of another
+    scene, issue 52)."""
+    clean = browser_probe(full_run / "report.html", HEAD_PROBE)
+    assert clean["title"] == "rotonly: herzjesu_p8/database.db"
+    assert clean["warnings"] == {"className": "no-warnings", "text": "No warnings.", "drawn": True, "items": [],
+                                 "beforeSummary": True}
+    warned_out = tmp_path / "warned"
+    assert rotonly("-q", "run", HERZ_JESU / "database.db", "-o", warned_out,
+                   "--gt", DATA_FIXTURES / "evalquality" / "fountain-P11") == 0
+    warned = browser_probe(warned_out / "report.html", HEAD_PROBE)
+    box = warned["warnings"]
+    assert warned["title"] == "rotonly: herzjesu_p8/database.db"
+    assert box["className"] == "warnings" and box["drawn"] and box["beforeSummary"]
+    assert box["text"].startswith("Warnings")
+    assert box["items"] == _reports(warned_out)["run"]["warnings"]
+    assert any(item.startswith("--gt: 3 of the 11 GT cameras name none") for item in box["items"])
 
 
 def test_report_after_identify_and_stage_commands(tmp_path):

@@ -135,14 +135,16 @@ def _exact_openmvg_intrinsics(intrinsics: Intrinsics) -> Intrinsics | None:
                       np.asarray(new[1], dtype=np.float64))
 
 
-def to_openmvg_scene(scene: SfMScene) -> SfMScene:
+def to_openmvg_scene(scene: SfMScene, camera_id_shift: int = 0) -> SfMScene:
     """A copy of ``scene`` whose intrinsics are OpenMVG models (for ``io.openmvg`` writers).
 
     COLMAP cameras with an exact OpenMVG equivalent keep their keypoints. The others
     (fx != fy, models OpenMVG lacks) become an undistorted ``pinhole`` with
     f = (fx + fy) / 2 and the same principal point, and their keypoints (and stored
     landmark pixels) are re-rendered from ``normalized`` through it, so normalized
-    coordinates — what rotonly uses — are unchanged.
+    coordinates — what rotonly uses — are unchanged: the same rays, nothing lost.
+    ``camera_id_shift``: added to a camera's id where the debug line names it (the id
+    the user knows when ``scene``'s ids were shifted, :func:`colmap_to_openmvg`).
     """
     intrinsics: dict[int, Intrinsics] = {}
     resampled: dict[int, Intrinsics] = {}
@@ -159,9 +161,11 @@ def to_openmvg_scene(scene: SfMScene) -> SfMScene:
                                np.array([focal, camera.principal_point_x,
                                          camera.principal_point_y]))
             resampled[intrinsic_id] = exact
-            logger.info("camera %d (%s): no exact OpenMVG model, written as a pinhole f=%.6g (keypoints "
-                        "re-rendered)", intrinsic_id, intrinsic.model, focal)
-            logger.debug("camera %d params %s", intrinsic_id, np.array2string(params, precision=6))
+            logger.debug("camera %d (%s) in sfm_data.json: OpenMVG's pinhole f=%.6g, its keypoints placed for it "
+                         "(the same rays; OpenMVG has no model of this camera's parameters)",
+                         intrinsic_id + camera_id_shift, intrinsic.model, focal)
+            logger.debug("camera %d params %s", intrinsic_id + camera_id_shift,
+                         np.array2string(params, precision=6))
         intrinsics[intrinsic_id] = exact
     keypoints = dict(scene.keypoints)
     for view_id, view in scene.views.items():
@@ -189,8 +193,9 @@ def colmap_to_openmvg(scene: SfMScene) -> SfMScene:
         return -1 if ids and min(ids) >= 1 else 0
 
     point_ids = [] if scene.structure is None else np.asarray(scene.structure.point_ids).tolist()
-    shifted = shift_ids(scene, down(scene.views), down(scene.intrinsics), down(point_ids))
-    return to_openmvg_scene(shifted)
+    camera_shift = down(scene.intrinsics)
+    shifted = shift_ids(scene, down(scene.views), camera_shift, down(point_ids))
+    return to_openmvg_scene(shifted, camera_id_shift=-camera_shift)
 
 
 def normalize_keypoints(camera, keypoints: np.ndarray) -> np.ndarray:
