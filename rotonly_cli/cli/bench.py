@@ -104,9 +104,11 @@ def multiview_cmd(out_dir, seed, jobs, quick, no_progress, results_md, trials, n
 @click.option("--root", required=True, type=click.Path(exists=True, file_okay=False),
               help="Folder of Strecha scenes (each with database.db and gt_dense_cameras/).")
 @click.option("--no-mapper", is_flag=True, help="Skip the pycolmap global mapper reference.")
-@click.option("--max-pairs", type=click.IntRange(1), default=None, help="Use at most this many pairs per scene.")
+@click.option("--max-pairs", type=click.IntRange(1), default=None,
+              help="Give rotonly at most this many verified pairs of each database (neighbours first).")
 def strecha_cmd(out_dir, seed, jobs, quick, no_progress, results_md, root, no_mapper, max_pairs) -> None:
-    """Per-pair (table 1) and global (table 2) rotation errors vs Strecha GT, with published numbers."""
+    """Per-pair (table 1) and global (table 2) rotation errors vs Strecha GT, with published numbers,
+    every row on the pairs `rotonly run` keeps before GRRM, and `rotonly run` as a row."""
     if quick:
         max_pairs = max_pairs or 12
     table, _ = bench_strecha.run(out_dir, root, jobs, seed, with_mapper=not no_mapper, max_pairs=max_pairs,
