@@ -32,7 +32,7 @@ import numpy as np
 
 from rotonly_cli.bench.common import error_deg, fmt, markdown_table, parallel_map, result_dir, stats, write_json
 from rotonly_cli.bench.paper_twoview import METHODS as TWOVIEW_METHODS
-from rotonly_cli.bench.paper_twoview import refine_per_edge
+from rotonly_cli.bench.paper_twoview import PER_EDGE_METHODS, refine_per_edge
 from rotonly_cli.errors import InputError
 
 GLOBAL_METHODS = ("Chatterjee", "ROBA", "GRRM", "pycolmap global mapper", "rotonly run")
@@ -80,8 +80,8 @@ def find_scenes(root: str | Path) -> list[Path]:
 
 def _pair_task(args: tuple) -> dict:
     """The per-edge baselines (BA, PA, Kneip nonlinear) from one pair's initial pose (a pool task)."""
-    R_init, t_init, x_i, x_j = args
-    rotations, seconds = refine_per_edge(R_init, t_init, x_i, x_j)
+    R_init, t_init, x_i, x_j, methods = args
+    rotations, seconds = refine_per_edge(R_init, t_init, x_i, x_j, methods)
     return dict(rotations=rotations, seconds=seconds)
 
 
@@ -103,9 +103,11 @@ def input_pairs(folder: Path, max_pairs: int | None, min_matches: int):
     return scene, InputKind.COLMAP_DB, f"{database} ({len(keys)} pairs)"
 
 
-def run_scene(folder: Path, jobs: int, progress: bool, with_mapper: bool, max_pairs: int | None, seed: int) -> dict:
+def run_scene(folder: Path, jobs: int, progress: bool, with_mapper: bool, max_pairs: int | None, seed: int,
+              methods: tuple[str, ...] = TWOVIEW_METHODS) -> dict:
     """Both tables of one scene, every row on the pairs ``rotonly run`` keeps before GRRM
-    (bench/strecha_pairs.py); the ground truth only scores the rows."""
+    (bench/strecha_pairs.py); the ground truth only scores the rows. ``methods``: Table 1's
+    (the initial poses always)."""
     from rotonly_cli import twoview
     from rotonly_cli.baselines.kneip import refine_kneip_eigen
     from rotonly_cli.baselines.references import pycolmap_global_mapper
@@ -130,24 +132,31 @@ def run_scene(folder: Path, jobs: int, progress: bool, with_mapper: bool, max_pa
     jj = np.array([index[j] for _, j in front.keys])
 
     # Table 1: every kept pair's initial pose refined by each method on its inlier matches
-    results = parallel_map(_pair_task, list(zip(front.R_init, front.t_init, front.x_i, front.x_j)), jobs,
-                           f"{folder.name} pairs", progress)
+    methods = ("initial",) + tuple(m for m in TWOVIEW_METHODS[1:] if m in methods)
+    per_edge = tuple(m for m in PER_EDGE_METHODS if m in methods)
     rotations = {"initial": front.R_init}
     seconds = {"initial": 0.0}
-    for name in ("BA", "PA", "Kneip nonlinear"):
-        rotations[name] = np.stack([r["rotations"][name] for r in results])
-        seconds[name] = float(np.mean([r["seconds"][name] for r in results]))
-    start = time.perf_counter()
-    with np.errstate(all="ignore"):
-        rotations["Kneip eigen"] = refine_kneip_eigen(front.R_init, pg.pack_edges(front.x_i, front.x_j)).rotations
-    seconds["Kneip eigen"] = (time.perf_counter() - start) / len(front.keys)
-    start = time.perf_counter()
-    rotations["TRRM"] = np.asarray(twoview.refine_rotations(front.R_init, front.x_i, front.x_j).rotations)
-    seconds["TRRM"] = (time.perf_counter() - start) / len(front.keys)
+    if per_edge:
+        results = parallel_map(_pair_task, [(*pair, per_edge) for pair in zip(front.R_init, front.t_init, front.x_i,
+                                                                               front.x_j)],
+                               jobs, f"{folder.name} pairs", progress)
+        for name in per_edge:
+            rotations[name] = np.stack([r["rotations"][name] for r in results])
+            seconds[name] = float(np.mean([r["seconds"][name] for r in results]))
+    if "Kneip eigen" in methods:
+        start = time.perf_counter()
+        with np.errstate(all="ignore"):
+            rotations["Kneip eigen"] = refine_kneip_eigen(front.R_init,
+                                                          pg.pack_edges(front.x_i, front.x_j)).rotations
+        seconds["Kneip eigen"] = (time.perf_counter() - start) / len(front.keys)
+    if "TRRM" in methods:
+        start = time.perf_counter()
+        rotations["TRRM"] = np.asarray(twoview.refine_rotations(front.R_init, front.x_i, front.x_j).rotations)
+        seconds["TRRM"] = (time.perf_counter() - start) / len(front.keys)
     pair_scored = scored[ii] & scored[jj]
     R_pair_gt = R_gt[jj] @ np.swapaxes(R_gt[ii], 1, 2)
     twoview_rows = {m: {**stats(error_deg(rotations[m], R_pair_gt)[pair_scored]), "ms_per_edge": 1e3 * seconds[m]}
-                    for m in TWOVIEW_METHODS}
+                    for m in methods}
 
     # Table 2: observation ids = view offset + keypoint index
     offset = np.concatenate([[0], np.cumsum(front.num_keypoints)])
@@ -205,13 +214,14 @@ def protocol_text(rows: list[dict]) -> str:
 
 def format_tables(rows: list[dict]) -> str:
     head = ["method"] + [f"{r['scene']} ({r['pairs']} of {r['input_pairs']} pairs)" for r in rows]
+    twoview_methods = [m for m in TWOVIEW_METHODS if all(m in r["twoview"] for r in rows)]
     t1 = []
-    for m in TWOVIEW_METHODS:
+    for m in twoview_methods:
         t1.append([m] + [_with_published(r["twoview"][m]["mean"],
                                          PUBLISHED_TWOVIEW.get(r["published_key"] or "", {}).get(m)) for r in rows])
-    t1.append(["best"] + [min((m for m in TWOVIEW_METHODS if m != "initial"),
-                              key=lambda m: r["twoview"][m]["mean"]) for r in rows])
-    t1t = [[m] + [f"{r['twoview'][m]['ms_per_edge']:.2f}" for r in rows] for m in TWOVIEW_METHODS[1:]]
+    t1.append(["best"] + [min(twoview_methods[1:] or ["initial"], key=lambda m: r["twoview"][m]["mean"])
+                          for r in rows])
+    t1t = [[m] + [f"{r['twoview'][m]['ms_per_edge']:.2f}" for r in rows] for m in twoview_methods[1:]]
     head2 = ["method"] + [f"{r['scene']} ({r['views']} views, {r['pairs']} of {r['input_pairs']} pairs)"
                           for r in rows]
     methods = [m for m in GLOBAL_METHODS if any(m in r["global_"] for r in rows)]
@@ -230,14 +240,15 @@ def format_tables(rows: list[dict]) -> str:
 
 
 def run(out_dir, root, jobs: int = 1, seed: int = 0, with_mapper: bool = True, max_pairs: int | None = None,
-        progress: bool = True) -> tuple[str, dict]:
+        progress: bool = True, methods: tuple[str, ...] = TWOVIEW_METHODS) -> tuple[str, dict]:
     started = time.perf_counter()
     folders = find_scenes(root)
-    rows = [run_scene(f, jobs, progress, with_mapper, max_pairs, seed) for f in folders]
+    rows = [run_scene(f, jobs, progress, with_mapper, max_pairs, seed, methods) for f in folders]
     given = "each COLMAP database" + (f" limited to {max_pairs} verified pairs (neighbours first)" if max_pairs else "")
     table = (f"# rotonly bench strecha\n\nroot: {root}; input: {given}; seed {seed}.\n\n" + protocol_text(rows)
              + "\n\n" + format_tables(rows))
-    payload = dict(config=dict(root=str(root), seed=seed, with_mapper=with_mapper, max_pairs=max_pairs),
+    payload = dict(config=dict(root=str(root), seed=seed, with_mapper=with_mapper, max_pairs=max_pairs,
+                               methods=list(methods)),
                    rows=rows, seconds=time.perf_counter() - started)
     with result_dir(out_dir) as tmp:
         (tmp / "table.md").write_text(table)

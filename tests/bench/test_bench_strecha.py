@@ -143,3 +143,25 @@ def test_bench_strecha_rows_share_the_stated_pairs(tmp_path: Path, monkeypatch: 
         assert len(_numbers(line)) >= 2, line
     # the paper's published numbers appear next to ours: fountain-P11 TRRM 0.0561, GRRM 0.0262
     assert "(0.0561)" in text and "(0.0262)" in text
+
+
+def test_bench_strecha_method_subset(tmp_path: Path) -> None:
+    """--methods runs only the chosen two-view methods (the initial poses always), on the same
+    pairs, with the same Table 2; an unknown method is a usage error that writes nothing."""
+    args = ["bench", "strecha", "--no-progress", "--no-mapper", "--max-pairs", "6",
+            "--root", str(DATA_FIXTURES / "herzjesu_p8")]
+    result = CliRunner().invoke(cli, args + ["--methods", "TRRM", "-o", str(tmp_path / "sub")],
+                                catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    row = json.loads((tmp_path / "sub" / "results.json").read_text())["rows"][0]
+    assert set(row["twoview"]) == {"initial", "TRRM"} and row["pairs"] == 6
+    assert row["twoview"]["TRRM"]["count"] == 6 and row["twoview"]["TRRM"]["mean"] < 0.1
+    assert set(row["global_"]) == {"Chatterjee", "ROBA", "GRRM", "rotonly run"}
+    # 6 neighbouring pairs reach 7 of the 8 views: the rows say so
+    assert row["views"] == 8 and row["global_"]["GRRM"]["count"] == 7 and row["global_"]["GRRM"]["mean"] < 0.1
+    table = (tmp_path / "sub" / "table.md").read_text()
+    assert "| TRRM |" in table and "| BA |" not in table and "herzjesu_p8 (6 of 6 pairs)" in table
+    assert "[7/8 views]" in next(line for line in table.splitlines() if line.startswith("| GRRM |"))
+    bad = CliRunner().invoke(cli, args + ["--methods", "TRRM,bundle", "-o", str(tmp_path / "bad")])
+    assert bad.exit_code == 2 and "unknown method" in bad.output
+    assert not (tmp_path / "bad").exists()
