@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -252,23 +253,29 @@ def run_into(input_path: str | Path | SfMScene, out_dir: str | Path, options: Ru
 
 
 def run_in_memory(input_path: str | Path | SfMScene, options: RunOptions = RunOptions(),
-                  stages: tuple[str, ...] = STAGES, kind: InputKind | None = None, label: str | None = None) -> Run:
+                  stages: tuple[str, ...] = STAGES, kind: InputKind | None = None, label: str | None = None,
+                  observe: Callable[[str, Run], None] | None = None) -> Run:
     """:func:`run_stages` as `rotonly run` runs them (the collector paused), writing nothing."""
     if not isinstance(input_path, SfMScene):
         kind = check_input(Path(input_path))
     with collector_paused():
-        return run_stages(input_path, options, stages, kind, label, guard=memory.MemoryGuard(options.max_memory_gb))
+        return run_stages(input_path, options, stages, kind, label, guard=memory.MemoryGuard(options.max_memory_gb),
+                          observe=observe)
 
 
 def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptions(),
                stages: tuple[str, ...] = STAGES, kind: InputKind | None = None, label: str | None = None,
-               scratch: Path | None = None, guard: memory.MemoryGuard | None = None) -> Run:
+               scratch: Path | None = None, guard: memory.MemoryGuard | None = None,
+               observe: Callable[[str, Run], None] | None = None) -> Run:
     """Run ``stages`` (a prefix of STAGES) in memory on INPUT (a path, or a scene already read;
     ``kind``: what it is, detected here for a path when not given; ``label``: a scene's name),
     with the progress bars (in a pipe, progress lines: runtime/heartbeat) and -v detail lines.
     ``scratch``: where a database's private copy is made (default: a temporary folder).
     ``guard``: the memory guard each stage passes first (runtime/memory; default: one of
-    ``options.max_memory_gb``); its record goes to ``run.reports["memory"]``."""
+    ``options.max_memory_gb``); its record goes to ``run.reports["memory"]``.
+    ``observe(stage, run)``: called after each stage of each pass (the calibration's passes,
+    then the chain's; the last call of a stage is the result's), to look at the run as it is
+    then (rotonly bench strecha: the edges kept before GRRM); it must not change the run."""
     from rotonly_cli.components import split_off
     from rotonly_cli.monitor import StageMonitor
 
@@ -285,6 +292,8 @@ def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptio
             else:
                 run = load_stage(input_path, options, scratch, kind)
             monitor.run = run
+        if observe is not None:
+            observe("load", run)
         loaded = run
         if "triangulate" in stages:
             # the images are decoded for the point colours while the rotation stages run (in
@@ -306,6 +315,8 @@ def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptio
                         guard.stage(stage, counts, pass_run.options) as stage_options:
                     pass_run.options = stage_options  # LiGT's chunks made smaller to fit, or as they were
                     STAGE_FUNCTIONS[stage](pass_run)
+                if observe is not None:
+                    observe(stage, pass_run)
             return pass_run
 
         if "triangulate" in stages:

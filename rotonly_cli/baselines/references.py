@@ -8,7 +8,8 @@
   default options (Geman–McClure σ = 5°), edges weighted by ``num_matches`` for the spanning tree.
 * :func:`pycolmap_global_mapper` — ``pycolmap.global_mapping`` (GLOMAP: rotation averaging +
   global positioning + bundle adjustment) on a private copy of a COLMAP database, intrinsics
-  fixed (formats.md §4.7), as the Strecha README's reference row.
+  fixed (formats.md §4.7), as the Strecha README's reference row; optionally on given pairs
+  only (their relative poses and inlier matches), as ``rotonly bench strecha`` runs it.
 """
 
 from __future__ import annotations
@@ -66,23 +67,49 @@ def pycolmap_rotation_averaging(num_views: int, edge_views: np.ndarray, R_j_from
     return out
 
 
-def pycolmap_global_mapper(database_path: str | Path, seed: int = 0, num_threads: int = 1) -> dict[str, np.ndarray]:
+def pycolmap_global_mapper(database_path: str | Path, seed: int = 0, num_threads: int = 1,
+                           pairs: dict | None = None) -> dict[str, np.ndarray]:
     """GLOMAP through pycolmap on a copy of ``database_path``: {image name: R_cam_from_world} of
-    the largest model (intrinsics kept fixed). Returns {} when no model is produced."""
+    the largest model (intrinsics kept fixed). Returns {} when no model is produced.
+    ``pairs``: {(image name i, image name j): (R_j_from_i, unit t_ij, inlier matches (m, 2) as
+    keypoint indices [i, j])}: the copy's verified pairs are replaced by these, each a calibrated
+    two-view geometry with that pose (E = [t]x R, which the mapper decomposes back into it) and
+    those inliers, so that the mapper starts from the same pairs as the methods it is compared with."""
     import pycolmap
 
     previous_level = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = 2  # glog: errors only (GLOMAP logs every stage and missing image)
     try:
-        return _global_mapper(pycolmap, database_path, seed, num_threads)
+        return _global_mapper(pycolmap, database_path, seed, num_threads, pairs)
     finally:
         pycolmap.logging.minloglevel = previous_level
 
 
-def _global_mapper(pycolmap, database_path, seed: int, num_threads: int) -> dict[str, np.ndarray]:
+def _write_pairs(pycolmap, database_path: Path, pairs: dict) -> None:
+    """Replace the verified pairs (two_view_geometries) of the database by ``pairs``."""
+    database = pycolmap.Database.open(str(database_path))
+    try:
+        ids = {image.name: image.image_id for image in database.read_all_images()}
+        database.clear_two_view_geometries()
+        for (name_i, name_j), (R, t, matches) in pairs.items():
+            R, t = np.asarray(R, dtype=float), np.asarray(t, dtype=float)
+            geometry = pycolmap.TwoViewGeometry()
+            geometry.config = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
+            skew = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+            geometry.E = skew @ R
+            geometry.cam2_from_cam1 = pycolmap.Rigid3d(pycolmap.Rotation3d(R), t)
+            geometry.inlier_matches = np.ascontiguousarray(matches, dtype=np.uint32)
+            database.write_two_view_geometry(ids[name_i], ids[name_j], geometry)
+    finally:
+        database.close()
+
+
+def _global_mapper(pycolmap, database_path, seed: int, num_threads: int, pairs: dict | None) -> dict[str, np.ndarray]:
     with tempfile.TemporaryDirectory(prefix="rotonly_glomap_") as tmp:
         db_copy = Path(tmp) / "database.db"
         shutil.copyfile(database_path, db_copy)
+        if pairs is not None:
+            _write_pairs(pycolmap, db_copy, pairs)
         options = pycolmap.GlobalPipelineOptions()
         options.random_seed = int(seed)
         options.num_threads = int(num_threads)
