@@ -255,9 +255,12 @@ def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptio
     ``run.reports["memory"]``."""
     from rotonly_cli.components import split_off
     from rotonly_cli.monitor import StageMonitor
+    from rotonly_cli.runtime import cluster
 
     guard = guard or memory.MemoryGuard(options.max_memory_gb)
-    with StageMonitor(stages, options.progress) as monitor, heartbeat.heartbeat(not options.progress):
+    # --cluster: the per-pair and per-track work on Dask for the whole chain (runtime/cluster.py)
+    with cluster.session_for(options.cluster, options.progress) as session, \
+            StageMonitor(stages, options.progress) as monitor, heartbeat.heartbeat(not options.progress):
         counts = None  # an OpenMVG project or a scene: counted once read (the stages after load)
         if not isinstance(input_path, SfMScene) and detect_input(Path(input_path)) == InputKind.COLMAP_DB:
             counts = memory.database_counts(input_path)
@@ -295,6 +298,8 @@ def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptio
             run = calibrated_chain(run, chain)
         else:
             chain(run, stages[1:])
+        if session is not None:
+            run.reports["cluster"] = session.record()  # into reports/run.json (_finish)
     run.reports["resources"] = monitor.resources
     if "triangulate" in stages:
         run.components = parts  # reconstructed by run_into, which writes them
@@ -363,6 +368,8 @@ def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: fl
     if command_line() is not None:
         summary["command"] = command_line()
     recorded = run.reports.pop("memory", None)  # in reports/run.json, not a report of its own
+    if "cluster" in run.reports:  # --cluster: the tasks and bytes per stage (runtime/cluster.py)
+        summary["cluster"] = run.reports.pop("cluster")
     scene = statistics = pending = None
     try:
         if done[-1] == "triangulate":

@@ -73,17 +73,17 @@ def echo_intrinsics(summary: dict, max_cameras: int = 4) -> None:
 def chain_command(name: str, summary: str, stages: tuple[str, ...] | None, *options) -> click.Command:
     """A command that runs the chain on INPUT into the workspace OUT: ``rotonly run`` (every
     stage: ``stages`` None) and ``rotonly identify`` (the first two). ``options``: the
-    command's own click options, in --help order, between -o and --jobs."""
+    command's own click options, in --help order, between -o and --jobs (then --cluster)."""
 
-    def callback(ctx: click.Context, input_path: Path, out_dir: Path, jobs: int, gt_path: Path | None = None,
-                 no_grrm: bool = False, **load_options) -> None:
+    def callback(ctx: click.Context, input_path: Path, out_dir: Path, jobs: int, cluster: str | None = None,
+                 gt_path: Path | None = None, no_grrm: bool = False, **load_options) -> None:
         collecting = gc.isenabled()
         gc.disable()  # from the imports on: see runtime.startup.collector_paused
         try:
             from rotonly_cli.pipeline import run_pipeline
 
             options = run_options(ctx, grrm=not no_grrm, gt=None if gt_path is None else str(gt_path),
-                                  jobs=jobs, **load_options)
+                                  jobs=jobs, cluster=cluster, **load_options)
             summary = (run_pipeline(input_path, out_dir, options) if stages is None
                        else run_pipeline(input_path, out_dir, options, stages=stages))
         finally:
@@ -95,7 +95,7 @@ def chain_command(name: str, summary: str, stages: tuple[str, ...] | None, *opti
                   click.option("-o", "--output", "out_dir", required=True, type=click.Path(path_type=Path),
                                help="Workspace folder (new, empty, or a previous rotonly workspace: replaced "
                                     "atomically)."),
-                  *options, cli_options.jobs, click.pass_context]
+                  *options, cli_options.jobs, cli_options.cluster, click.pass_context]
     for decorator in reversed(decorators):
         callback = decorator(callback)
     return click.command(name, help=summary)(callback)
