@@ -217,22 +217,35 @@ def run_into(input_path: str | Path | SfMScene, out_dir: str | Path, options: Ru
     gt = ground_truth_for(options, stages)
     if not in_memory:
         check_input(input_path)  # before anything is made: a bad input leaves no folder behind
-    staging = atomic.Staging(out_dir)  # parents made here are removed again by discard()
     start = time.perf_counter()
-    guard = memory.MemoryGuard(options.max_memory_gb)
-    try:
-        with _RunLog(staging.new), collector_paused():
-            logger.info("rotonly run %s -> %s", label or input_path, out_dir)
-            run = run_stages(input_path, options, stages, kind, label, scratch=staging.scratch, guard=guard)
-            reconstruct(run, run.components)  # the view graph's other parts (components.py)
-            with heartbeat.heartbeat(not options.progress), heartbeat.task("export"), \
-                    guard.stage("export", memory.scene_counts(run.scene, run.graph) if stages[-1] == "triangulate"
-                                else None):
-                summary = _written(out_dir, _finish, staging.new, out_dir, run, list(stages), start, gt, guard)
-        _written(out_dir, staging.commit, check_out_dir)
-    finally:
-        staging.discard()
+    # --cluster: reached (or started) before anything is written: exit 2 leaves no trace
+    with cluster_session(options):
+        staging = atomic.Staging(out_dir)  # parents made here are removed again by discard()
+        guard = memory.MemoryGuard(options.max_memory_gb)
+        try:
+            with _RunLog(staging.new), collector_paused():
+                logger.info("rotonly run %s -> %s", label or input_path, out_dir)
+                run = run_stages(input_path, options, stages, kind, label, scratch=staging.scratch, guard=guard)
+                reconstruct(run, run.components)  # the view graph's other parts (components.py)
+                with heartbeat.heartbeat(not options.progress), heartbeat.task("export"), \
+                        guard.stage("export", memory.scene_counts(run.scene, run.graph) if stages[-1] == "triangulate"
+                                    else None):
+                    summary = _written(out_dir, _finish, staging.new, out_dir, run, list(stages), start, gt, guard)
+            _written(out_dir, staging.commit, check_out_dir)
+        finally:
+            staging.discard()
     return summary, run
+
+
+def cluster_session(options: RunOptions):
+    """The run's Dask session (runtime/cluster.py): the one open already, else a new one of
+    ``options.cluster`` (a context manager yielding None without --cluster)."""
+    from contextlib import nullcontext
+
+    from rotonly_cli.runtime import cluster
+
+    session = cluster.active()
+    return nullcontext(session) if session is not None else cluster.session_for(options.cluster, options.progress)
 
 
 def run_in_memory(input_path: str | Path | SfMScene, options: RunOptions = RunOptions(),
@@ -255,11 +268,9 @@ def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptio
     ``run.reports["memory"]``."""
     from rotonly_cli.components import split_off
     from rotonly_cli.monitor import StageMonitor
-    from rotonly_cli.runtime import cluster
-
     guard = guard or memory.MemoryGuard(options.max_memory_gb)
     # --cluster: the per-pair and per-track work on Dask for the whole chain (runtime/cluster.py)
-    with cluster.session_for(options.cluster, options.progress) as session, \
+    with cluster_session(options) as session, \
             StageMonitor(stages, options.progress) as monitor, heartbeat.heartbeat(not options.progress):
         counts = None  # an OpenMVG project or a scene: counted once read (the stages after load)
         if not isinstance(input_path, SfMScene) and detect_input(Path(input_path)) == InputKind.COLMAP_DB:

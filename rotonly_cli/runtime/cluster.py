@@ -237,9 +237,13 @@ class ClusterSession:
         return int(info.get("n_workers", len(info.get("workers", {}))))
 
     def _lost(self, exc: BaseException | None = None) -> ClusterLost:
-        reason = f" ({type(exc).__name__}: {exc})" if exc is not None and str(exc) else ""
-        return ClusterLost(f"the Dask cluster at {self.address} was lost during the run: no scheduler or no worker "
-                           f"for {LOST_AFTER_S:.0f} s{reason}")
+        """The one-line error of a cluster lost during the run (``exc``: what said so)."""
+        if exc is None:
+            reason = f"no scheduler or no worker for {LOST_AFTER_S:.0f} s"
+        else:
+            first = (str(exc).strip().splitlines() or [""])[0]
+            reason = f"{type(exc).__name__}: {first}" if first else type(exc).__name__
+        return ClusterLost(f"the Dask cluster at {self.address} was lost during the run ({reason})")
 
     def _healthy(self) -> bool:
         if self.client is None or self.client.status != "running":
@@ -251,12 +255,15 @@ class ClusterSession:
 
     # ------------------------------------------------------------------ work
     def scatter(self, obj, stage: str):
-        """A future of ``obj`` on the cluster, sent once per object (kept until the session
-        closes; ``obj`` must not change meanwhile: the stages scatter read-only inputs). Its
-        bytes count as ``stage``'s."""
+        """A future of ``obj`` on the cluster, sent once per object and replicated on the
+        workers (kept until the session closes; ``obj`` must not change meanwhile: the stages
+        scatter read-only inputs). Its bytes (sent from here once) count as ``stage``'s."""
         key = id(obj)
         if key not in self._scattered:
             [future] = self.client.scatter([obj], hash=False)
+            # a copy on every worker, passed on among them (a tree, not n sends from here): the
+            # death of a worker loses no scattered data, which the scheduler could not remake
+            self.client.replicate([future])
             self._scattered[key] = (obj, future)
             self._stage(stage)["bytes_scattered"] += _nbytes(obj)
         return self._scattered[key][1]
