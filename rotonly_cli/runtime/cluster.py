@@ -49,6 +49,9 @@ POLL_S = 0.5
 #: arrays of these only, not of the whole stage)
 TASKS_IN_FLIGHT_PER_WORKER = 2
 
+#: imported by each local worker as it starts: it leaves Ctrl-C to this process
+WORKER_PRELOAD = "rotonly_cli.runtime.cluster_worker"
+
 _ACTIVE: list[ClusterSession] = []
 
 
@@ -81,11 +84,12 @@ def session_for(address: str | None, progress: bool = False):
 
 
 @contextmanager
-def _sigint_ignored() -> Iterator[None]:
-    """SIGINT ignored while worker processes start (they inherit it): Ctrl-C in a terminal
-    reaches the whole process group, and only this process answers it (it closes them)."""
+def _sigint_deferred() -> Iterator[None]:
+    """Ctrl-C while the cluster starts answered once it has started (then closed again as
+    the run unwinds): a start interrupted half-way could leave worker processes behind."""
+    caught = []
     try:
-        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
     except ValueError:  # not the main thread
         yield
         return
@@ -93,6 +97,23 @@ def _sigint_ignored() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGINT, previous)
+        if caught:
+            raise KeyboardInterrupt
+
+
+#: loggers of the libraries under Dask's client: silent unless -vv (their errors, such as a
+#: reconnection's traceback, come back to rotonly as ClusterLost, one line)
+DASK_LOGGERS = ("distributed", "tornado", "asyncio")
+
+
+def _quiet_dask() -> None:
+    if logging.getLogger().getEffectiveLevel() <= logging.DEBUG:
+        return
+    for name in list(logging.root.manager.loggerDict):
+        if name.partition(".")[0] in DASK_LOGGERS:
+            logging.getLogger(name).setLevel(logging.CRITICAL + 1)
+    for name in DASK_LOGGERS:
+        logging.getLogger(name).setLevel(logging.CRITICAL + 1)
 
 
 def _import_dask():
@@ -102,6 +123,24 @@ def _import_dask():
         raise ClusterUnavailable(f"needs Dask, the optional extra {EXTRA!r}: pip install 'rotonly_cli[{EXTRA}]' "
                                  f"({exc})", field="--cluster") from None
     return distributed
+
+
+def code_fingerprint() -> str:
+    """The version and a digest of rotonly_cli's sources here: a worker must run the same code
+    (same functions, same numbers)."""
+    import hashlib
+    from importlib.metadata import PackageNotFoundError, version
+    from pathlib import Path
+
+    package = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha1()
+    for path in sorted(package.rglob("*.py")):
+        digest.update(path.relative_to(package).as_posix().encode() + b"\0" + path.read_bytes())
+    try:
+        release = version("rotonly_cli")
+    except PackageNotFoundError:
+        release = "?"
+    return f"{release}+{digest.hexdigest()[:12]}"
 
 
 def _run_task(fn: Callable, *args):
@@ -180,7 +219,8 @@ class ClusterSession:
         self.threads_before = {t.ident for t in threading.enumerate()}
         distributed = _import_dask()
         try:
-            self._connect(distributed)
+            with _sigint_deferred():
+                self._connect(distributed)
         except BaseException:
             self.close()
             raise
@@ -188,15 +228,12 @@ class ClusterSession:
         return self
 
     def _connect(self, distributed) -> None:
-        # no dashboard (it needs bokeh, and a port); Dask's own log lines only when they matter
-        for name in ("distributed", "distributed.nanny", "distributed.scheduler", "distributed.worker",
-                     "distributed.core", "distributed.comm"):
-            logging.getLogger(name).setLevel(logging.ERROR)
+        _quiet_dask()
         if self.kind == "local":
-            with _sigint_ignored():
-                self._cluster = distributed.LocalCluster(n_workers=self.target, threads_per_worker=1,
-                                                         processes=True, dashboard_address=None,
-                                                         host="127.0.0.1", silence_logs=logging.ERROR)
+            self._cluster = distributed.LocalCluster(n_workers=self.target, threads_per_worker=1, processes=True,
+                                                     dashboard_address=":0", host="127.0.0.1",
+                                                     silence_logs=logging.CRITICAL, preload=[WORKER_PRELOAD])
+            _quiet_dask()  # the scheduler runs here: its loggers too
             self.client = distributed.Client(self._cluster, set_as_default=True)
             self.address = f"local:{self.target}"
             self.scheduler = self._cluster.scheduler_address
@@ -212,7 +249,24 @@ class ClusterSession:
             except (OSError, TimeoutError):
                 raise ClusterUnavailable(f"the Dask scheduler at {self.target} has no worker after "
                                          f"{WORKER_TIMEOUT_S:.0f} s", field="--cluster") from None
+        self._check_code(distributed)
         logger.info("cluster: %s (scheduler %s), %d worker(s)", self.address, self.scheduler, self.num_workers())
+
+    def _check_code(self, distributed) -> None:
+        """ClusterUnavailable unless the scheduler can read rotonly's tasks and every worker
+        runs this rotonly_cli (code_fingerprint)."""
+        here = code_fingerprint()
+        try:
+            theirs = self.client.submit(code_fingerprint, pure=False).result(timeout=WORKER_TIMEOUT_S)
+            workers = set(self.client.run(code_fingerprint).values())
+        except Exception as exc:  # noqa: BLE001 - a scheduler or worker that cannot load rotonly_cli
+            first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+            raise ClusterUnavailable(f"the Dask cluster at {self.target} cannot run rotonly's tasks ({first}): "
+                                     f"its scheduler and workers need this rotonly_cli installed", field="--cluster") \
+                from None
+        if workers | {theirs} != {here}:
+            raise ClusterUnavailable(f"the workers of the Dask cluster at {self.target} run another rotonly_cli "
+                                     f"({', '.join(sorted(workers | {theirs}))}; here {here})", field="--cluster")
 
     def close(self) -> None:
         """Close the client and a local cluster (its worker processes end with it)."""
