@@ -20,7 +20,7 @@ import numpy as np
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.io.detect import InputKind
-from rotonly_cli.options import RunOptions
+from rotonly_cli.options import RunOptions, cluster_address
 from rotonly_cli.scene.types import PairMatches, SfMScene, Structure
 from rotonly_cli.scene.view_graph import ViewGraph
 
@@ -121,14 +121,15 @@ def _options(options: RunOptions | None, settings: dict) -> RunOptions:
 def run(input, out: str | os.PathLike | None = None, *, gt=None, matches_dir=None, matches=None, image_path=None,
         min_inliers: int | None = None, reestimate: str | None = None, ransac_max_error: float | None = None,
         seed: int | None = None, intrinsics: str | None = None, max_residual_deg: float | None = None,
-        grrm: bool | None = None, jobs: int | None = None, progress: bool | None = None,
+        grrm: bool | None = None, jobs: int | None = None, cluster: str | None = None, progress: bool | None = None,
         max_memory: float | None = None, options: RunOptions | None = None) -> RunResult:
     """`rotonly run` in memory: camera poses and points from feature matches.
 
     ``input``: a COLMAP database or an OpenMVG sfm_data.json (path), a ``pycolmap.Database``,
     a ``pycolmap.Reconstruction`` (its tracks give the matches; its poses are not used) or an
     :class:`~rotonly_cli.scene.types.SfMScene`. The keywords are the CLI options of `rotonly
-    run` (``matches`` is -M, ``grrm=False`` is --no-grrm, ``max_memory`` is --max-memory in GB;
+    run` (``matches`` is -M, ``grrm=False`` is --no-grrm, ``max_memory`` is --max-memory in GB,
+    ``cluster`` is --cluster: ``"tcp://HOST:PORT"`` or ``"local:N"``, needing the extra 'cluster';
     defaults as there: ``jobs`` = the usable CPUs) and override ``options`` (all of them, as
     RunOptions). With ``out`` the workspace is written as `rotonly run INPUT -o OUT` writes it. Errors: InputError
     (ValueError) for bad input, AlgorithmError when no result is possible.
@@ -139,12 +140,14 @@ def run(input, out: str | os.PathLike | None = None, *, gt=None, matches_dir=Non
                                  "min_inliers": min_inliers, "reestimate": reestimate,
                                  "ransac_max_error": ransac_max_error, "seed": seed, "intrinsics": intrinsics,
                                  "max_residual_deg": max_residual_deg, "grrm": grrm, "jobs": jobs,
-                                 "progress": progress, "max_memory": max_memory})
+                                 "cluster": cluster, "progress": progress, "max_memory": max_memory})
     options.load.validate()
     if options.max_memory_gb is not None and not 0 < options.max_memory_gb < float("inf"):
         raise InputError(f"{options.max_memory_gb} is not a positive number of GB", field="max_memory")
     options.intrinsics.validate()
     options.reject.validate()
+    if options.cluster is not None:
+        cluster_address(options.cluster)
     in_memory = _scene_input(input)
     source, kind, label = (Path(input), None, None) if in_memory is None else in_memory
     evaluation = None

@@ -233,23 +233,36 @@ def run_into(input_path: str | Path | SfMScene, out_dir: str | Path, options: Ru
     if not in_memory:
         kind = check_input(input_path)  # before anything is made: a bad input leaves no folder behind
     start = time.perf_counter()
-    guard = memory.MemoryGuard(options.max_memory_gb)
-    staging = atomic.Staging(out_dir)  # parents made here are removed again by discard()
-    try:
-        with _RunLog(staging.new), collector_paused():
-            logger.info("rotonly run %s -> %s", label or input_path, out_dir)
-            run = run_stages(input_path, options, stages, kind, label, scratch=staging.scratch, guard=guard)
-            reconstruct(run, run.components)  # the view graph's other parts (components.py)
-            with heartbeat.heartbeat(not options.progress), heartbeat.task("export"), \
-                    guard.stage("export", memory.scene_counts(run.scene, run.graph) if stages[-1] == "triangulate"
-                                else None):
-                summary = _written(out_dir, _finish, staging.new, out_dir, run, list(stages), start, gt, guard)
-        # the CLI's exit code follows OUT from the instant it is the new workspace (Ctrl-C deferred
-        # until the commit is done: io/atomic, runtime/interrupts)
-        _written(out_dir, staging.commit, check_out_dir, interrupts.outcome_written)
-    finally:
-        staging.discard()
+    # --cluster: reached (or started) before anything is written: exit 2 leaves no trace
+    with cluster_session(options):
+        guard = memory.MemoryGuard(options.max_memory_gb)
+        staging = atomic.Staging(out_dir)  # parents made here are removed again by discard()
+        try:
+            with _RunLog(staging.new), collector_paused():
+                logger.info("rotonly run %s -> %s", label or input_path, out_dir)
+                run = run_stages(input_path, options, stages, kind, label, scratch=staging.scratch, guard=guard)
+                reconstruct(run, run.components)  # the view graph's other parts (components.py)
+                with heartbeat.heartbeat(not options.progress), heartbeat.task("export"), \
+                        guard.stage("export", memory.scene_counts(run.scene, run.graph) if stages[-1] == "triangulate"
+                                    else None):
+                    summary = _written(out_dir, _finish, staging.new, out_dir, run, list(stages), start, gt, guard)
+            # the CLI's exit code follows OUT from the instant it is the new workspace (Ctrl-C deferred
+            # until the commit is done: io/atomic, runtime/interrupts)
+            _written(out_dir, staging.commit, check_out_dir, interrupts.outcome_written)
+        finally:
+            staging.discard()
     return summary, run
+
+
+def cluster_session(options: RunOptions):
+    """The run's Dask session (runtime/cluster.py): the one open already, else a new one of
+    ``options.cluster`` (a context manager yielding None without --cluster)."""
+    from contextlib import nullcontext
+
+    from rotonly_cli.runtime import cluster
+
+    session = cluster.active()
+    return nullcontext(session) if session is not None else cluster.session_for(options.cluster, options.progress)
 
 
 def run_in_memory(input_path: str | Path | SfMScene, options: RunOptions = RunOptions(),
@@ -278,9 +291,10 @@ def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptio
     then (rotonly bench strecha: the edges kept before GRRM); it must not change the run."""
     from rotonly_cli.components import split_off
     from rotonly_cli.monitor import StageMonitor
-
     guard = guard or memory.MemoryGuard(options.max_memory_gb)
-    with StageMonitor(stages, options.progress) as monitor, heartbeat.heartbeat(not options.progress):
+    # --cluster: the per-pair and per-track work on Dask for the whole chain (runtime/cluster.py)
+    with cluster_session(options) as session, \
+            StageMonitor(stages, options.progress) as monitor, heartbeat.heartbeat(not options.progress):
         counts = None  # an OpenMVG project or a scene: counted once read (the stages after load)
         if not isinstance(input_path, SfMScene):
             kind = kind or detect_input(Path(input_path))
@@ -324,6 +338,8 @@ def run_stages(input_path: str | Path | SfMScene, options: RunOptions = RunOptio
             run = calibrated_chain(run, chain)
         else:
             chain(run, stages[1:])
+        if session is not None:
+            run.reports["cluster"] = session.record()  # into reports/run.json (_finish)
     run.reports["resources"] = monitor.resources
     if "triangulate" in stages:
         run.components = parts  # reconstructed by run_into, which writes them
@@ -393,6 +409,8 @@ def _finish(directory: Path, out_dir: Path, run: Run, done: list[str], start: fl
     if command_line() is not None:
         summary["command"] = command_line()
     recorded = run.reports.pop("memory", None)  # in reports/run.json, not a report of its own
+    if "cluster" in run.reports:  # --cluster: the tasks and bytes per stage (runtime/cluster.py)
+        summary["cluster"] = run.reports.pop("cluster")
     scene = statistics = pending = None
     try:
         if done[-1] == "triangulate":

@@ -14,6 +14,7 @@ option                 commands
 --max-residual-deg     run, average
 --gt (GT_PATH)         run, triangulate
 --jobs                 run, identify, refine
+--cluster              run, identify
 --intrinsics           run, identify
 --max-memory           run, identify
 =====================  ==============================================================
@@ -109,6 +110,28 @@ jobs = click.option(
          "for GRRM and LiGT's robust rounds (two each) and writing sfm_data.json (a smaller input runs in one "
          "process; reports/refine.json, optimize.json and translate.json record how many ran). The numbers do "
          "not depend on it.")
+
+
+def _cluster_address(ctx, param, value):
+    """--cluster checked at once (options.cluster_address): a usage error, exit 2."""
+    if value is None:
+        return None
+    from rotonly_cli.options import cluster_address
+
+    try:
+        cluster_address(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc).removeprefix("--cluster: ")) from None
+    return value.strip()
+
+
+cluster = click.option(
+    "--cluster", metavar="ADDRESS", default=None, callback=_cluster_address,
+    help="Run the per-pair and per-track work (RANSAC of the relative poses, scene identification, TRRM, the "
+         "rejection's residuals, triangulation) on a Dask cluster: tcp://HOST:PORT attaches to a running `dask "
+         "scheduler` (with `dask worker`s), local:N starts N single-threaded worker processes for this run. Needs "
+         "the extra 'cluster' (pip install 'rotonly_cli[cluster]'). GRRM, the averaging and LiGT stay in this "
+         "process (--jobs); the outputs are the same bytes. reports/run.json records the tasks and bytes sent.")
 max_memory = click.option(
     "--max-memory", type=FiniteFloatRange(min=0, min_open=True), default=None, metavar="GB",
     help="Stop (exit 1, one line, OUT as it was) before a stage whose predicted peak memory is above this many GB "

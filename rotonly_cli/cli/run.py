@@ -68,7 +68,7 @@ def echo_intrinsics(summary: dict, max_cameras: int = 4) -> None:
 def chain_command(name: str, summary: str, stages: tuple[str, ...] | None, *options) -> click.Command:
     """A command that runs the chain on INPUT into the workspace OUT: ``rotonly run`` (every
     stage: ``stages`` None) and ``rotonly identify`` (the first two). ``options``: the
-    command's own click options, in --help order, between -o and --jobs."""
+    command's own click options, in --help order, between -o and --jobs (then --cluster)."""
 
     def callback(ctx: click.Context, input_path: Path, out_dir: Path, no_grrm: bool = False, **settings) -> None:
         collecting = gc.isenabled()
@@ -88,7 +88,7 @@ def chain_command(name: str, summary: str, stages: tuple[str, ...] | None, *opti
                   click.option("-o", "--output", "out_dir", required=True, type=click.Path(path_type=Path),
                                help="Workspace folder (new, empty, or a previous rotonly workspace: replaced "
                                     "atomically)."),
-                  *options, cli_options.jobs, click.pass_context]
+                  *options, cli_options.jobs, cli_options.cluster, click.pass_context]
     for decorator in reversed(decorators):
         callback = decorator(callback)
     return click.command(name, help=summary)(callback)

@@ -24,6 +24,7 @@ from rotonly_cli.options.common import (
     ResidualForm,
     RobustLoss,
     RobustWeight,
+    cluster_address,  # noqa: F401 (re-exported: the CLI and the API check --cluster with it)
 )
 from rotonly_cli.options.inputs import (
     IntrinsicsOptions,
@@ -144,4 +145,7 @@ class RunOptions:
     #: progress bars (the CLI: on a terminal, unless -q)
     progress: bool = False
     jobs: int = 1  #: processes for identification, TRRM, GRRM, robust LiGT (runtime/parallel); same numbers
+    #: --cluster: the per-pair and per-track work on a Dask cluster, ``tcp://HOST:PORT`` or
+    #: ``local:N`` (runtime/cluster); None: this machine's processes (``jobs``). Same numbers
+    cluster: str | None = None
     max_memory_gb: float | None = None  #: --max-memory: a stage predicted above it stops the run (runtime/memory)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from rotonly_cli.compat import StrEnum
+from rotonly_cli.errors import InputError
 
 # ============================================================================ choices
 
@@ -59,6 +60,24 @@ LOSSES = tuple(loss.value for loss in RobustLoss)
 RESIDUALS = tuple(form.value for form in ResidualForm)
 REESTIMATE_MODES = tuple(mode.value for mode in Reestimate)
 INTRINSICS_MODES = tuple(mode.value for mode in Intrinsics)
+
+
+def cluster_address(address: str) -> tuple[str, int | str]:
+    """``--cluster``: ("local", N) for ``local:N`` (a LocalCluster of N worker processes,
+    N >= 1), ("remote", address) for ``tcp://HOST:PORT`` (a running Dask scheduler);
+    InputError naming --cluster otherwise (runtime/cluster.py)."""
+    text = str(address).strip()
+    if text.startswith("local:"):
+        count = text.removeprefix("local:")
+        if count.isdigit() and int(count) >= 1:
+            return "local", int(count)
+        raise InputError(f"{address!r}: local:N needs a number of workers N >= 1", field="--cluster")
+    if text.startswith("tcp://"):
+        host, _, port = text.removeprefix("tcp://").rpartition(":")
+        if host and port.isdigit() and 0 < int(port) < 65536:
+            return "remote", text
+    raise InputError(f"{address!r}: expected tcp://HOST:PORT (a running Dask scheduler) or local:N",
+                     field="--cluster")
 
 
 # ============================================================================ geometry

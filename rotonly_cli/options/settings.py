@@ -19,6 +19,7 @@ SETTINGS = {
     "gt": ("", "gt"),
     "grrm": ("", "grrm"),
     "jobs": ("", "jobs"),
+    "cluster": ("", "cluster"),
     "progress": ("", "progress"),
     "max_memory": ("", "max_memory_gb"),
     "min_inliers": ("load", "min_inliers"),

@@ -12,7 +12,8 @@ by chunk (:func:`map_edge_chunks`), so their memory is that of one chunk, not of
 
 Forking is only used where it is safe and pays: on Linux, when this process runs no other
 Python thread (a fork copies only the calling thread; the point colours are decoded by a
-forked child for that reason), and with at least ``MIN_MATCHES_PER_JOB`` matches per part.
+forked child for that reason) but the Dask client's of a ``--cluster`` run, and with at
+least ``MIN_MATCHES_PER_JOB`` matches per part.
 Otherwise the same code runs serially, so ``jobs`` never changes the numbers beyond the last
 bits (per-edge results are the same functions of the same data). A child that dies without
 its result (killed, out of memory), or that the system refuses to start (fork failing with
@@ -194,7 +195,21 @@ def fork_safe() -> bool:
     copies only the calling thread; locks held by the others would stay locked in the child),
     and not a daemonic multiprocessing worker (those may not start children)."""
     return sys.platform.startswith("linux") and "fork" in mp.get_all_start_methods() \
-        and threading.active_count() == 1 and not mp.current_process().daemon
+        and _no_other_threads() and not mp.current_process().daemon
+
+
+def _no_other_threads() -> bool:
+    """No Python thread alive but this one, or only the Dask client's of a ``--cluster`` run
+    (runtime/cluster.owns_thread): those run its event loop and never touch what a forked
+    child does (a child answers from its own copy of the memory and exits with os._exit)."""
+    others = [t for t in threading.enumerate() if t is not threading.current_thread()]
+    if not others:
+        return True
+    if "rotonly_cli.runtime.cluster" not in sys.modules:  # no session was ever opened
+        return False
+    from rotonly_cli.runtime.cluster import owns_thread
+
+    return all(owns_thread(t) for t in others)
 
 
 def would_fork(num_matches: int, jobs: int) -> bool:

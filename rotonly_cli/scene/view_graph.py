@@ -260,19 +260,48 @@ def view_index(graph: ViewGraph) -> dict[int, int]:
 
 def edge_batch(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: list[int]) -> pg.EdgeBatch:
     """EdgeBatch (z = 1 normalized coordinates) of the matches of ``edges``, in that order."""
-    if not edges:
-        return pg.EdgeBatch(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(1, dtype=np.int64))
     counts = np.array([graph.edges[k].num_inliers for k in edges], dtype=np.int64)
+    return _gathered(normalized, ((graph.edges[k].i, graph.edges[k].j, graph.edges[k].matches) for k in edges), counts)
+
+
+def _gathered(normalized: dict[int, np.ndarray], edges, counts: np.ndarray) -> pg.EdgeBatch:
+    """The EdgeBatch of ``edges``, (view i, view j, matches (m, 2)) each, ``counts`` their
+    matches: one gather for this process's batches (:func:`edge_batch`) and a cluster
+    worker's (:func:`batch_of_arrays`), so both hold the same bits."""
+    if not len(counts):
+        return pg.EdgeBatch(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(1, dtype=np.int64))
     offsets = np.concatenate([[0], np.cumsum(counts)])
     # filled edge by edge: no list of per-edge copies beside the result (memory at scale)
-    first = normalized[graph.edges[edges[0]].i]
-    x_i = np.empty((int(offsets[-1]), first.shape[1]), dtype=first.dtype)
-    x_j = np.empty_like(x_i)
-    for k, m0, m1 in zip(edges, offsets[:-1], offsets[1:]):
-        edge = graph.edges[k]
-        np.take(normalized[edge.i], edge.matches[:, 0], axis=0, out=x_i[m0:m1])
-        np.take(normalized[edge.j], edge.matches[:, 1], axis=0, out=x_j[m0:m1])
+    x_i = x_j = None
+    for (i, j, matches), m0, m1 in zip(edges, offsets[:-1], offsets[1:]):
+        if x_i is None:
+            first = normalized[int(i)]
+            x_i = np.empty((int(offsets[-1]), first.shape[1]), dtype=first.dtype)
+            x_j = np.empty_like(x_i)
+        np.take(normalized[int(i)], matches[:, 0], axis=0, out=x_i[m0:m1])
+        np.take(normalized[int(j)], matches[:, 1], axis=0, out=x_j[m0:m1])
     return pg.pack_flat(x_i, x_j, offsets)
+
+
+def edge_arrays(graph: ViewGraph, edges: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The plain arrays a cluster task gets for ``edges`` (runtime/cluster.py): their views
+    (E, 2), match counts (E,) and matches (M, 2) concatenated (int32 where they fit)."""
+    views = np.array([(graph.edges[k].i, graph.edges[k].j) for k in edges], dtype=np.int64).reshape(-1, 2)
+    counts = np.array([graph.edges[k].num_inliers for k in edges], dtype=np.int64)
+    matches = [graph.edges[k].matches for k in edges]
+    largest = max((int(m.max()) for m in matches if m.size), default=0)
+    dtype = np.int32 if largest < 2 ** 31 else np.int64
+    return views, counts, (np.concatenate(matches).astype(dtype, copy=False) if matches
+                           else np.zeros((0, 2), dtype=dtype))
+
+
+def batch_of_arrays(normalized: dict[int, np.ndarray], arrays: tuple, e0: int, e1: int) -> pg.EdgeBatch:
+    """:func:`edge_batch` of edges [e0, e1) of :func:`edge_arrays`' ``arrays`` (on a worker)."""
+    views, counts, matches = arrays
+    start = int(counts[:e0].sum())
+    bounds = start + np.concatenate([[0], np.cumsum(counts[e0:e1])])
+    return _gathered(normalized, ((views[k, 0], views[k, 1], matches[bounds[n]:bounds[n + 1]])
+                                  for n, k in enumerate(range(e0, e1))), counts[e0:e1])
 
 
 def edge_residuals_deg(edges: list[Edge], R_cam_from_world: dict[int, np.ndarray]) -> np.ndarray:

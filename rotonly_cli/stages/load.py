@@ -34,7 +34,7 @@ from rotonly_cli.io import cameras
 from rotonly_cli.io.detect import InputKind, detect_input
 from rotonly_cli.io.readers import READERS
 from rotonly_cli.options import LoadOptions, Reestimate
-from rotonly_cli.runtime import heartbeat
+from rotonly_cli.runtime import cluster, heartbeat
 from rotonly_cli.scene.types import Intrinsics, SfMScene
 from rotonly_cli.scene.view_graph import Edge, ViewGraph, largest_component
 
@@ -196,6 +196,9 @@ def _pool_map(function, items: list, progress: bool, desc: str, threads: int = 0
             return done
 
 
+#: matches per --cluster task of RANSAC runs: a run takes ~7 us per match (the 200-view recipe:
+#: 8000 runs of ~2200 matches, 15 ms each), so 2^17 matches are ~1 s of work
+CLUSTER_TASK_MATCHES = 1 << 17
 #: the noise sigma needs this many inlier residuals to be trusted; below, the loose threshold is used
 MIN_NOISE_SAMPLES = 50
 #: the measured threshold never goes below this (px): noise-free input would otherwise ask
@@ -291,11 +294,66 @@ class EdgeCoordinates:
     def num_matches(self, n: int) -> int:
         return len(self._edges[n].matches)
 
+    @property
+    def normalized(self) -> dict[int, np.ndarray]:
+        return self._scene.normalized
+
+    def arrays(self, ns: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Edges ``ns`` as plain arrays (a cluster task's): views (k, 2), match counts (k,),
+        matches (M, 2) concatenated, focal lengths (k, 2)."""
+        scene, edges = self._scene, [self._edges[n] for n in ns]
+        focal = [[focal_length(scene.intrinsics[scene.views[v].intrinsics_id]) for v in (edge.i, edge.j)]
+                 for edge in edges]
+        return (np.array([(edge.i, edge.j) for edge in edges], dtype=np.int64).reshape(-1, 2),
+                np.array([len(edge.matches) for edge in edges], dtype=np.int64),
+                np.concatenate([edge.matches for edge in edges]).astype(np.int32) if edges  # keypoint indices
+                else np.zeros((0, 2), dtype=np.int32),
+                np.array(focal, dtype=np.float64).reshape(-1, 2))
+
     def __getitem__(self, n: int) -> tuple[np.ndarray, np.ndarray, float, float]:
         edge, scene = self._edges[n], self._scene
         return (scene.normalized[edge.i][edge.matches[:, 0]], scene.normalized[edge.j][edge.matches[:, 1]],
                 focal_length(scene.intrinsics[scene.views[edge.i].intrinsics_id]),
                 focal_length(scene.intrinsics[scene.views[edge.j].intrinsics_id]))
+
+
+def _cluster_runs(session, pairs: EdgeCoordinates, runs: list[tuple], threshold: float,
+                  run_options: LoadOptions) -> list:
+    """The RANSAC ``runs`` (edge, seed, inlier ratio or None, options) on the cluster
+    (--cluster), in order: tasks of consecutive runs of CLUSTER_TASK_MATCHES matches or more,
+    each with its edges' matches and focal lengths; the keypoints scattered once. Every run is
+    seeded: the same estimates as on this machine's threads."""
+    from rotonly_cli.runtime.cluster import group_ranges
+
+    edges = [run[0] for run in runs]
+    counts = np.array([pairs.num_matches(n) for n in edges], dtype=np.int64)
+    groups = group_ranges([(k, k + 1) for k in range(len(runs))], counts, CLUSTER_TASK_MATCHES)
+    normalized = session.scatter(pairs.normalized, "load")
+
+    def tasks():
+        for group in groups:
+            a, b = group[0][0], group[-1][1]
+            seeds = np.array([run[1] for run in runs[a:b]], dtype=np.int64)
+            ratios = np.array([np.nan if run[2] is None else run[2] for run in runs[a:b]])
+            yield normalized, pairs.arrays(edges[a:b]), seeds, ratios, threshold, run_options
+
+    return [estimate for part in session.map("load", _ransac_task, tasks(), len(groups)) for estimate in part]
+
+
+def _ransac_task(normalized: dict, arrays: tuple, seeds: np.ndarray, ratios: np.ndarray, threshold: float,
+                 options: LoadOptions) -> list:
+    """On a cluster worker: the RANSAC runs of :func:`_cluster_runs`' task, their coordinates
+    gathered from the keypoints as EdgeCoordinates gathers them."""
+    views, counts, matches, focals = arrays
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    estimates = []
+    for k in range(len(views)):
+        pair = matches[bounds[k]:bounds[k + 1]]
+        x_i, x_j = normalized[int(views[k, 0])][pair[:, 0]], normalized[int(views[k, 1])][pair[:, 1]]
+        ratio = None if np.isnan(ratios[k]) else float(ratios[k])
+        estimates.append(_relative_pose_ransac(x_i, x_j, float(focals[k, 0]), float(focals[k, 1]), threshold,
+                                               int(seeds[k]), options, ratio))
+    return estimates
 
 
 def _consensus_runs(pairs: EdgeCoordinates, threshold: float, options: LoadOptions) -> list[list]:
@@ -317,13 +375,17 @@ def _consensus_runs(pairs: EdgeCoordinates, threshold: float, options: LoadOptio
     two runs they made, which are the same)."""
     fast = options.consensus_agreement is not None
 
+    session = cluster.active()
+
     def estimate_run(run: tuple[int, int, float | None, LoadOptions]):
         x_i, x_j, focal_i, focal_j = pairs[run[0]]
         return _relative_pose_ransac(x_i, x_j, focal_i, focal_j, threshold, run[1], run[3], run[2])
 
     def make_runs(edges: list[int], r: int, ratio: dict, run_options: LoadOptions, what: str) -> None:
         runs = [(n, options.seed + r, ratio.get(n) if fast else None, run_options) for n in edges]
-        for (n, *_), estimate in zip(runs, _pool_map(estimate_run, runs, options.progress, what, options.jobs)):
+        estimates = _pool_map(estimate_run, runs, options.progress, what, options.jobs) if session is None \
+            else _cluster_runs(session, pairs, runs, threshold, run_options)
+        for (n, *_), estimate in zip(runs, estimates):
             runs_of_edge[n].append(estimate)
 
     def strong(edges: list[int]) -> dict[int, float]:

@@ -22,10 +22,11 @@ import numpy as np
 from rotonly_cli.geometry import pairwise as pg
 from rotonly_cli.geometry.tracks import Tracks
 from rotonly_cli.options import RejectOptions
-from rotonly_cli.runtime import heartbeat
+from rotonly_cli.runtime import cluster, heartbeat
 from rotonly_cli.scene.view_graph import (
     ViewGraph,
     active_bridges,
+    edge_arrays,
     edge_residuals_deg,
     largest_component,
     regular_edges,
@@ -134,7 +135,11 @@ def reject_round(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from
     offsets = np.cumsum([0] + [graph.edges[k].matches.shape[0] for k in edges])
     every = np.empty(int(offsets[-1]))
     errors = [every[a:b] for a, b in zip(offsets[:-1], offsets[1:])]
-    for k, error in zip(edges, errors):
+    session = cluster.active()
+    if session is not None and edges:  # --cluster: tasks of consecutive edges (runtime/cluster.py)
+        _cluster_errors(session, graph, normalized, edges, _edge_geometry(graph, edges, index, R_cam_from_world,
+                                                                           centers, focal_px), every)
+    for k, error in zip(edges, errors if session is None else ()):
         edge = graph.edges[k]
         i, j = index[edge.i], index[edge.j]
         R_ij = R_cam_from_world[j] @ R_cam_from_world[i].T
@@ -170,6 +175,54 @@ def reject_round(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from
     largest_component(graph)
     report.update(sigma_px=sigma, threshold_px=threshold, edges_filtered=filtered, time_s=time.perf_counter() - start)
     return report
+
+
+#: matches per --cluster task of the round's Sampson errors (~0.1 us each)
+CLUSTER_TASK_MATCHES = 1 << 22
+
+
+def _edge_geometry(graph: ViewGraph, edges: list[int], index: dict, R_cam_from_world: np.ndarray,
+                   centers: np.ndarray, focal_px: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per edge, as :func:`reject_round`'s own loop makes them: R_ij (E, 3, 3), the unit
+    t_ij (E, 3; zero without a baseline) and the pixel scale (E,)."""
+    R, t, scale = np.empty((len(edges), 3, 3)), np.zeros((len(edges), 3)), np.zeros(len(edges))
+    for row, k in enumerate(edges):
+        edge = graph.edges[k]
+        i, j = index[edge.i], index[edge.j]
+        R[row] = R_cam_from_world[j] @ R_cam_from_world[i].T
+        t_ij = R_cam_from_world[j] @ (centers[i] - centers[j])
+        norm = np.linalg.norm(t_ij)
+        if norm > 0:
+            t[row] = t_ij / norm
+        scale[row] = 0.5 * (focal_px[i] + focal_px[j])
+    return R, t, scale
+
+
+def _cluster_errors(session, graph: ViewGraph, normalized: dict, edges: list[int], geometry: tuple,
+                    every: np.ndarray) -> None:
+    """The Sampson errors (px) of ``edges``' matches into ``every``, on the cluster: tasks of
+    consecutive edges of CLUSTER_TASK_MATCHES matches or more, the keypoints scattered once."""
+    from rotonly_cli.runtime.cluster import group_ranges
+
+    counts = np.array([graph.edges[k].num_inliers for k in edges], dtype=np.int64)
+    groups = [(g[0][0], g[-1][1]) for g in group_ranges([(k, k + 1) for k in range(len(edges))], counts,
+                                                        CLUSTER_TASK_MATCHES)]
+    keypoints = session.scatter(normalized, "reject")
+    tasks = ((keypoints, edge_arrays(graph, edges[a:b]), *(part[a:b] for part in geometry)) for a, b in groups)
+    every[:] = np.concatenate(session.map("reject", _errors_task, tasks, len(groups)))
+
+
+def _errors_task(normalized: dict, arrays: tuple, R: np.ndarray, t: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """On a cluster worker: :func:`reject_round`'s Sampson errors of a task's edges."""
+    views, counts, matches = arrays
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    errors = np.empty(int(bounds[-1]))
+    for k in range(len(views)):
+        pair = matches[bounds[k]:bounds[k + 1]]
+        x_i, x_j = normalized[int(views[k, 0])][pair[:, 0]], normalized[int(views[k, 1])][pair[:, 1]]
+        errors[bounds[k]:bounds[k + 1]] = pg.sampson_errors(R[k], t[k], x_i, x_j) * scale[k] \
+            if t[k].any() else 0.0
+    return errors
 
 
 def confirmed_matches(graph: ViewGraph, tracks: Tracks, edges: list[int], min_views: int = 3) -> list[np.ndarray]:

@@ -188,6 +188,39 @@ def start_keypoint_colors(scene: SfMScene, image_root: str | Path | None) -> For
     return future
 
 
+#: observations per --cluster task of the triangulation: ~2 us each (1000 views, 1 M
+#: observations: 1.9 s, docs/results.md), so 2^18 of them are ~0.5 s of work
+CLUSTER_TASK_OBSERVATIONS = 1 << 18
+
+
+def _triangulate(R: np.ndarray, C: np.ndarray, obs_point: np.ndarray, obs_view: np.ndarray, obs_xy: np.ndarray,
+                 num_points: int | None = None, options: TriangulationOptions | None = None,
+                 with_parallax: bool = True):
+    """geometry.triangulation.triangulate_tracks; with --cluster, on the cluster in tasks of
+    consecutive tracks of about CLUSTER_TASK_OBSERVATIONS observations (every number of a
+    point comes from its own observations: the same bits), the poses scattered once."""
+    from rotonly_cli.runtime import cluster
+    from rotonly_cli.runtime.parallel import chunk_ranges, concat_results
+
+    session = cluster.active()
+    obs_point = np.asarray(obs_point, dtype=np.int64)
+    num_points = (int(obs_point.max()) + 1 if obs_point.size else 0) if num_points is None else num_points
+    if session is None or num_points == 0:
+        return triangulate_tracks(R, C, obs_point, obs_view, obs_xy, num_points, options, with_parallax)
+    first = np.searchsorted(obs_point, np.arange(num_points + 1))  # each point's first observation
+    ranges = chunk_ranges(np.diff(first), 0, num_points, CLUSTER_TASK_OBSERVATIONS)
+    poses = session.scatter((np.asarray(R, dtype=float), np.asarray(C, dtype=float)), "triangulate")
+    tasks = ((poses, obs_point[first[a]:first[b]] - a, obs_view[first[a]:first[b]], obs_xy[first[a]:first[b]],
+              b - a, options, with_parallax) for a, b in ranges)
+    parts = session.map("triangulate", _triangulate_task, tasks, len(ranges))
+    return parts[0] if len(parts) == 1 else concat_results(parts)
+
+
+def _triangulate_task(poses: tuple, obs_point, obs_view, obs_xy, num_points, options, with_parallax):
+    """On a cluster worker: triangulate_tracks on the poses scattered and a task's tracks."""
+    return triangulate_tracks(poses[0], poses[1], obs_point, obs_view, obs_xy, num_points, options, with_parallax)
+
+
 def _keep_observations(tracks: Tracks, obs_xy: np.ndarray, keep: np.ndarray) -> tuple[Tracks, np.ndarray]:
     """The tracks without the observations where ``keep`` is False; tracks left with fewer
     than two observations go."""
@@ -250,7 +283,8 @@ def _with_split_parts(tracks: Tracks, obs_xy: np.ndarray, error_px: np.ndarray, 
     order = np.lexsort((conflicts.view[keep], split.part[keep]))  # tracks_from_arrays' order
     part, view = split.part[keep][order], conflicts.view[keep][order]
     part_xy = xy[keep][order]
-    part_error = observation_errors(R, centers, part, view, part_xy, np.ones(part.size, dtype=bool)) * focal[view]
+    part_error = observation_errors(R, centers, part, view, part_xy, np.ones(part.size, dtype=bool),
+                                    _triangulate) * focal[view]
     merged = tracks_from_arrays(np.concatenate([tracks.track_id, tracks.num_tracks + part]),
                                 np.concatenate([tracks.view, view]),
                                 np.concatenate([tracks.feature, conflicts.feature[keep][order]]),
@@ -282,7 +316,7 @@ def triangulated_tracks(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.
     # the outlier test of the robust LiGT rounds (stages/translate): observations that
     # reproject badly against the rest of their track leave it before the final solve
     error = observation_errors(R, centers_or_nan, tracks.track_id, tracks.view, obs_xy,
-                               np.ones(tracks.num_observations, dtype=bool)) * focal[tracks.view]
+                               np.ones(tracks.num_observations, dtype=bool), _triangulate) * focal[tracks.view]
     finite = np.isfinite(error)
     sigma, threshold = outlier_threshold_px(error[finite], outliers) if finite.any() else (np.nan, np.inf)
     split_report = None
@@ -299,7 +333,7 @@ def triangulated_tracks(graph: ViewGraph, scene: SfMScene, R_cam_from_world: np.
     num_observations = tracks.num_observations
     camera_sigma = _sigma_by_camera(scene, view_ids, tracks.view[finite], error[finite])
     tracks, obs_xy = _keep_observations(tracks, obs_xy, error <= threshold)
-    result = triangulate_tracks(R, C, tracks.track_id, tracks.view, obs_xy, tracks.num_tracks, options)
+    result = _triangulate(R, C, tracks.track_id, tracks.view, obs_xy, tracks.num_tracks, options)
     valid = result.valid
     return TriangulatedTracks(tracks.subset(valid), result.points_in_world[valid],
                               result.mean_reprojection_error[valid],

@@ -44,10 +44,11 @@ ERROR_REFINEMENT_ITERATIONS = 2
 
 
 def observation_errors(R: np.ndarray, centers: np.ndarray, obs_track: np.ndarray, obs_view: np.ndarray,
-                       obs_xy: np.ndarray, used: np.ndarray) -> np.ndarray:
+                       obs_xy: np.ndarray, used: np.ndarray, triangulate=None) -> np.ndarray:
     """Normalized reprojection error of every observation against its track's point,
     triangulated (linear + Gauss-Newton, no rejection) from the ``used`` observations of
-    views with a centre; inf where the track has no point or the point lies behind the camera."""
+    views with a centre; inf where the track has no point or the point lies behind the camera.
+    ``triangulate``: triangulation.triangulate_tracks or a function of its arguments and result."""
     from rotonly_cli.geometry.triangulation import TriangulationOptions, triangulate_tracks
 
     posed = np.all(np.isfinite(centers), axis=1)
@@ -61,8 +62,8 @@ def observation_errors(R: np.ndarray, centers: np.ndarray, obs_track: np.ndarray
     loose = TriangulationOptions(max_reprojection_error=np.inf, min_parallax_deg=0.0,
                                  num_refinement_iterations=ERROR_REFINEMENT_ITERATIONS)
     C = np.where(posed[:, None], centers, 0.0)
-    solved = triangulate_tracks(R, C, track_index, obs_view[used], obs_xy[used],
-                                tracks_used.size, loose, with_parallax=False)
+    solved = (triangulate or triangulate_tracks)(R, C, track_index, obs_view[used], obs_xy[used],
+                                                 tracks_used.size, loose, with_parallax=False)
     point = np.full((int(obs_track.max()) + 1, 3), np.nan)
     point[tracks_used] = solved.points_in_world
     X = point[obs_track]
