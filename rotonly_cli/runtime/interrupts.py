@@ -10,13 +10,10 @@ their own handler: for them a Ctrl-C during the commit is delivered once it is d
 
 from __future__ import annotations
 
-import logging
 import signal
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
-
-logger = logging.getLogger(__name__)
 
 #: whether this command put its outcome in place (reset by :func:`cli_handling`)
 _WRITTEN = [False]
@@ -32,11 +29,10 @@ def written() -> bool:
 
 
 def cli_handler(signum, frame) -> None:
-    """SIGINT in the CLI: KeyboardInterrupt, unless the outcome is already written."""
-    if _WRITTEN[0]:
-        logger.debug("Ctrl-C after the output was written: ignored")
-        return
-    raise KeyboardInterrupt
+    """SIGINT in the CLI: KeyboardInterrupt, unless the outcome is already written (then
+    nothing, not even a log line: the handler may run inside a logging call)."""
+    if not _WRITTEN[0]:
+        raise KeyboardInterrupt
 
 
 def install() -> None:

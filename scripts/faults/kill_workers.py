@@ -39,8 +39,8 @@ def leftovers(out: Path, tmpdir: Path) -> list[str]:
 
 def kill_when_a_worker_lived(run: processes.Run, nth: int, lived_s: float, limit_s: float) -> tuple[bool, int]:
     """SIGKILL the run's main process once its ``nth`` worker (1: the first it forked) has been
-    alive ``lived_s`` s, or when that worker ends, the run ends or ``limit_s`` passes: (a
-    worker was alive at the kill, how many)."""
+    alive ``lived_s`` s (should it end before, the next worker takes its place), or when the run
+    ends or ``limit_s`` passes: (a worker was alive at the kill, how many)."""
     first_seen: dict[int, float] = {}  # in the order the workers were seen
     deadline = time.monotonic() + limit_s
     while run.process.poll() is None and time.monotonic() < deadline:
@@ -50,11 +50,11 @@ def kill_when_a_worker_lived(run: processes.Run, nth: int, lived_s: float, limit
             first_seen.setdefault(pid, now)
         if len(first_seen) >= nth:
             pid, seen = list(first_seen.items())[nth - 1]
-            if pid not in workers and workers:  # it ended before its time: kill with the next one alive
+            if pid not in workers:  # it ended before its time: the kill waits for the next worker
                 nth = len(first_seen) + 1
             elif now - seen >= lived_s:
                 run.process.send_signal(signal.SIGKILL)
-                return bool(workers), len(workers)
+                return True, len(workers)
         time.sleep(0.005)
     run.process.send_signal(signal.SIGKILL)
     return False, 0

@@ -16,10 +16,25 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 REPOSITORY = Path(__file__).resolve().parents[2]
-#: the console script, run from this checkout; MIN_MATCHES_PER_JOB may be lowered so that a small
-#: input forks its workers (identification, TRRM, GRRM's helper) as a large one does
-RUN = ("import sys; from rotonly_cli.runtime import parallel; parallel.MIN_MATCHES_PER_JOB = int(sys.argv.pop(1)); "
-       "from rotonly_cli.cli import console_main; sys.argv[0] = 'rotonly'; console_main()")
+#: the console script, run from this checkout; MIN_MATCHES_PER_JOB (argv[1]) may be lowered so that a
+#: small input forks its workers (identification, TRRM, GRRM's helper) as a large one does. It is set
+#: inside the command, where a Ctrl-C is answered as in `rotonly` itself: imported before
+#: console_main, numpy widened the start-up window in which Python prints its own traceback
+RUN = """if True:
+    import sys
+    minimum = int(sys.argv.pop(1))
+    sys.argv[0] = "rotonly"
+    from rotonly_cli import cli
+    group_main = cli.cli.main
+
+    def with_minimum(*args, **kwargs):
+        from rotonly_cli.runtime import parallel
+        parallel.MIN_MATCHES_PER_JOB = minimum
+        return group_main(*args, **kwargs)
+
+    cli.cli.main = with_minimum
+    cli.console_main()
+"""
 #: how long the processes of a run may take to end after its main process did
 ORPHAN_GRACE_S = 3.0
 
