@@ -164,3 +164,43 @@ def test_a_run_without_cluster_imports_nothing_of_dask(tmp_path):
                           env={**os.environ})
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip().splitlines()[-1] == "[]", done.stdout
+
+
+class LocalSession:
+    """runtime.cluster.ClusterSession's task interface, run in this process in order (no
+    Dask): the stages' cluster paths, cut into many small tasks, against their --jobs 1 bytes."""
+
+    def __init__(self):
+        from rotonly_cli.runtime.cluster import ClusterSession
+
+        self.stages, self.client, self.tasks, self.address = {}, None, {}, "in this process"
+        self.map_edge_chunks = ClusterSession.map_edge_chunks.__get__(self)
+        self.record = ClusterSession.record.__get__(self)
+
+    def scatter(self, obj, stage):
+        return obj
+
+    def map(self, stage, fn, tasks, total):
+        results = [fn(*args) for args in tasks]
+        assert len(results) == total
+        self.tasks[stage] = self.tasks.get(stage, 0) + total
+        return results
+
+
+def test_many_small_tasks_give_the_bytes_of_one_process(tmp_path, monkeypatch):
+    from rotonly_cli import run
+    from rotonly_cli.runtime import cluster
+    from rotonly_cli.stages import identify, load, refine, reject, triangulate
+
+    db = DATA_FIXTURES / "herzjesu_p8" / "database.db"
+    run(db, out=tmp_path / "one", jobs=1)
+    for module, name, size in ((load, "CLUSTER_TASK_MATCHES", 3000), (identify, "CLUSTER_TASK_MATCHES", 1),
+                               (refine, "CLUSTER_TASK_MATCHES", 1), (reject, "CLUSTER_TASK_MATCHES", 2000),
+                               (triangulate, "CLUSTER_TASK_OBSERVATIONS", 1000)):
+        monkeypatch.setattr(module, name, size)
+    session = LocalSession()
+    monkeypatch.setattr(cluster, "_ACTIVE", [session])
+    run(db, out=tmp_path / "tasks", jobs=1)
+    assert_same_outputs(tmp_path / "one", tmp_path / "tasks")
+    assert session.tasks["load"] > 10 and session.tasks["triangulate"] > 10 and session.tasks["reject"] > 1, \
+        session.tasks
