@@ -45,7 +45,7 @@ ALLOWED = {
     "pipeline": {"scene", "io", "runtime", "stages", "calibration", "evaluation", "monitor", "chain", "components"},
     "api": {"scene", "io", "runtime", "evaluation", "pipeline"},
     "convert": {"io"},
-    "bench": {"geometry", "io", "runtime", "baselines", "simulation", "twoview"},
+    "bench": {"geometry", "io", "runtime", "baselines", "simulation", "twoview", "pipeline"},
     "cli": {"geometry", "scene", "io", "runtime", "simulation", "twoview", "evaluation", "pipeline", "convert",
             "bench"},
     "__init__": {"api"},

@@ -77,6 +77,16 @@ def owns_thread(thread) -> bool:
     return session is not None and thread.daemon and thread.ident not in session.threads_before
 
 
+def _register_owns_thread() -> None:
+    from rotonly_cli.runtime import parallel
+
+    if owns_thread not in parallel.FORK_SAFE_THREADS:
+        parallel.FORK_SAFE_THREADS.append(owns_thread)
+
+
+_register_owns_thread()
+
+
 def session_for(address: str | None, progress: bool = False):
     """A context manager: the :class:`ClusterSession` of ``address`` (None: no session, and
     nothing of Dask imported)."""

@@ -198,18 +198,18 @@ def fork_safe() -> bool:
         and _no_other_threads() and not mp.current_process().daemon
 
 
+#: predicates of threads a fork may leave behind (runtime/cluster registers the Dask client's:
+#: registered from there, so this module does not import the cluster's)
+FORK_SAFE_THREADS: list[Callable[[threading.Thread], bool]] = []
+
+
 def _no_other_threads() -> bool:
     """No Python thread alive but this one, or only the Dask client's of a ``--cluster`` run
-    (runtime/cluster.owns_thread): those run its event loop and never touch what a forked
-    child does (a child answers from its own copy of the memory and exits with os._exit)."""
+    (runtime/cluster.owns_thread, in FORK_SAFE_THREADS): those run its event loop and never
+    touch what a forked child does (a child answers from its own copy of the memory and exits
+    with os._exit)."""
     others = [t for t in threading.enumerate() if t is not threading.current_thread()]
-    if not others:
-        return True
-    if "rotonly_cli.runtime.cluster" not in sys.modules:  # no session was ever opened
-        return False
-    from rotonly_cli.runtime.cluster import owns_thread
-
-    return all(owns_thread(t) for t in others)
+    return all(any(safe(t) for safe in FORK_SAFE_THREADS) for t in others)
 
 
 def would_fork(num_matches: int, jobs: int) -> bool:
