@@ -69,6 +69,26 @@ def active() -> ClusterSession | None:
     return _ACTIVE[-1] if _ACTIVE else None
 
 
+def map_edges(stage: str, fn: Callable, R, counts, jobs: int, arrays_of: Callable, build_batch: Callable, shared,
+              batch_of: Callable, task_matches: int):
+    """(``fn(R, batch)`` over every edge, where it ran) for a per-edge stage: on the --cluster
+    session in tasks of ``task_matches`` matches (:meth:`ClusterSession.map_edge_chunks` with
+    ``arrays_of``, ``build_batch``, ``shared``), else over ``jobs`` forked processes, chunk by
+    chunk (runtime.parallel.map_edge_chunks with ``batch_of(e0, e1)``); where it ran: "cluster"
+    or the number of processes."""
+    import numpy as np
+
+    from rotonly_cli.runtime.parallel import map_edge_chunks, plan_counts
+
+    session = active()
+    if session is not None:
+        return session.map_edge_chunks(stage, fn, R, counts, arrays_of, build_batch, shared, task_matches), "cluster"
+    ranges = plan_counts(counts, jobs)
+    with np.errstate(all="ignore"):  # handled corner cases (rotonly_cli.twoview._quiet)
+        # chunk by chunk: the matches of one chunk of edges at a time (issue 49)
+        return map_edge_chunks(fn, R, counts, batch_of, ranges), len(ranges)
+
+
 def owns_thread(thread) -> bool:
     """Whether ``thread`` is one of Dask's (a session is open and it is a daemon thread that
     was not alive before the session opened): runtime.parallel forks beside those, since the

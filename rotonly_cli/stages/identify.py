@@ -17,7 +17,6 @@ import numpy as np
 
 from rotonly_cli.geometry.identification import IdentificationOptions, identify
 from rotonly_cli.runtime import cluster
-from rotonly_cli.runtime.parallel import map_edge_chunks, plan_counts
 from rotonly_cli.scene.view_graph import (
     ViewGraph,
     batch_of_arrays,
@@ -44,19 +43,11 @@ def identify_edges(graph: ViewGraph, normalized: dict[int, np.ndarray],
     if edges:
         R = np.stack([graph.edges[k].R_j_from_i for k in edges])
         counts = np.array([graph.edges[k].num_inliers for k in edges], dtype=np.int64)
-        session = cluster.active()
-        if session is not None:  # --cluster: tasks of CLUSTER_TASK_MATCHES (runtime/cluster.py)
-            processes = "cluster"
-            result = session.map_edge_chunks("identify", partial(identify, options=options), R, counts,
-                                             lambda e0, e1: edge_arrays(graph, edges[e0:e1]), batch_of_arrays,
-                                             normalized, CLUSTER_TASK_MATCHES)
-        else:
-            ranges = plan_counts(counts, jobs)
-            processes = len(ranges)
-            with np.errstate(all="ignore"):  # handled corner cases (rotonly_cli.twoview._quiet)
-                # chunk by chunk: the matches of one chunk of edges at a time (issue 49)
-                result = map_edge_chunks(partial(identify, options=options), R, counts,
-                                         lambda e0, e1: edge_batch(graph, normalized, edges[e0:e1]), ranges)
+        # --cluster: tasks of CLUSTER_TASK_MATCHES (runtime/cluster.py); else forked processes
+        result, processes = cluster.map_edges("identify", partial(identify, options=options), R, counts, jobs,
+                                              lambda e0, e1: edge_arrays(graph, edges[e0:e1]), batch_of_arrays,
+                                              normalized, lambda e0, e1: edge_batch(graph, normalized, edges[e0:e1]),
+                                              CLUSTER_TASK_MATCHES)
         for row, k in enumerate(edges):
             edge = graph.edges[k]
             edge.scene_kind = result.kinds[row].value

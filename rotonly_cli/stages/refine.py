@@ -17,7 +17,6 @@ from rotonly_cli.geometry import so3
 from rotonly_cli.geometry.identification import IdentificationOptions
 from rotonly_cli.geometry.trrm import TRRMOptions, refine
 from rotonly_cli.runtime import cluster
-from rotonly_cli.runtime.parallel import map_edge_chunks, plan_counts
 from rotonly_cli.scene.view_graph import (
     ViewGraph,
     batch_of_arrays,
@@ -46,18 +45,10 @@ def refine_edges(graph: ViewGraph, normalized: dict[int, np.ndarray], options: T
         R0 = np.stack([graph.edges[k].R_j_from_i for k in edges])
         counts = np.array([graph.edges[k].num_inliers for k in edges], dtype=np.int64)
         fn = partial(refine, options=options, identification_options=identification_options)
-        session = cluster.active()
-        if session is not None:  # --cluster: tasks of CLUSTER_TASK_MATCHES (runtime/cluster.py)
-            report["processes"] = "cluster"
-            result = session.map_edge_chunks("refine", fn, R0, counts, lambda e0, e1: edge_arrays(graph, edges[e0:e1]),
-                                             batch_of_arrays, normalized, CLUSTER_TASK_MATCHES)
-        else:
-            ranges = plan_counts(counts, jobs)
-            report["processes"] = len(ranges)
-            with np.errstate(all="ignore"):  # handled corner cases (rotonly_cli.twoview._quiet)
-                # chunk by chunk: the matches of one chunk of edges at a time (issue 49)
-                result = map_edge_chunks(fn, R0, counts, lambda e0, e1: edge_batch(graph, normalized, edges[e0:e1]),
-                                         ranges)
+        # --cluster: tasks of CLUSTER_TASK_MATCHES (runtime/cluster.py); else forked processes
+        result, report["processes"] = cluster.map_edges(
+            "refine", fn, R0, counts, jobs, lambda e0, e1: edge_arrays(graph, edges[e0:e1]), batch_of_arrays,
+            normalized, lambda e0, e1: edge_batch(graph, normalized, edges[e0:e1]), CLUSTER_TASK_MATCHES)
         change = np.degrees(so3.geodesic_angle(result.rotations, R0))
         for row, k in enumerate(edges):
             edge = graph.edges[k]
