@@ -68,3 +68,8 @@ class DyingPeer(ForkedPeer):
 
     def __init__(self, handler):
         super().__init__(dies_in_a_child(handler, 9))
+
+
+def folder_bytes(folder: Path) -> dict[str, bytes]:
+    """Every file under ``folder`` (relative path -> bytes): a folder compared before and after a run."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}

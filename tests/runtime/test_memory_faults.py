@@ -19,7 +19,7 @@ from rotonly_cli import chain, pipeline
 from rotonly_cli.cli import main
 from rotonly_cli.runtime import parallel
 
-from helpers import DATA_FIXTURES, REPOSITORY
+from helpers import DATA_FIXTURES, REPOSITORY, folder_bytes
 
 DATABASE = DATA_FIXTURES / "colmap38_herzjesu4" / "database.db"
 ALLOCATION = r"Unable to allocate 64\.0 TiB for an array with shape \(70368744177664,\) and data type uint8"
@@ -27,10 +27,6 @@ ALLOCATION = r"Unable to allocate 64\.0 TiB for an array with shape \(7036874417
 
 def _allocate(*_):
     np.empty(1 << 46, dtype=np.uint8)  # 64 TiB: numpy's _ArrayMemoryError
-
-
-def _snapshot(folder: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 @pytest.fixture
@@ -42,13 +38,13 @@ def previous_out(tmp_path) -> Path:
 
 
 def _one_line_and_out_unchanged(capsys, out: Path) -> str:
-    before = _snapshot(out)
+    before = folder_bytes(out)
     with pytest.raises(SystemExit) as exit_info:
         main(["-q", "run", str(DATABASE), "-o", str(out)])
     err = capsys.readouterr().err.splitlines()
     assert exit_info.value.code == 1, err
     assert len(err) == 1 and err[0].startswith("error: "), err
-    assert _snapshot(out) == before
+    assert folder_bytes(out) == before
     assert sorted(p.name for p in out.parent.iterdir()) == ["out"]  # no staging folder left
     return err[0]
 
@@ -129,12 +125,12 @@ CAPPED = """if True:
     (400, "forked", r"error: refine ran out of memory \(Unable to allocate 1\.00 GiB for an array with shape "
                     r"\(134217728,\) and data type float64\); it needs about 0\.16 GB \(.*\)")])
 def test_under_an_address_space_limit(tmp_path, previous_out, room_mb, where, expected):
-    before = _snapshot(previous_out)
+    before = folder_bytes(previous_out)
     completed = subprocess.run([sys.executable, "-c", CAPPED, str(room_mb), where or "-", "-q", "run", str(DATABASE),
                                 "-o", str(previous_out)], capture_output=True, text=True, timeout=120,
                                cwd=REPOSITORY, env={**os.environ, "PYTHONPATH": str(REPOSITORY)})
     lines = completed.stderr.splitlines()
     assert completed.returncode == 1, completed.stderr[-3000:]
     assert len(lines) == 1 and re.fullmatch(expected, lines[0]), lines
-    assert _snapshot(previous_out) == before
+    assert folder_bytes(previous_out) == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]

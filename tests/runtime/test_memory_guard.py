@@ -20,7 +20,7 @@ from rotonly_cli.runtime import heartbeat, memory
 from rotonly_cli.scene.types import View
 from rotonly_cli.scene.view_graph import Edge, ViewGraph
 
-from helpers import DATA_FIXTURES, REPOSITORY
+from helpers import DATA_FIXTURES, REPOSITORY, folder_bytes
 
 DATABASE = DATA_FIXTURES / "colmap38_herzjesu4" / "database.db"  # 4 views, 26 225 stored matches
 
@@ -29,10 +29,6 @@ def _rotonly(capsys, *args) -> tuple[int, list[str]]:
     with pytest.raises(SystemExit) as exit_info:
         main([str(a) for a in args])
     return exit_info.value.code, capsys.readouterr().err.splitlines()
-
-
-def _snapshot(folder: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 @pytest.fixture
@@ -50,14 +46,14 @@ def _siblings(out: Path) -> list[str]:
 
 
 def test_max_memory_below_the_load_prediction_stops_before_loading(capsys, previous_out):
-    before, siblings = _snapshot(previous_out), _siblings(previous_out)
+    before, siblings = folder_bytes(previous_out), _siblings(previous_out)
     code, err = _rotonly(capsys, "-q", "run", DATABASE, "-o", previous_out, "--max-memory", "0.05")
     assert code == 1
     assert len(err) == 1
     # 26 225 stored matches, 48 403 keypoints: 160 MiB + 34 B x 26 225 + 48 B x 48 403 = 0.159 GiB
     assert err[0] == ("error: load needs about 0.16 GB (26225 matches, 48403 keypoints, 4 views, 6 edges), above the "
                       "limit of 0.05 GB (--max-memory)"), err[0]
-    assert _snapshot(previous_out) == before
+    assert folder_bytes(previous_out) == before
     assert _siblings(previous_out) == siblings  # no staging folder left beside OUT
 
 
@@ -66,14 +62,14 @@ def test_max_memory_between_stages_stops_at_the_first_stage_above_it(capsys, pre
     # before it at 0.160-0.165: 0.17 lets load .. optimize run and stops before translate when no smaller
     # chunk may be taken
     monkeypatch.setattr(memory, "MIN_CHUNK", 50_000)
-    before = _snapshot(previous_out)
+    before = folder_bytes(previous_out)
     code, err = _rotonly(capsys, "run", DATABASE, "-o", previous_out, "--max-memory", "0.17")
     assert code == 1
     errors = [line for line in err if "error" in line or "Traceback" in line]
     assert errors == ["error: translate needs about 0.19 GB (12071 matches, 15818 observations, 4 views, 6 edges, "
                       "10527 pairs within observations), above the limit of 0.17 GB (--max-memory)"], err
     assert any("optimize (GRRM): 4 views, 6 edges" in line for line in err), err  # the stages before it ran
-    assert _snapshot(previous_out) == before
+    assert folder_bytes(previous_out) == before
 
 
 def test_max_memory_degrades_ligt_to_smaller_chunks(capsys, tmp_path):
@@ -96,14 +92,14 @@ def test_memory_error_in_a_stage_is_one_line(capsys, previous_out, monkeypatch):
         np.empty(1 << 46, dtype=np.uint8)  # 64 TiB: numpy's _ArrayMemoryError
 
     monkeypatch.setitem(chain.STAGE_FUNCTIONS, "optimize", allocate)
-    before = _snapshot(previous_out)
+    before = folder_bytes(previous_out)
     code, err = _rotonly(capsys, "-q", "run", DATABASE, "-o", previous_out)
     assert code == 1
     assert len(err) == 1
     assert re.fullmatch(r"error: optimize ran out of memory \(Unable to allocate 64\.0 TiB for an array with shape "
                         r"\(70368744177664,\) and data type uint8\); it needs about 0\.17 GB \(12071 matches, .*\)",
                         err[0]), err[0]
-    assert _snapshot(previous_out) == before
+    assert folder_bytes(previous_out) == before
 
 
 @pytest.mark.parametrize("value", ["0", "-1", "nan"])
@@ -215,7 +211,7 @@ def test_address_space_cap_in_a_child_is_one_line(tmp_path, previous_out):
               "cap = memory._status_kb('VmSize') * 1024 + int(memory.START_ROOM) + 10 * 1024 * 1024; "
               "resource.setrlimit(resource.RLIMIT_AS, (cap, cap)); "
               "from rotonly_cli.cli import main; main(sys.argv[1:])")
-    before = _snapshot(previous_out)
+    before = folder_bytes(previous_out)
     completed = subprocess.run([sys.executable, "-c", script, "-q", "run", str(DATABASE), "-o", str(previous_out)],
                                capture_output=True, text=True, timeout=60, cwd=REPOSITORY,
                                env={"PYTHONPATH": str(REPOSITORY), "PATH": "/usr/bin:/bin"})
@@ -223,4 +219,4 @@ def test_address_space_cap_in_a_child_is_one_line(tmp_path, previous_out):
     lines = completed.stderr.splitlines()
     assert len(lines) == 1 and re.fullmatch(r"error: load needs about 1\.0\d GB \(26225 matches, .*\), above the limit "
                                             r"of 0\.[1-3]\d GB \(available memory\)", lines[0]), lines
-    assert _snapshot(previous_out) == before
+    assert folder_bytes(previous_out) == before
