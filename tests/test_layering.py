@@ -48,6 +48,7 @@ ALLOWED = {
     "bench": {"geometry", "io", "runtime", "baselines", "simulation", "twoview", "pipeline"},
     "cli": {"geometry", "scene", "io", "runtime", "simulation", "twoview", "evaluation", "pipeline", "convert",
             "bench"},
+    "console": {"runtime", "cli"},
     "__init__": {"api"},
 }
 

@@ -16,15 +16,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 REPOSITORY = Path(__file__).resolve().parents[2]
-#: the console script, run from this checkout; MIN_MATCHES_PER_JOB (argv[1]) may be lowered so that a
-#: small input forks its workers (identification, TRRM, GRRM's helper) as a large one does. It is set
-#: inside the command, where a Ctrl-C is answered as in `rotonly` itself: imported before
-#: console_main, numpy widened the start-up window in which Python prints its own traceback
+#: the console script (rotonly_cli/console.py), run from this checkout; MIN_MATCHES_PER_JOB (argv[1]) may
+#: be lowered so that a small input forks its workers (identification, TRRM, GRRM's helper) as a large one
+#: does. As in the console script, rotonly_cli.console (the Ctrl-C handler) is imported first, and a
+#: Ctrl-C while the CLI is imported is answered as there
 RUN = """if True:
     import sys
     minimum = int(sys.argv.pop(1))
     sys.argv[0] = "rotonly"
-    from rotonly_cli import cli
+    from rotonly_cli import console
+    try:
+        from rotonly_cli import cli
+    except (KeyboardInterrupt, MemoryError) as exc:
+        console.start_up_failed(exc)
     group_main = cli.cli.main
 
     def with_minimum(*args, **kwargs):
@@ -33,7 +37,7 @@ RUN = """if True:
         return group_main(*args, **kwargs)
 
     cli.cli.main = with_minimum
-    cli.console_main()
+    console.main()
 """
 #: how long the processes of a run may take to end after its main process did
 ORPHAN_GRACE_S = 3.0

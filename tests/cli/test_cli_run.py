@@ -256,16 +256,16 @@ def test_colmap_input_gives_openmvg_ids_in_file_name_order(tmp_path):
 
 
 def test_console_script_freezes_objects_before_shutdown_and_keeps_the_exit_code(monkeypatch, capsys, tmp_path):
-    """The installed `rotonly` is console_main: main, then gc.freeze before interpreter
-    shutdown (skips its full collection, ~0.2 s a run); exit codes are main's. main alone,
-    which the tests call in-process, freezes nothing."""
+    """The installed `rotonly` is console.main, which runs cli.console_main: main, then gc.freeze
+    before interpreter shutdown (skips its full collection, ~0.2 s a run); exit codes are main's.
+    main alone, which the tests call in-process, freezes nothing."""
     import gc
     import importlib.metadata
 
     from rotonly_cli import cli
 
     (entry,) = [e for e in importlib.metadata.entry_points(group="console_scripts") if e.name == "rotonly"]
-    assert entry.value == "rotonly_cli.cli:console_main"
+    assert entry.value == "rotonly_cli.console:main"
     frozen = []
     monkeypatch.setattr(gc, "freeze", lambda: frozen.append(True))
     for argv, code in ((["rotonly", "--version"], 0), (["rotonly", "no-such-command"], 2),

@@ -58,6 +58,42 @@ def test_console_main_sets_up_the_process_before_running_the_command(monkeypatch
     assert calls == ["blas", "heap", "defer", "main"]
 
 
+CTRL_C_WHILE_THE_CLI_IS_IMPORTED = textwrap.dedent("""
+    import os, signal, sys
+    from rotonly_cli import console
+    from rotonly_cli.runtime import interrupts
+    assert signal.getsignal(signal.SIGINT) is interrupts.cli_handler, "no handler after the first import"
+    assert "rotonly_cli.cli" not in sys.modules and "numpy" not in sys.modules and "click" not in sys.modules
+
+    class CtrlCOnClick:  # the user's Ctrl-C arrives while click is being imported
+        def find_spec(self, name, path=None, target=None):
+            if name == "click":
+                os.kill(os.getpid(), signal.SIGINT)
+            return None
+
+    sys.meta_path.insert(0, CtrlCOnClick())
+    sys.argv = ["rotonly", "--version"]
+    console.main()
+    """)
+
+
+def test_console_script_answers_ctrl_c_while_the_cli_is_imported_with_one_line_and_130():
+    """rotonly_cli.console installs the CLI's Ctrl-C handler as its first statement, before the
+    CLI, click or numpy are imported (issue 53: Ctrl-C in that start-up gave Python's traceback)."""
+    completed = subprocess.run([sys.executable, "-c", CTRL_C_WHILE_THE_CLI_IS_IMPORTED],
+                               capture_output=True, text=True, timeout=60)
+    assert completed.returncode == 130, completed.stderr
+    assert completed.stderr == "error: interrupted\n"
+    assert completed.stdout == ""
+
+
+def test_console_script_runs_the_cli():
+    completed = subprocess.run([sys.executable, "-c", "import sys; sys.argv = ['rotonly', '--version'];"
+                                "from rotonly_cli import console; console.main()"],
+                               capture_output=True, text=True, timeout=60)
+    assert (completed.returncode, completed.stdout.split()[:2]) == (0, ["rotonly,", "version"]), completed.stderr
+
+
 def test_one_blas_thread_leaves_a_users_setting_alone():
     from rotonly_cli.runtime.startup import one_blas_thread_per_process
 
