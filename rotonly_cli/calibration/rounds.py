@@ -36,6 +36,7 @@ from rotonly_cli.calibration.guesses import (
     suspect_threshold_px,
     twin_cameras,
 )
+from rotonly_cli.calibration.loose import loose_focals, loose_warning
 from rotonly_cli.calibration.noise import projective_noise_sigma_px
 from rotonly_cli.errors import InputError
 from rotonly_cli.io import cameras
@@ -126,6 +127,10 @@ class Calibration:
     splits: dict[int, dict] = field(default_factory=dict)
     #: cameras one adjustment (:meth:`_one_adjustment`) has looked at already
     adjusted_once: set = field(default_factory=set)
+    #: guesses whose focal length the matches cannot determine (calibration/loose.py): the
+    #: ones that share their twins' focal, and the ones kept as given (not calibrated)
+    shared_focal: set = field(default_factory=set)
+    held_focal: set = field(default_factory=set)
     noise_sigma_px: float | None = None  #: the matches' noise (F-based), when it was measured
     settled: bool | None = None  #: whether the last round moved the intrinsics by little (None: no round)
     #: per round (``steps.rounds``), the scene with that round's estimate
@@ -142,11 +147,18 @@ class Calibration:
     def _calibrate_focals(self, cameras_: dict[int, str]) -> None:
         focals, report = view_graph_focals(self.scene, set(cameras_), self.options, self.jobs)
         self.steps.view_graph.append(report)
+        shared, held = loose_focals(self.given, self.scene, report["fundamental_pairs_by_camera"], self.options)
+        self.shared_focal |= shared
         if set(cameras_) - set(focals):  # no fundamental matrix fixed them: a rotating camera?
             rotating, rotating_report = rotating_camera_focals(self.scene, set(cameras_) - set(focals), self.options)
             if rotating_report["cameras"]:
                 self.steps.view_graph.append(rotating_report)
             focals = {**focals, **rotating}
+            held -= set(rotating)
+        # a focal the matches cannot determine is not calibrated: it stays as given (loose.py)
+        self.held_focal |= held
+        cameras_ = {c: why for c, why in cameras_.items() if c not in held}
+        focals = {c: k for c, k in focals.items() if c not in held}
         self.scene = with_intrinsics(self.scene, focals)
         for camera_id, why in cameras_.items():
             self.calibrate[camera_id] = why
@@ -272,7 +284,8 @@ class Calibration:
         (twins sharing), each camera's estimate gated against its ``reference`` (:func:`gate`;
         the focal of a camera in ``guesses`` always taken): {camera: intrinsics as the input's
         model}, and the report with the shifts."""
-        estimated, report = estimate_intrinsics(posed, camera_ids, self.options, twin_cameras(self.given, camera_ids))
+        estimated, report = estimate_intrinsics(posed, camera_ids, self.options, twin_cameras(self.given, camera_ids),
+                                                frozenset(self.shared_focal))
         gated, shifts, sigmas = {}, {}, {}
         for camera_id, estimate in estimated.items():
             # a focal the input marks as a guess has no value to protect: the view-graph focal
@@ -409,8 +422,10 @@ class Calibration:
         twins = {c for group in twin_cameras(self.given, self.given) if len(group) > 1 for c in group}
         warnings += [zoom_warning(finding, split_to.get(finding["camera"]), finding["camera"] in twins)
                      for finding in (self.steps.zoom_check or {}).get("disagree", [])]
+        warnings += loose_warning(self.given, final, self.shared_focal & set(self.calibrate), self.held_focal,
+                                  self.options)
         for camera_id, intrinsic in self.given.items():
-            if intrinsic.prior_focal is False and camera_id not in self.calibrate:
+            if intrinsic.prior_focal is False and camera_id not in self.calibrate and camera_id not in self.held_focal:
                 warnings.append(f"camera {camera_id}: its focal length is marked as a guess (prior_focal_length = 0) "
                                 f"and is used as given (--intrinsics {self.options.mode})")
         return {
