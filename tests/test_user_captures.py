@@ -223,3 +223,29 @@ def test_a_wall_seen_by_images_each_with_a_guess_of_its_own_keeps_them():
     [warning] = result.summary["warnings"]
     assert warning.startswith("camera(s) 1, 2, 3, 4, 5, 6 keep the given focal length (1000, 1000.1, 1000.2")
     assert len(fixed.summary["warnings"]) == 6  # fixed: a line per guess used as given
+
+
+def test_a_calibration_that_reprojects_worse_than_the_given_camera_is_not_written(monkeypatch):
+    """The safety net behind calibration/loose.py: with its rule switched off (a focal per
+    image, as before) and one round, the wall's six cameras were written at 1214-1621 px and
+    the rotations 4.37° off. The final pass with those focals reprojects at sigma 1.50 px,
+    the given intrinsics' at 0.70 px: the given ones are written, with one warning, and the
+    rotations are `--intrinsics fixed`'s (0.0119°). No ground truth is used."""
+    from rotonly_cli.calibration import rounds
+    from rotonly_cli.options import RunOptions
+    from rotonly_cli.simulation import user_cameras
+
+    monkeypatch.setattr(rounds, "loose_focals", lambda *args: (set(), set()))
+    problem = user_cameras.simulate_plane(0)
+    scene = user_cameras.user_scene(problem, problem.guessed, user_cameras.verified_pairs(problem),
+                                    camera_per_view=True)
+    options = RunOptions()
+    options = replace(options, intrinsics=replace(options.intrinsics, max_rounds=1))
+    result = rotonly_cli.run(scene, progress=False, options=options)
+    report = result.reports["intrinsics"]
+    check = report["given_check"]
+    assert check["reverted"] and check["calibrated_sigma_px"] > 2 * check["given_sigma_px"]  # 1.50 / 0.70 px
+    assert report["kept_given_intrinsics"]
+    assert _rotation_error_deg(result, problem) < 0.02  # measured 0.0119, fixed's
+    [warning] = result.summary["warnings"]
+    assert warning.startswith("the calibration of camera(s) 1, 2, 3, 4, 5, 6 made the reconstruction reproject worse")
