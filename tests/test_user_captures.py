@@ -168,3 +168,84 @@ def test_a_guessed_camera_over_flat_ground_is_not_calibrated_from_one_fundamenta
     report = result.reports["intrinsics"]
     assert report["cameras"]["1"]["end"]["focal_px"] == pytest.approx(1380.0, rel=0.005)  # measured 1379.3
     assert report["view_graph_calibration"][0]["num_pairs"] == 1
+
+
+def _rotation_error_deg(result, problem) -> float:
+    from rotonly_cli.geometry import alignment
+
+    ids = sorted(result.rotations)
+    assert ids == sorted(problem.gt_poses)
+    return float(alignment.rotation_errors_after_alignment(
+        np.array([result.rotations[v] for v in ids]),
+        np.array([problem.gt_poses[v].R_cam_from_world for v in ids]))[0].mean())
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_wall_seen_by_six_images_each_with_its_own_guessed_camera(seed):
+    """Issue 51, item 3: a plane seen by six images, each image its own PINHOLE camera whose
+    right focal (1000 px) is marked as a guess (COLMAP's camera per image, prior_focal_length
+    = 0). Every pair is PLANAR_OR_PANORAMIC: no fundamental matrix, no pure rotation. Before,
+    the rounds' adjustment gave each image a focal of its own, 750-1621 px, and the run ended
+    4.37° / 5.52° off (seeds 0 / 1; `--intrinsics fixed`: 0.0119° / 0.0115°), warning of
+    nothing about it. The six twins now share one focal, which the plane does fix."""
+    from rotonly_cli.simulation import user_cameras
+
+    problem = user_cameras.simulate_plane(seed)
+    pairs = user_cameras.verified_pairs(problem)
+    assert {pair.config for pair in pairs.values()} == {"PLANAR_OR_PANORAMIC"}
+    scene = user_cameras.user_scene(problem, problem.guessed, pairs, camera_per_view=True)
+    assert len(scene.intrinsics) == 6 and all(k.prior_focal is False for k in scene.intrinsics.values())
+    result = rotonly_cli.run(scene, progress=False)
+    assert _rotation_error_deg(result, problem) < 0.05  # measured 0.0141 / 0.0219
+    focals = {camera["end"]["focal_px"] for camera in result.reports["intrinsics"]["cameras"].values()}
+    assert len(focals) == 1 and abs(focals.pop() - 1000.0) < 5.0  # measured 1000.8 / 1000.7
+    [warning] = result.summary["warnings"]
+    assert warning.startswith("camera(s) 1, 2, 3, 4, 5, 6 share one focal length")
+
+
+def test_a_wall_seen_by_images_each_with_a_guess_of_its_own_keeps_them():
+    """The same wall, each image's camera given a focal of its own (1000.0 ... 1000.5 px, all
+    marked as guesses: no twins). One image of a plane cannot fix its focal: the given ones
+    are kept, with one warning line, and the rotations are `--intrinsics fixed`'s."""
+    from rotonly_cli.simulation import user_cameras
+
+    problem = user_cameras.simulate_plane(0)
+    scene = user_cameras.user_scene(problem, problem.guessed, user_cameras.verified_pairs(problem),
+                                    camera_per_view=True)
+    for k, camera_id in enumerate(sorted(scene.intrinsics)):
+        f = 1000.0 + 0.1 * k
+        scene.intrinsics[camera_id] = replace(scene.intrinsics[camera_id], params=np.array([f, f, 640.0, 480.0]))
+    result = rotonly_cli.run(scene, progress=False)
+    fixed = rotonly_cli.run(scene, progress=False, intrinsics="fixed")
+    assert _rotation_error_deg(result, problem) == pytest.approx(_rotation_error_deg(fixed, problem), abs=1e-9)
+    assert _rotation_error_deg(result, problem) < 0.02  # measured 0.0119
+    assert result.reports["intrinsics"]["kept_given_intrinsics"]
+    [warning] = result.summary["warnings"]
+    assert warning.startswith("camera(s) 1, 2, 3, 4, 5, 6 keep the given focal length (1000, 1000.1, 1000.2")
+    assert len(fixed.summary["warnings"]) == 6  # fixed: a line per guess used as given
+
+
+def test_a_calibration_that_reprojects_worse_than_the_given_camera_is_not_written(monkeypatch):
+    """The safety net behind calibration/loose.py: with its rule switched off (a focal per
+    image, as before) and one round, the wall's six cameras were written at 1214-1621 px and
+    the rotations 4.37° off. The final pass with those focals reprojects at sigma 1.50 px,
+    the given intrinsics' at 0.70 px: the given ones are written, with one warning, and the
+    rotations are `--intrinsics fixed`'s (0.0119°). No ground truth is used."""
+    from rotonly_cli.calibration import rounds
+    from rotonly_cli.options import RunOptions
+    from rotonly_cli.simulation import user_cameras
+
+    monkeypatch.setattr(rounds, "loose_focals", lambda *args: (set(), set()))
+    problem = user_cameras.simulate_plane(0)
+    scene = user_cameras.user_scene(problem, problem.guessed, user_cameras.verified_pairs(problem),
+                                    camera_per_view=True)
+    options = RunOptions()
+    options = replace(options, intrinsics=replace(options.intrinsics, max_rounds=1))
+    result = rotonly_cli.run(scene, progress=False, options=options)
+    report = result.reports["intrinsics"]
+    check = report["given_check"]
+    assert check["reverted"] and check["calibrated_sigma_px"] > 2 * check["given_sigma_px"]  # 1.50 / 0.70 px
+    assert report["kept_given_intrinsics"]
+    assert _rotation_error_deg(result, problem) < 0.02  # measured 0.0119, fixed's
+    [warning] = result.summary["warnings"]
+    assert warning.startswith("the calibration of camera(s) 1, 2, 3, 4, 5, 6 made the reconstruction reproject worse")

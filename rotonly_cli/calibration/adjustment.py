@@ -152,7 +152,8 @@ def _with_params(subset: SfMScene, params: dict[int, np.ndarray]) -> SfMScene:
 
 
 def estimate_intrinsics(scene: SfMScene, refine: set[int], options: IntrinsicsOptions,
-                        twins: list[list[int]] = ()) -> tuple[dict[int, Intrinsics], dict]:
+                        twins: list[list[int]] = (), shared_focal: frozenset[int] = frozenset(),
+                        ) -> tuple[dict[int, Intrinsics], dict]:
     """Intrinsics of the cameras in ``refine`` (in :func:`io.cameras.refinement_model`
     terms) estimated by pycolmap's bundle adjuster on the posed ``scene``'s longest tracks,
     every pose, point and those cameras' parameters free (two cameras fix the gauge). The
@@ -203,7 +204,10 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int], options: IntrinsicsOp
         # adjusted camera; a guessed one (COLMAP's one 1.2 x size guess can hide several
         # zooms) only its principal point, and each camera's own focal and distortion from the
         # second adjustment. One image's own focal is weakly fixed (it moved by percents).
-        whole = {c for group in merged if scene.intrinsics[group[0]].prior_focal is not False for c in group}
+        # Twins in ``shared_focal`` (guesses whose images hold too few fundamental matrices to
+        # tell their focal lengths apart: a plane) take it too.
+        whole = {c for group in merged for c in group
+                 if scene.intrinsics[group[0]].prior_focal is not False or c in shared_focal}
         # a group's cameras carry the uncertainty of the group's camera they take
         first_std = _parameter_std(first, adjuster, [group[0] for group in merged if group[0] in whole], offset,
                                    options)

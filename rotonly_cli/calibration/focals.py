@@ -65,6 +65,19 @@ def refit_fundamentals(scene: SfMScene, options: IntrinsicsOptions, jobs: int = 
     return dict(sorted(fundamentals.items()))
 
 
+def fundamental_pairs_by_camera(scene: SfMScene, fundamentals: dict[tuple[int, int], np.ndarray],
+                                camera_ids) -> dict[str, int]:
+    """{camera of ``camera_ids``: how many of ``fundamentals``' pairs have a view of it}: the
+    pairs whose epipolar geometry says something of its focal length (a plane or a pure
+    rotation holds no fundamental matrix: NO_FUNDAMENTAL)."""
+    counts = dict.fromkeys(sorted(camera_ids), 0)
+    for i, j in fundamentals:
+        for camera_id in {scene.views[i].intrinsics_id, scene.views[j].intrinsics_id}:
+            if camera_id in counts:
+                counts[camera_id] += 1
+    return {str(c): n for c, n in counts.items()}
+
+
 def view_graph_focals(scene: SfMScene, calibrate: set[int], options: IntrinsicsOptions,
                       jobs: int = 1) -> tuple[dict[int, Intrinsics], dict]:
     """New intrinsics (only the focal length changed) of the cameras in ``calibrate``, by
@@ -76,7 +89,9 @@ def view_graph_focals(scene: SfMScene, calibrate: set[int], options: IntrinsicsO
     share it too (docs/tuning.md "Measurements behind the code")."""
     start = time.perf_counter()
     fundamentals = refit_fundamentals(scene, options, jobs)
-    report = {"cameras": sorted(calibrate), "num_pairs": len(fundamentals), "refit_time_s": time.perf_counter() - start}
+    report = {"cameras": sorted(calibrate), "num_pairs": len(fundamentals),
+              "fundamental_pairs_by_camera": fundamental_pairs_by_camera(scene, fundamentals, calibrate),
+              "refit_time_s": time.perf_counter() - start}
     if len(fundamentals) < options.min_fundamental_pairs:
         report.update(success=False, time_s=time.perf_counter() - start)
         if fundamentals:

@@ -36,6 +36,7 @@ from rotonly_cli.calibration.guesses import (
     suspect_threshold_px,
     twin_cameras,
 )
+from rotonly_cli.calibration.loose import loose_focals, loose_warning
 from rotonly_cli.calibration.noise import projective_noise_sigma_px
 from rotonly_cli.errors import InputError
 from rotonly_cli.io import cameras
@@ -102,6 +103,9 @@ class CalibrationSteps:
     suspect_check: dict | None = None  #: the adjustment that confirms suspects (None: none to confirm)
     zoom_check: dict | None = None  #: :meth:`Calibration.check_zoom` (None: not made; it is made once)
     unsettled: dict | None = None  #: :meth:`Calibration.take_best_round` (None: the rounds settled)
+    #: the calibrated reconstruction against the given intrinsics' (chain/calibrate.py
+    #: no_worse_than_given; None: not compared)
+    given_check: dict | None = None
 
 
 @dataclass
@@ -126,6 +130,10 @@ class Calibration:
     splits: dict[int, dict] = field(default_factory=dict)
     #: cameras one adjustment (:meth:`_one_adjustment`) has looked at already
     adjusted_once: set = field(default_factory=set)
+    #: guesses whose focal length the matches cannot determine (calibration/loose.py): the
+    #: ones that share their twins' focal, and the ones kept as given (not calibrated)
+    shared_focal: set = field(default_factory=set)
+    held_focal: set = field(default_factory=set)
     noise_sigma_px: float | None = None  #: the matches' noise (F-based), when it was measured
     settled: bool | None = None  #: whether the last round moved the intrinsics by little (None: no round)
     #: per round (``steps.rounds``), the scene with that round's estimate
@@ -142,11 +150,18 @@ class Calibration:
     def _calibrate_focals(self, cameras_: dict[int, str]) -> None:
         focals, report = view_graph_focals(self.scene, set(cameras_), self.options, self.jobs)
         self.steps.view_graph.append(report)
+        shared, held = loose_focals(self.given, self.scene, report["fundamental_pairs_by_camera"], self.options)
+        self.shared_focal |= shared
         if set(cameras_) - set(focals):  # no fundamental matrix fixed them: a rotating camera?
             rotating, rotating_report = rotating_camera_focals(self.scene, set(cameras_) - set(focals), self.options)
             if rotating_report["cameras"]:
                 self.steps.view_graph.append(rotating_report)
             focals = {**focals, **rotating}
+            held -= set(rotating)
+        # a focal the matches cannot determine is not calibrated: it stays as given (loose.py)
+        self.held_focal |= held
+        cameras_ = {c: why for c, why in cameras_.items() if c not in held}
+        focals = {c: k for c, k in focals.items() if c not in held}
         self.scene = with_intrinsics(self.scene, focals)
         for camera_id, why in cameras_.items():
             self.calibrate[camera_id] = why
@@ -272,7 +287,8 @@ class Calibration:
         (twins sharing), each camera's estimate gated against its ``reference`` (:func:`gate`;
         the focal of a camera in ``guesses`` always taken): {camera: intrinsics as the input's
         model}, and the report with the shifts."""
-        estimated, report = estimate_intrinsics(posed, camera_ids, self.options, twin_cameras(self.given, camera_ids))
+        estimated, report = estimate_intrinsics(posed, camera_ids, self.options, twin_cameras(self.given, camera_ids),
+                                                frozenset(self.shared_focal))
         gated, shifts, sigmas = {}, {}, {}
         for camera_id, estimate in estimated.items():
             # a focal the input marks as a guess has no value to protect: the view-graph focal
@@ -400,6 +416,19 @@ class Calibration:
         with the given intrinsics gave the split images the other focal)."""
         return not self.splits and all(_same(self.scene.intrinsics[c], k) for c, k in self.given.items())
 
+    def given_scene(self) -> SfMScene:
+        """The input scene with every camera as given."""
+        return with_intrinsics(self.scene, {c: k for c, k in self.given.items()
+                                            if not _same(self.scene.intrinsics[c], k)})
+
+    def back_to_given_after_check(self, check: dict) -> None:
+        """The calibrated reconstruction reprojected worse than the given intrinsics' (``check``,
+        the comparison): every camera goes back to its given intrinsics, and the run says so."""
+        self.scene = self.given_scene()
+        self.steps.given_check = {**check, "reverted": True}
+        logger.info("intrinsics: the calibrated reconstruction reprojects at sigma %.3f px, the given intrinsics' at "
+                    "%.3f px: the given intrinsics are kept", check["calibrated_sigma_px"], check["given_sigma_px"])
+
     def finish(self, posed: SfMScene) -> dict:
         """The report (reports/intrinsics.json) of the run's final reconstruction ``posed``."""
         per_camera, overall = mean_reprojection_errors(posed)
@@ -409,8 +438,18 @@ class Calibration:
         twins = {c for group in twin_cameras(self.given, self.given) if len(group) > 1 for c in group}
         warnings += [zoom_warning(finding, split_to.get(finding["camera"]), finding["camera"] in twins)
                      for finding in (self.steps.zoom_check or {}).get("disagree", [])]
+        reverted = bool((self.steps.given_check or {}).get("reverted"))
+        if reverted:
+            check = self.steps.given_check
+            warnings.append(f"the calibration of camera(s) {', '.join(map(str, sorted(self.calibrate)))} made the "
+                            f"reconstruction reproject worse than the given intrinsics (sigma "
+                            f"{check['calibrated_sigma_px']:.3f} px against {check['given_sigma_px']:.3f} px): the "
+                            f"given intrinsics are kept (the matches cannot determine them: a plane, too little "
+                            f"parallax?); give the focal length if it is known")
+        warnings += loose_warning(self.given, final, set() if reverted else self.shared_focal & set(self.calibrate),
+                                  self.held_focal, self.options)
         for camera_id, intrinsic in self.given.items():
-            if intrinsic.prior_focal is False and camera_id not in self.calibrate:
+            if intrinsic.prior_focal is False and camera_id not in self.calibrate and camera_id not in self.held_focal:
                 warnings.append(f"camera {camera_id}: its focal length is marked as a guess (prior_focal_length = 0) "
                                 f"and is used as given (--intrinsics {self.options.mode})")
         return {
@@ -427,6 +466,7 @@ class Calibration:
             "centred_principal_point_check": self.steps.centred_check, "suspect_check": self.steps.suspect_check,
             "noise_sigma_px": self.noise_sigma_px,
             "zoom_check": self.steps.zoom_check, "unsettled": self.steps.unsettled,
+            "given_check": self.steps.given_check,
             "split_cameras": {str(c): split for c, split in self.splits.items()},
             "kept_given_intrinsics": all(_same(final[c], k) for c, k in self.given.items()),
             "warnings": warnings, "time_s": self.time_s}

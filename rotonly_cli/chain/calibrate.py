@@ -14,6 +14,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from rotonly_cli.chain.run import Run, output_scene
 from rotonly_cli.chain.stages import load_graph, load_options, run_chain
 from rotonly_cli.errors import AlgorithmError, InputError
@@ -208,4 +210,77 @@ def calibrated_chain(loaded: Run, chain=run_chain) -> Run:
     calibration.time_s += time.perf_counter() - started
     if not full_load or calibration.moved_from(graph_run.scene):
         graph_run = reload(False)
-    return _rerun(graph_run, calibration.scene, loaded, chain=chain)
+    result = _rerun(graph_run, calibration.scene, loaded, chain=chain)
+    return no_worse_than_given(result, loaded, chain) if guessed else result
+
+
+#: an estimation pass with the given intrinsics that reprojects this many times worse than
+#: the calibrated result settles the comparison of no_worse_than_given: with the same
+#: intrinsics such a pass reprojects within 3 % of a full one (docs/tuning.md "Cameras that
+#: cannot be calibrated"); closer, a full pass with the given intrinsics decides
+GIVEN_SCREEN_RATIO = 1.1
+#: ... and the calibration is worse when its final pass reprojects more than this fraction
+#: above the given intrinsics' full pass: the wall's shared focal 1000.7 px against the given
+#: 1000 px differ by less (docs/tuning.md "Cameras that cannot be calibrated")
+WORSE_THAN_GIVEN = 0.02
+
+
+def _reprojection_sigma(run: Run) -> float:
+    """The triangulate stage's robust sigma (px) of every observation's reprojection error
+    before it drops any: the reconstruction's own cost, in the matches' units; inf without one."""
+    sigma = run.reports.get("triangulate", {}).get("outlier_sigma_px")
+    return float(sigma) if sigma is not None and np.isfinite(sigma) else float("inf")
+
+
+def _registered(run: Run) -> int:
+    return 0 if run.centers is None else int(np.all(np.isfinite(run.centers), axis=1).sum())
+
+
+def no_worse_than_given(result: Run, loaded: Run, chain=run_chain) -> Run:
+    """``result`` (the final pass with the calibrated intrinsics), or the run with every
+    camera as given when that reconstruction registers as many views and reprojects better
+    (:func:`_reprojection_sigma`, by more than WORSE_THAN_GIVEN): a calibration that makes
+    the reconstruction worse than the given intrinsics is never written (issue 51; a wall
+    seen by six images, a camera each: 1.50 px calibrated, 0.70 px given). First an
+    estimation pass with the given intrinsics (ESTIMATION_LOAD, ESTIMATION_STAGES): where it
+    reprojects GIVEN_SCREEN_RATIO times worse the calibration stands (a guess far off); else
+    a full pass decides. No ground truth."""
+    calibration = loaded.calibration
+    if calibration.splits or calibration.back_to_given():
+        return result
+    started = time.perf_counter()
+    given = calibration.given_scene()
+    check = {"calibrated_sigma_px": _reprojection_sigma(result), "calibrated_registered": _registered(result)}
+    try:
+        graph = load_graph(loaded.input_path, loaded.input_kind, given, loaded.options, **ESTIMATION_LOAD)
+        check["given_estimation_sigma_px"] = _reprojection_sigma(_rerun(graph, given, loaded, estimation=True,
+                                                                        chain=chain))
+    except AlgorithmError:  # no reconstruction with the given intrinsics
+        check["given_estimation_sigma_px"] = float("inf")
+    if check["calibrated_sigma_px"] * GIVEN_SCREEN_RATIO > check["given_estimation_sigma_px"]:
+        # the load stage's relative poses serve if it ran with the given intrinsics (no
+        # view-graph focal: as --intrinsics fixed would have run)
+        same_load = all(c in loaded.scene.intrinsics and loaded.scene.intrinsics[c].model == k.model
+                        and np.array_equal(loaded.scene.intrinsics[c].params, k.params)
+                        for c, k in given.intrinsics.items())
+        graph = loaded if same_load else load_graph(loaded.input_path, loaded.input_kind, given, loaded.options)
+        try:
+            given_run = _rerun(graph, given, loaded, chain=chain)
+        except AlgorithmError:
+            given_run = None
+        if given_run is not None:
+            check.update(given_sigma_px=_reprojection_sigma(given_run), given_registered=_registered(given_run))
+            if (check["given_sigma_px"] * (1.0 + WORSE_THAN_GIVEN) < check["calibrated_sigma_px"]
+                    and check["given_registered"] >= check["calibrated_registered"]):
+                check["time_s"] = time.perf_counter() - started
+                calibration.time_s += check["time_s"]
+                calibration.back_to_given_after_check(check)
+                return given_run
+    check["time_s"] = time.perf_counter() - started
+    calibration.steps.given_check = {**check, "reverted": False}
+    calibration.time_s += check["time_s"]
+    logger.info("intrinsics: the calibrated reconstruction reprojects at sigma %.4f px, an estimation pass with the "
+                "given intrinsics at %.4f px%s: the calibration is kept", check["calibrated_sigma_px"],
+                check["given_estimation_sigma_px"],
+                f", a full pass at {check['given_sigma_px']:.4f} px" if "given_sigma_px" in check else "")
+    return result

@@ -123,7 +123,8 @@ class IntrinsicsOptions:
     converged_focal_change: float = 0.015
     #: once settled, the images of each camera are calibrated apart: a zoom lens gets a second camera
     zoom_check: bool = True
-    #: ... an image with fewer fundamental matrices is not calibrated apart (its focal is loose)
+    #: ... an image with fewer fundamental matrices is not calibrated apart (its focal is loose;
+    #: a guess with twins then shares their focal: calibration/loose.py)
     zoom_min_pairs: int = 3
     #: ... a camera with fewer such images is not checked
     zoom_min_images: int = 4

@@ -179,6 +179,29 @@ def simulate_survey(seed: int, *, strips: int = 2, per_strip: int = 5, relief: f
     return UserCameraProblem(true, true, gt_poses, points, keypoints, matches, seed, 0.0, 0.0)
 
 
+def simulate_plane(seed: int, *, num_views: int = 6, num_points: int = 4000, distance: float = 10.0,
+                   spread: float = 3.0, noise_px: float = 0.5, outlier_fraction: float = 0.05, width: int = 1280,
+                   height: int = 960, focal: float = 1000.0, min_shared: int = 50) -> UserCameraProblem:
+    """A wall photographed from the front: ``num_points`` points on the plane z = 0 (a 16 x 12
+    rectangle), ``num_views`` cameras ``distance`` in front of it, up to ``spread`` aside and
+    ``spread`` / 2 up or down, each looking at a point of the wall within 1.5 of its centre
+    (5° of roll jitter). Every pair sees one plane: no fundamental matrix holds. The camera
+    is PINHOLE without distortion, ``guessed`` = ``true`` (the right focal) marked as a guess
+    (``prior_focal_length = 0``): what COLMAP makes of images whose EXIF focal was read as a
+    default."""
+    rng = np.random.default_rng(seed)
+    centers = np.column_stack([rng.uniform(-spread, spread, num_views), rng.uniform(-spread, spread, num_views) / 2,
+                               -distance * rng.uniform(0.85, 1.15, num_views)])
+    rotations = np.stack([_look_at(c, np.array([*rng.uniform(-1.5, 1.5, 2), 0.0]), np.deg2rad(rng.uniform(-5, 5)))
+                          for c in centers])
+    points = np.column_stack([rng.uniform(-8, 8, num_points), rng.uniform(-6, 6, num_points), np.zeros(num_points)])
+    true = Intrinsics(1, "PINHOLE", width, height, np.array([focal, focal, width / 2, height / 2]), prior_focal=True)
+    keypoints, matches = _observe(true, rotations, centers, points, rng, noise_px, outlier_fraction, min_shared)
+    gt_poses = {v + 1: Pose(rotations[v].copy(), centers[v].copy()) for v in range(num_views)}
+    return UserCameraProblem(true, replace(true, prior_focal=False), gt_poses, points, keypoints, matches, seed,
+                             0.0, 0.0)
+
+
 def _random_unit(rng: np.random.Generator) -> np.ndarray:
     axis = rng.normal(size=3)
     return axis / np.linalg.norm(axis)
@@ -243,7 +266,10 @@ def gt_scene(problem: UserCameraProblem) -> SfMScene:
 
 def openmvg_intrinsics(intrinsics: Intrinsics) -> Intrinsics:
     """An OpenMVG camera of a SIMPLE_RADIAL one: ``pinhole`` without distortion (what an
-    EXIF focal gives), ``pinhole_radial_k1`` with."""
+    EXIF focal gives), ``pinhole_radial_k1`` with; of a PINHOLE one (fx = fy), ``pinhole``."""
+    if intrinsics.model == "PINHOLE":  # fx = fy in these simulations
+        fx, _, cx, cy = np.asarray(intrinsics.params, dtype=np.float64)
+        return replace(intrinsics, id=0, model="pinhole", params=np.array([fx, cx, cy]), prior_focal=None)
     f, cx, cy, k1 = np.asarray(intrinsics.params, dtype=np.float64)
     if k1 == 0.0:
         return replace(intrinsics, id=0, model="pinhole", params=np.array([f, cx, cy]), prior_focal=None)
