@@ -10,7 +10,9 @@ Estimation", Fig. GRRM_scene): ``circular``, ``square``, ``linear`` and ``outwar
 * ``outward``: cameras on the circle look horizontally outwards; points fill the cylindrical
   ring r ∈ [200, 3000] m, z ∈ [-200, 200] m (uniform in area).
 * ``num_points`` (10 000) points are kept that are in front of and inside the 960×960 image
-  (focal 800 px, algorithms.md §6) of at least two cameras.
+  (focal 800 px, algorithms.md §6) of at least two cameras. Which camera sees which point is
+  held sparse (rotonly_cli.simulation.sparse_visibility): memory grows with the observations,
+  not with views x points.
 * Every observation gets one pixel-noise draw (same models as the two-view simulation, default
   magnitude U(0, n) px), shared by all pairs, so tracks are consistent.
 * Pairs: cameras at most ``window`` apart along the trajectory (cyclic for the closed ones)
