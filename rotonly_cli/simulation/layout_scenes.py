@@ -10,7 +10,9 @@ Estimation", Fig. GRRM_scene): ``circular``, ``square``, ``linear`` and ``outwar
 * ``outward``: cameras on the circle look horizontally outwards; points fill the cylindrical
   ring r ∈ [200, 3000] m, z ∈ [-200, 200] m (uniform in area).
 * ``num_points`` (10 000) points are kept that are in front of and inside the 960×960 image
-  (focal 800 px, algorithms.md §6) of at least two cameras.
+  (focal 800 px, algorithms.md §6) of at least two cameras. Which camera sees which point is
+  held sparse (rotonly_cli.simulation.sparse_visibility): memory grows with the observations,
+  not with views x points.
 * Every observation gets one pixel-noise draw (same models as the two-view simulation, default
   magnitude U(0, n) px), shared by all pairs, so tracks are consistent.
 * Pairs: cameras at most ``window`` apart along the trajectory (cyclic for the closed ones)
@@ -34,6 +36,8 @@ from rotonly_cli.geometry import so3
 from rotonly_cli.scene.types import Intrinsics, PairMatches, Pose, SfMScene, Structure, View
 from rotonly_cli.simulation.fivepoint import five_point_ransac, perturbed_rotation
 from rotonly_cli.simulation.pair_scenes import NOISE_MODELS, add_pixel_noise, bounded_rotation, normalized_to_pixels
+from rotonly_cli.simulation.sparse_visibility import (SparseVisibility, TrackLists, shared_keypoints,
+                                                      visible_observations)
 
 SETUPS: tuple[str, ...] = ("circular", "square", "linear", "outward")
 INITS: tuple[str, ...] = ("ransac", "perturbed", "truth")
@@ -44,7 +48,7 @@ class MultiViewProblem:
     scene: SfMScene  # views, intrinsics, keypoints, normalized (noisy), pairs with initial R_j_from_i; no poses
     gt_poses: dict[int, Pose]
     points_in_world: np.ndarray  # (N, 3)
-    visibility: np.ndarray  # (n_views, N) bool
+    sparse_visibility: SparseVisibility  # per view the points it sees; keypoint k = its k-th
     corrupted_pairs: list[tuple[int, int]]
     setup: str
     noise_px: float
@@ -52,15 +56,20 @@ class MultiViewProblem:
     image_size: tuple[int, int]
     parameters: dict = field(default_factory=dict)
 
+    @property
+    def visibility(self) -> np.ndarray:
+        """(n_views, N) bool, which view sees which point: O(views x points), for small problems."""
+        return self.sparse_visibility.dense()
+
     def gt_scene(self) -> SfMScene:
         """The scene with ground-truth poses and the true points as structure (for sfm_data.json)."""
         gt = copy.copy(self.scene)
         gt.poses = {k: Pose(p.R_cam_from_world.copy(), p.center.copy()) for k, p in self.gt_poses.items()}
-        kp_index = np.cumsum(self.visibility, axis=1) - 1
-        observations = [[(int(v), int(kp_index[v, k])) for v in np.flatnonzero(self.visibility[:, k])]
-                        for k in range(self.visibility.shape[1])]
+        track_lengths, view_feature = self.sparse_visibility.tracks()
         gt.structure = Structure(point_ids=np.arange(len(self.points_in_world), dtype=np.int64),
-                                 points=self.points_in_world.copy(), observations=observations)
+                                 points=self.points_in_world.copy(),
+                                 observations=TrackLists(track_lengths, view_feature),
+                                 observation_arrays=(track_lengths, view_feature))
         gt.pairs = {key: copy.copy(pair) for key, pair in self.scene.pairs.items()}
         for (i, j), pair in gt.pairs.items():  # GT relative poses in the GT scene
             R_i, R_j = self.gt_poses[i].R_cam_from_world, self.gt_poses[j].R_cam_from_world
@@ -138,12 +147,17 @@ def _point_sampler(setup: str, centers: np.ndarray, rng: np.random.Generator, ma
 
 
 def _window_pairs(num_views: int, window: int, cyclic: bool) -> np.ndarray:
-    i, j = np.triu_indices(num_views, k=1)
-    gap = j - i
+    """(pairs, 2) rows i < j at most ``window`` steps apart (cyclic: either way round), sorted,
+    made from every view's next ``window`` views (O(views x window), not all pairs)."""
+    steps = min(window, num_views)
+    first = np.repeat(np.arange(num_views, dtype=np.int64), steps)
+    second = first + np.tile(np.arange(1, steps + 1, dtype=np.int64), num_views)
     if cyclic:
-        gap = np.minimum(gap, num_views - gap)
-    keep = gap <= window
-    return np.column_stack([i[keep], j[keep]])
+        second %= num_views
+    keep = (second < num_views) & (second != first)
+    low, high = np.minimum(first, second)[keep], np.maximum(first, second)[keep]
+    key = np.unique(low * num_views + high)
+    return np.column_stack([key // num_views, key % num_views])
 
 
 # ----------------------------------------------------------------------------- main entry
@@ -181,32 +195,34 @@ def simulate_multiview(setup: str = "circular", *, num_views: int = 100, num_poi
     tilt = np.deg2rad(max_tilt_deg)
     R_cam_from_world = np.stack([bounded_rotation(rng, tilt) @ orient(h) for h in headings])
 
-    # --- points seen by >= 2 cameras, in batches (all cameras x batch projected at once)
+    # --- points seen by >= 2 cameras, in batches (visibility kept sparse: sparse_visibility.py)
     sample = _point_sampler(setup, centers, rng, max_height, ring, ring_height)
     half = 0.5 * np.asarray(image_size, dtype=float) / focal
-    kept_points, kept_vis, have = [], [], 0
+    kept_points, kept_views, kept_ids, have = [], [], [], 0
     batch = max(2 * num_points, 2000)
     for _ in range(200):
         X = sample(batch)
-        X_cam = np.einsum("vab,vnb->vna", R_cam_from_world, X[None] - centers[:, None])  # (n, B, 3)
-        depth = X_cam[..., 2]
-        safe = np.where(depth > 1e-9, depth, 1.0)
-        x = X_cam[..., :2] / safe[..., None]
-        vis = (depth > 1e-9) & (np.abs(x[..., 0]) < half[0]) & (np.abs(x[..., 1]) < half[1])
-        ok = vis.sum(axis=0) >= 2
+        views_seen, points_seen = visible_observations(X, R_cam_from_world, centers, half)
+        ok = np.bincount(points_seen, minlength=len(X)) >= 2
+        new_id = np.cumsum(ok) - 1 + have
+        kept = ok[points_seen]
         kept_points.append(X[ok])
-        kept_vis.append(vis[:, ok])
+        kept_views.append(views_seen[kept])
+        kept_ids.append(new_id[points_seen[kept]])
         have += int(ok.sum())
         if have >= num_points:
             break
     if have < num_points:
         raise AlgorithmError(f"could only place {have} of {num_points} points seen by two cameras ({setup})")
     points = np.concatenate(kept_points)[:num_points]
-    visibility = np.concatenate(kept_vis, axis=1)[:, :num_points]
+    observation_views, observation_ids = np.concatenate(kept_views), np.concatenate(kept_ids)
+    first_points = observation_ids < num_points
+    visibility = SparseVisibility.from_observations(observation_views[first_points], observation_ids[first_points],
+                                                    num_views, num_points)
+    del kept_points, kept_views, kept_ids, observation_views, observation_ids, first_points
 
     # --- per-view keypoints (noise drawn once per observation)
-    X_cam = np.einsum("vab,vnb->vna", R_cam_from_world, points[None] - centers[:, None])
-    x_true = X_cam[..., :2] / X_cam[..., 2:3]
+    x_true = _true_image_points(points, R_cam_from_world, centers, visibility)
     swapped = _swap_look_alikes(x_true, visibility, swapped_fraction, look_alike_px / focal, rng)
     scene = SfMScene(source="simulation")
     scene.intrinsics[0] = Intrinsics(id=0, model="PINHOLE", width=image_size[0], height=image_size[1],
@@ -214,25 +230,26 @@ def simulate_multiview(setup: str = "circular", *, num_views: int = 100, num_poi
     gt_poses: dict[int, Pose] = {}
     for v in range(num_views):
         scene.views[v] = View(id=v, name=f"sim_{v:04d}.jpg", intrinsics_id=0)
-        x_noisy = add_pixel_noise(x_true[v, visibility[v]], noise_px, focal, rng, noise_model)
+        x_noisy = add_pixel_noise(x_true[visibility.offsets[v]:visibility.offsets[v + 1]], noise_px, focal, rng,
+                                  noise_model)
         scene.normalized[v] = x_noisy
         scene.keypoints[v] = normalized_to_pixels(x_noisy, focal, image_size)
         gt_poses[v] = Pose(R_cam_from_world[v].copy(), centers[v].copy())
 
     # --- pairs, matches and initial relative poses
-    kp_index = np.cumsum(visibility, axis=1) - 1  # keypoint index of point k in view v (where visible)
     candidates = _window_pairs(num_views, window, cyclic=setup != "linear")
     threshold = ransac_threshold_px if ransac_threshold_px is not None else max(1.0, 2.0 * noise_px)
     for i, j in candidates:
-        shared = np.flatnonzero(visibility[i] & visibility[j])
-        if len(shared) < min_shared:
+        keypoints_i, keypoints_j = shared_keypoints(visibility, i, j)  # the shared points, by point id
+        if len(keypoints_i) < min_shared:
             continue
-        matches = np.column_stack([kp_index[i, shared], kp_index[j, shared]]).astype(np.int64)
+        matches = np.column_stack([keypoints_i, keypoints_j]).astype(np.int64)
         R_true = R_cam_from_world[j] @ R_cam_from_world[i].T
         t_true = R_cam_from_world[j] @ (centers[i] - centers[j])
         t_true /= np.linalg.norm(t_true)
         if epipolar_outlier_fraction > 0:
-            matches = _move_along_epipolar_lines(scene, matches, x_true[j], shared, R_true, t_true, focal, image_size,
+            x_j_true = x_true[visibility.offsets[j]:visibility.offsets[j + 1]]
+            matches = _move_along_epipolar_lines(scene, matches, x_j_true, R_true, t_true, focal, image_size,
                                                  int(j), epipolar_outlier_fraction, epipolar_shift_px, noise_px,
                                                  noise_model, rng)
         pair = PairMatches(i=int(i), j=int(j), matches=matches, config="CALIBRATED")
@@ -267,26 +284,40 @@ def simulate_multiview(setup: str = "circular", *, num_views: int = 100, num_poi
                       epipolar_outlier_fraction=epipolar_outlier_fraction, epipolar_shift_px=list(epipolar_shift_px),
                       swapped_fraction=swapped_fraction, look_alike_px=look_alike_px,
                       num_swapped_observations=swapped)
-    return MultiViewProblem(scene=scene, gt_poses=gt_poses, points_in_world=points, visibility=visibility,
+    return MultiViewProblem(scene=scene, gt_poses=gt_poses, points_in_world=points, sparse_visibility=visibility,
                             corrupted_pairs=corrupted, setup=setup, noise_px=float(noise_px), focal=float(focal),
                             image_size=image_size, parameters=parameters)
 
 
-def _swap_look_alikes(x_true: np.ndarray, visibility: np.ndarray, fraction: float, radius: float,
+def _true_image_points(points: np.ndarray, R_cam_from_world: np.ndarray, centers: np.ndarray,
+                       visibility: SparseVisibility) -> np.ndarray:
+    """(observations, 2) normalized image position of every observation, view by view in
+    keypoint order (the same einsum per view as for all views at once, so the same bits)."""
+    x_true = np.empty((len(visibility.point_ids), 2))
+    for v in range(visibility.num_views):
+        rows = slice(visibility.offsets[v], visibility.offsets[v + 1])
+        X_cam = np.einsum("vab,vnb->vna", R_cam_from_world[v:v + 1],
+                          points[visibility.point_ids[rows]][None] - centers[v:v + 1, None])[0]
+        x_true[rows] = X_cam[:, :2] / X_cam[:, 2:3]
+    return x_true
+
+
+def _swap_look_alikes(x_true: np.ndarray, visibility: SparseVisibility, fraction: float, radius: float,
                       rng: np.random.Generator) -> int:
     """Repeated structure seen by one camera: in each view, about ``fraction`` of the visible
-    points trade their image positions with a look-alike point within ``radius`` (normalized
-    units) of them, in place, so every match of that view through them is wrong the same way
-    and the wrong matches form whole consistent tracks. Returns the number of observations
-    moved."""
+    points trade their image positions (``x_true``, per observation) with a look-alike point
+    within ``radius`` (normalized units) of them, in place, so every match of that view through
+    them is wrong the same way and the wrong matches form whole consistent tracks. Returns the
+    number of observations moved."""
     if fraction <= 0:
         return 0
     moved = 0
-    for v in range(x_true.shape[0]):
-        seen = np.flatnonzero(visibility[v])
+    for v in range(visibility.num_views):
+        first = int(visibility.offsets[v])
+        seen = np.arange(first, visibility.offsets[v + 1])  # the view's rows of x_true
         if seen.size < 2:
             continue
-        pts = x_true[v, seen]
+        pts = x_true[seen]
         order = rng.permutation(seen.size)
         taken = np.zeros(seen.size, dtype=bool)
         budget = int(round(fraction * seen.size / 2))
@@ -301,25 +332,26 @@ def _swap_look_alikes(x_true: np.ndarray, visibility: np.ndarray, fraction: floa
                 continue
             b = near[rng.integers(near.size)]
             ka, kb = seen[a], seen[b]
-            x_true[v, [ka, kb]] = x_true[v, [kb, ka]]
+            x_true[[ka, kb]] = x_true[[kb, ka]]
             taken[[a, b]] = True
             budget -= 1
             moved += 2
     return moved
 
 
-def _move_along_epipolar_lines(scene: SfMScene, matches: np.ndarray, x_j_true: np.ndarray, shared: np.ndarray,
+def _move_along_epipolar_lines(scene: SfMScene, matches: np.ndarray, x_j_true: np.ndarray,
                                R_true: np.ndarray, t_true: np.ndarray, focal: float, image_size: tuple[int, int],
                                j: int, fraction: float, shift_px: tuple[float, float], noise_px: float,
                                noise_model: str, rng: np.random.Generator) -> np.ndarray:
     """Wrong matches that pass any two-view check: ``fraction`` of the pair's matches get a
-    new keypoint in view j, the true one moved by U(shift_px) pixels (either way) along its
-    epipolar line (x_jᵀ E x_i = 0 still holds), with its own pixel noise. Returns the matches."""
+    new keypoint in view j, the true one (``x_j_true``: view j's true positions by keypoint)
+    moved by U(shift_px) pixels (either way) along its epipolar line (x_jᵀ E x_i = 0 still
+    holds), with its own pixel noise. Returns the matches."""
     count = int(round(fraction * len(matches)))
     if count == 0:
         return matches
     rows = rng.choice(len(matches), size=count, replace=False)
-    x_j = np.c_[x_j_true[shared[rows]], np.ones(count)]
+    x_j = np.c_[x_j_true[matches[rows, 1]], np.ones(count)]
     epipole = t_true / t_true[2] if abs(t_true[2]) > 1e-12 else None
     # the epipolar line through x_j runs towards the epipole (or along t for a far epipole)
     direction = (x_j - epipole)[:, :2] if epipole is not None else np.broadcast_to(t_true[:2], (count, 2))
