@@ -15,7 +15,8 @@ one thing changed per row (mean errors after the best global rotation / similari
   (``--weightings``; see :func:`weighted_system`);
 * ``track_edges``: GRRM on the graph completed with the view pairs that were never matched
   but share tracks (:func:`with_track_edges`: the pairs a BA links through its points; the
-  matcher's window leaves them out), from the same averaged start.
+  matcher's window leaves them out), from the same averaged start (``--track-edges-combined``:
+  without a robust loss and with V_g x k instead: the three levers together).
 
 The run after the average stage is pickled in ``--cache`` (the load stage alone is a minute
 at 200 views), and the GT poses by name beside it.
@@ -202,6 +203,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rows", nargs="+", default=["start", "grrm", "loss", "held", "ligt"],
                         choices=("start", "grrm", "loss", "held", "ligt", "weights", "track_edges"))
     parser.add_argument("--weightings", nargs="+", default=["sqrt_k"], choices=("sqrt_k", "k"))
+    parser.add_argument("--track-edges-combined", action="store_true",
+                        help="track_edges with no robust loss and V_g x k (the three levers together)")
     args = parser.parse_args(argv)
     from rotonly_cli.stages.translate import translate_graph
 
@@ -254,8 +257,13 @@ def main(argv: list[str] | None = None) -> int:
     if "track_edges" in args.rows:
         completed, added, matched = with_track_edges(run)
         total = sum(e.num_inliers for e in completed.graph.edges if e.active)
-        R, report = grrm(completed, averaged)
-        row("GRRM on the edges completed from the tracks", f"{rotation_error(R, R_gt):.5f}",
+        if args.track_edges_combined:
+            R, report = grrm(completed, averaged, replace(run.options.optimize, loss="none"), weighted_system("k"))
+            label = "GRRM on the edges completed from the tracks, no robust loss and V_g x k"
+        else:
+            R, report = grrm(completed, averaged)
+            label = "GRRM on the edges completed from the tracks"
+        row(label, f"{rotation_error(R, R_gt):.5f}",
             f"{added} edges added, matches {matched} -> {total}, {report['iterations']} iterations")
     if "ligt" in args.rows:
         for label, R in (("GRRM's", default), ("the GT", R_gt)):
