@@ -7,9 +7,12 @@ BA), so the rotations written are rotation averaging's and the positions global
 positioning's: what BA adds is the difference to the full run. Intrinsics held, as in
 scripts/bench/strecha_tools.run_global_mapper; evaluated like ``rotonly eval`` (mean
 rotation error after the best global rotation, position error after the best similarity).
+``--ba-from OUT/sparse``: instead, pycolmap's bundle adjustment (K fixed) started from
+rotonly's COLMAP model (strecha_tools.run_ba_on_rotonly): where a BA takes rotonly's own
+poses and points on the same tracks.
 
     python scripts/research/probe_mapper_stages.py --database /work/scale/v200/database.db \\
-        --gt /work/scale/v200/gt/sfm_data.json [--skip-ba] [--threads 1]
+        --gt /work/scale/v200/gt/sfm_data.json [--skip-ba] [--threads 1] [--ba-from OUT/sparse]
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--skip-ba", action="store_true")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--ba-from", type=Path, help="rotonly's COLMAP model (OUT/sparse): BA from it instead")
     args = parser.parse_args(argv)
     import pycolmap
 
@@ -38,7 +42,13 @@ def main(argv: list[str] | None = None) -> int:
     import sys
 
     sys.path.insert(0, str(sys_path))
-    from strecha_tools import reconstruction_scene
+    from strecha_tools import reconstruction_scene, run_ba_on_rotonly
+
+    if args.ba_from is not None:
+        result = run_ba_on_rotonly("rotonly run", args.ba_from, load_ground_truth(args.gt))
+        print(f"| {result.method} | rotation mean {result.rotation_mean_deg:.5f} deg | position mean "
+              f"{result.position_mean:.5f} | {result.time_s:.0f} s |")
+        return 0
 
     pycolmap.logging.minloglevel = 2
     options = pycolmap.GlobalPipelineOptions()
