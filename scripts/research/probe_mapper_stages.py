@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -38,10 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     from rotonly_cli.evaluation.quality import evaluate
     from rotonly_cli.pipeline import load_ground_truth
 
-    sys_path = Path(__file__).resolve().parents[1] / "bench"
-    import sys
-
-    sys.path.insert(0, str(sys_path))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     from strecha_tools import reconstruction_scene, run_ba_on_rotonly
 
     if args.ba_from is not None:
