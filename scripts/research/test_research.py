@@ -593,3 +593,31 @@ def test_probe_openmvg_preset_builds_each_step_once(tmp_path):
     (project / "matches.f.bin").unlink()
     probe.build_project(bin_dir, FIXTURES / "castle_p19_openmvg", project, "NORMAL", ["e", "f"])
     assert (tmp_path / "calls").read_text().split()[len(calls):] == ["GeometricFilter"]
+
+
+def test_probe_long_tracks_completes_the_pairs_tracks_share():
+    """with_track_edges adds one REGULAR edge per unmatched view pair sharing at least
+    min_shared tracks (their keypoints as its matches, its rotation from the run's rotations),
+    and leaves the run's own graph as it was."""
+    from types import SimpleNamespace
+
+    from rotonly_cli.scene.types import View
+    from rotonly_cli.scene.view_graph import ViewGraph
+
+    probe = _load_script("probe_long_tracks")
+    rng = np.random.default_rng(3)
+    R = so3.exp(rng.normal(scale=0.1, size=(3, 3)))
+    m = np.arange(40)
+    edge = lambda i, j, a, b: Edge(i=i, j=j, R_j_from_i=R[j] @ R[i].T, t_dir=np.array([1.0, 0, 0]),
+                                   matches=np.stack([a, b], axis=1), scene_kind="REGULAR")
+    # keypoint k of view 0 <-> k + 5 of view 1 <-> k + 9 of view 2, pairs (0, 1) and (1, 2) matched
+    graph = ViewGraph(views={v: View(id=v, name=f"{v}.png", intrinsics_id=0) for v in range(3)},
+                      edges=[edge(0, 1, m, m + 5), edge(1, 2, m + 5, m + 9)])
+    run = SimpleNamespace(graph=graph, rotations=R)
+    completed, added, matched = probe.with_track_edges(run, min_shared=30)
+    assert (added, matched, len(graph.edges)) == (1, 80, 2)
+    new = completed.graph.edges[-1]
+    assert (new.i, new.j, new.scene_kind) == (0, 2, "REGULAR")
+    assert np.array_equal(np.sort(new.matches, axis=0), np.stack([m, m + 9], axis=1))
+    assert np.allclose(new.R_j_from_i, R[2] @ R[0].T)
+    assert probe.with_track_edges(run, min_shared=41)[1] == 0
