@@ -36,8 +36,12 @@ from rotonly_cli.geometry import so3
 from rotonly_cli.scene.types import Intrinsics, PairMatches, Pose, SfMScene, Structure, View
 from rotonly_cli.simulation.fivepoint import five_point_ransac, perturbed_rotation
 from rotonly_cli.simulation.pair_scenes import NOISE_MODELS, add_pixel_noise, bounded_rotation, normalized_to_pixels
-from rotonly_cli.simulation.sparse_visibility import (SparseVisibility, TrackLists, shared_keypoints,
-                                                      visible_observations)
+from rotonly_cli.simulation.sparse_visibility import (
+    SparseVisibility,
+    TrackLists,
+    shared_keypoints,
+    visible_observations,
+)
 
 SETUPS: tuple[str, ...] = ("circular", "square", "linear", "outward")
 INITS: tuple[str, ...] = ("ransac", "perturbed", "truth")

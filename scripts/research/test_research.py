@@ -608,8 +608,10 @@ def test_probe_long_tracks_completes_the_pairs_tracks_share():
     rng = np.random.default_rng(3)
     R = so3.exp(rng.normal(scale=0.1, size=(3, 3)))
     m = np.arange(40)
-    edge = lambda i, j, a, b: Edge(i=i, j=j, R_j_from_i=R[j] @ R[i].T, t_dir=np.array([1.0, 0, 0]),
-                                   matches=np.stack([a, b], axis=1), scene_kind="REGULAR")
+    def edge(i, j, a, b):
+        return Edge(i=i, j=j, R_j_from_i=R[j] @ R[i].T, t_dir=np.array([1.0, 0, 0]),
+                    matches=np.stack([a, b], axis=1), scene_kind="REGULAR")
+
     # keypoint k of view 0 <-> k + 5 of view 1 <-> k + 9 of view 2, pairs (0, 1) and (1, 2) matched
     graph = ViewGraph(views={v: View(id=v, name=f"{v}.png", intrinsics_id=0) for v in range(3)},
                       edges=[edge(0, 1, m, m + 5), edge(1, 2, m + 5, m + 9)])
