@@ -19,6 +19,8 @@ fewer than ``zoom_min_pairs`` fundamental matrices
 
 from __future__ import annotations
 
+from collections import Counter
+
 from rotonly_cli.calibration.guesses import twin_cameras
 from rotonly_cli.options import IntrinsicsOptions
 from rotonly_cli.scene.types import Intrinsics, SfMScene
@@ -32,10 +34,7 @@ def loose_focals(given: dict[int, Intrinsics], scene: SfMScene, fundamental_pair
     ``scene``: whose views say how many images each camera has."""
     counts = {int(c): n for c, n in fundamental_pairs.items()}
     loose = {c for c, n in counts.items() if n < options.zoom_min_pairs and given[c].prior_focal is False}
-    images = {c: 0 for c in counts}
-    for view in scene.views.values():
-        if view.intrinsics_id in images:
-            images[view.intrinsics_id] += 1
+    images = Counter(view.intrinsics_id for view in scene.views.values())
     shared, held = set(), set()
     for group in twin_cameras(given, set(given)):
         on_group = set(group) & loose

@@ -84,7 +84,8 @@ def with_focal(intrinsics: Intrinsics, focal_px: float, **changes) -> Intrinsics
     return replace(intrinsics, params=params, **changes)
 
 
-def _same(a: Intrinsics, b: Intrinsics) -> bool:
+def same_intrinsics(a: Intrinsics, b: Intrinsics) -> bool:
+    """Whether ``a`` and ``b`` are the same camera model with the same parameters."""
     return a.model == b.model and np.array_equal(np.asarray(a.params), np.asarray(b.params))
 
 
@@ -308,7 +309,7 @@ class Calibration:
     def _changes(self, before: dict[int, Intrinsics], after: dict[int, Intrinsics]) -> tuple[dict, float]:
         """The cameras of ``after`` that differ from ``before``, and the largest image shift
         that makes, as a fraction of the half diagonal."""
-        changed = {c: k for c, k in after.items() if not _same(k, before[c])}
+        changed = {c: k for c, k in after.items() if not same_intrinsics(k, before[c])}
         moved = max((shift_px(before[c], k) / half_diagonal(before[c]) for c, k in changed.items()), default=0.0)
         return changed, moved
 
@@ -388,7 +389,7 @@ class Calibration:
         best = max(range(len(self.steps.rounds)), key=lambda k: rank(self.steps.rounds[k]))
         chosen = self.round_scenes[best]
         changed = {c: chosen.intrinsics[c] for c in self.calibrate
-                   if c in chosen.intrinsics and not _same(chosen.intrinsics[c], self.scene.intrinsics[c])}
+                   if c in chosen.intrinsics and not same_intrinsics(chosen.intrinsics[c], self.scene.intrinsics[c])}
         if changed:
             self.scene = with_intrinsics(self.scene, changed)
         self.steps.unsettled = {"taken_round": best + 1,
@@ -414,12 +415,12 @@ class Calibration:
     def back_to_given(self) -> bool:
         """True when every camera is back to its given intrinsics (never after a split: a run
         with the given intrinsics gave the split images the other focal)."""
-        return not self.splits and all(_same(self.scene.intrinsics[c], k) for c, k in self.given.items())
+        return not self.splits and all(same_intrinsics(self.scene.intrinsics[c], k) for c, k in self.given.items())
 
     def given_scene(self) -> SfMScene:
         """The input scene with every camera as given."""
         return with_intrinsics(self.scene, {c: k for c, k in self.given.items()
-                                            if not _same(self.scene.intrinsics[c], k)})
+                                            if not same_intrinsics(self.scene.intrinsics[c], k)})
 
     def back_to_given_after_check(self, check: dict) -> None:
         """The calibrated reconstruction reprojected worse than the given intrinsics' (``check``,
@@ -468,14 +469,15 @@ class Calibration:
             "zoom_check": self.steps.zoom_check, "unsettled": self.steps.unsettled,
             "given_check": self.steps.given_check,
             "split_cameras": {str(c): split for c, split in self.splits.items()},
-            "kept_given_intrinsics": all(_same(final[c], k) for c, k in self.given.items()),
+            "kept_given_intrinsics": all(same_intrinsics(final[c], k) for c, k in self.given.items()),
             "warnings": warnings, "time_s": self.time_s}
 
     def changed(self) -> dict:
         """For the workspace state: the mode and the cameras whose intrinsics differ from the
         input's ({id: {"model", "params"}}), so that the stage commands use the same."""
         cameras_ = {str(c): {"model": k.model, "params": [float(v) for v in np.asarray(k.params).ravel()]}
-                    for c, k in self.scene.intrinsics.items() if c in self.given and not _same(k, self.given[c])}
+                    for c, k in self.scene.intrinsics.items()
+                    if c in self.given and not same_intrinsics(k, self.given[c])}
         splits = {str(c): {"from": split["from"], "views": split["views"], "focal_px": split["focal_px"]}
                   for c, split in self.splits.items()}
         return {"mode": str(self.options.mode), "cameras": cameras_, **({"splits": splits} if splits else {})} \

@@ -245,6 +245,8 @@ def no_worse_than_given(result: Run, loaded: Run, chain=run_chain) -> Run:
     estimation pass with the given intrinsics (ESTIMATION_LOAD, ESTIMATION_STAGES): where it
     reprojects GIVEN_SCREEN_RATIO times worse the calibration stands (a guess far off); else
     a full pass decides. No ground truth."""
+    from rotonly_cli.calibration.rounds import same_intrinsics
+
     calibration = loaded.calibration
     if calibration.splits or calibration.back_to_given():
         return result
@@ -260,8 +262,7 @@ def no_worse_than_given(result: Run, loaded: Run, chain=run_chain) -> Run:
     if check["calibrated_sigma_px"] * GIVEN_SCREEN_RATIO > check["given_estimation_sigma_px"]:
         # the load stage's relative poses serve if it ran with the given intrinsics (no
         # view-graph focal: as --intrinsics fixed would have run)
-        same_load = all(c in loaded.scene.intrinsics and loaded.scene.intrinsics[c].model == k.model
-                        and np.array_equal(loaded.scene.intrinsics[c].params, k.params)
+        same_load = all(c in loaded.scene.intrinsics and same_intrinsics(loaded.scene.intrinsics[c], k)
                         for c, k in given.intrinsics.items())
         graph = loaded if same_load else load_graph(loaded.input_path, loaded.input_kind, given, loaded.options)
         try:

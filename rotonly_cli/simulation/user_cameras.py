@@ -267,10 +267,9 @@ def gt_scene(problem: UserCameraProblem) -> SfMScene:
 def openmvg_intrinsics(intrinsics: Intrinsics) -> Intrinsics:
     """An OpenMVG camera of a SIMPLE_RADIAL one: ``pinhole`` without distortion (what an
     EXIF focal gives), ``pinhole_radial_k1`` with; of a PINHOLE one (fx = fy), ``pinhole``."""
-    if intrinsics.model == "PINHOLE":  # fx = fy in these simulations
-        fx, _, cx, cy = np.asarray(intrinsics.params, dtype=np.float64)
-        return replace(intrinsics, id=0, model="pinhole", params=np.array([fx, cx, cy]), prior_focal=None)
-    f, cx, cy, k1 = np.asarray(intrinsics.params, dtype=np.float64)
+    params = np.asarray(intrinsics.params, dtype=np.float64)
+    # PINHOLE: fx = fy in these simulations, no distortion
+    f, cx, cy, k1 = (params[0], params[2], params[3], 0.0) if intrinsics.model == "PINHOLE" else params
     if k1 == 0.0:
         return replace(intrinsics, id=0, model="pinhole", params=np.array([f, cx, cy]), prior_focal=None)
     return replace(intrinsics, id=0, model="pinhole_radial_k1", params=np.array([f, cx, cy, k1]), prior_focal=None)

@@ -34,6 +34,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from probe_grrm_simulation import edge_directions
 
 import grrm_fixed_translations as fixed
 
@@ -81,16 +82,6 @@ def position_error(C: np.ndarray, C_gt: np.ndarray) -> float:
     ok = np.all(np.isfinite(C), axis=1)
     s, R, t = alignment.umeyama(C[ok], C_gt[ok], with_scale=True)
     return float(np.linalg.norm(C_gt[ok] - alignment.apply_similarity(C[ok], s, R, t), axis=1).mean())
-
-
-def edge_directions(graph, R: np.ndarray, C: np.ndarray) -> dict[int, np.ndarray]:
-    index = {v: k for k, v in enumerate(graph.view_ids())}
-    out = {}
-    for k, edge in enumerate(graph.edges):
-        i, j = index[edge.i], index[edge.j]
-        t = R[j] @ (C[i] - C[j])
-        out[k] = t / np.linalg.norm(t)
-    return out
 
 
 def weighted_system(kind: str):
