@@ -11,8 +11,13 @@ import pytest
 from rotonly_cli.simulation import layout_scenes
 from rotonly_cli.simulation.layout_scenes import SETUPS, _point_sampler, camera_layout, simulate_multiview
 from rotonly_cli.simulation.pair_scenes import bounded_rotation
-from rotonly_cli.simulation.sparse_visibility import (CAMERAS_PER_GROUP, SparseVisibility, TrackLists,
-                                                      shared_keypoints, visible_observations)
+from rotonly_cli.simulation.sparse_visibility import (
+    CAMERAS_PER_GROUP,
+    SparseVisibility,
+    TrackLists,
+    shared_keypoints,
+    visible_observations,
+)
 
 HALF = np.array([0.6, 0.6])  # 960 px image, focal 800
 
