@@ -14,10 +14,14 @@ import pytest
 
 @pytest.fixture(autouse=True)
 def _sigint_handler_restored():
-    """Each test starts and ends with the Ctrl-C handler it found: ``cli.console_main``, called
-    in this process by some tests, installs the CLI's handler for the rest of the process
-    (runtime/interrupts), which would then ignore Ctrl-C in the tests after it."""
+    """Each test starts and ends with the Ctrl-C handler it found, and with no command's
+    outcome marked written: ``cli.console_main``, called in this process by some tests, installs
+    the CLI's handler for the rest of the process, and a command that put its output in place
+    leaves runtime/interrupts' flag set; together they would ignore Ctrl-C in the tests after it."""
+    from rotonly_cli.runtime import interrupts
+
     handler = signal.getsignal(signal.SIGINT)
     yield
     if handler is not None:
         signal.signal(signal.SIGINT, handler)
+    interrupts._WRITTEN[0] = False

@@ -229,9 +229,11 @@ def test_a_live_runs_folder_is_kept_whoever_else_holds_its_lock(tmp_path):
 
 
 def _interrupt_once(monkeypatch, owner, name: str, before: bool) -> None:
-    """``owner.name`` sends this process SIGINT once, before or after doing its work."""
+    """``owner.name`` sends this process SIGINT once, before or after doing its work; Python's
+    own handler (KeyboardInterrupt) is the one in force, whatever an earlier test left."""
     import signal
 
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # conftest restores the one found
     original = getattr(owner, name)
     sent = []
 
