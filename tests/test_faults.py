@@ -152,11 +152,16 @@ def tmpfs(folder: Path, options: str):
         subprocess.run(["umount", str(folder)], check=True)
 
 
+#: a rollback-journal database (DB is a WAL one): its private copy is SQLite's backup, whose
+#: full disk is an SQLite error, not an OSError
+JOURNAL_DB = DATA_FIXTURES / "herzjesu_p8" / "database.db"
+
+
 @needs_mount
-@pytest.mark.parametrize("size", ["512k", "2m"])
-def test_full_disk_under_out_is_one_line_exit_1_and_leaves_nothing(tmp_path, size):
+@pytest.mark.parametrize("size, database", [("512k", DB), ("2m", DB), ("512k", JOURNAL_DB)])
+def test_full_disk_under_out_is_one_line_exit_1_and_leaves_nothing(tmp_path, size, database):
     with tmpfs(tmp_path / "small", f"size={size}") as small:
-        code, err = finish(start(["run", DB, "-o", small / "deep" / "out"]))
+        code, err = finish(start(["run", database, "-o", small / "deep" / "out"]))
         assert code == 1, err
         lines = err.strip().splitlines()
         assert lines[-1].startswith("error: ") and "No space left on device" in lines[-1], err

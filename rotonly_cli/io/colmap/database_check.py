@@ -38,6 +38,7 @@ issue 53); rotonly never writes to it and reads a consistent state of it:
 
 from __future__ import annotations
 
+import errno
 import os
 import shutil
 import sqlite3
@@ -49,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from rotonly_cli.errors import InputError, InputLockedError
+from rotonly_cli.io import atomic
 from rotonly_cli.io.colmap.cameras import check_colmap_camera, colmap_camera_models
 from rotonly_cli.io.detect import is_sqlite
 from rotonly_cli.io.inputs import check_regular_file
@@ -71,6 +73,8 @@ BUSY_TIMEOUT_S = 10.0
 #: sqlite3 extended result codes: a lock held by another connection; a hot journal (a writer died
 #: mid-transaction) that a read-only connection may not roll back
 _SQLITE_BUSY, _SQLITE_READONLY_ROLLBACK = 5, 776
+#: SQLite's primary result codes (an extended code's low byte) of a write that failed
+_SQLITE_IOERR, _SQLITE_FULL = 10, 13
 
 
 def is_wal(path: PathLike) -> bool:
@@ -85,6 +89,18 @@ def _locked(exc: sqlite3.Error, shown: str) -> InputLockedError | None:
     if getattr(exc, "sqlite_errorcode", None) == _SQLITE_BUSY or "database is locked" in str(exc):
         return InputLockedError(f"database is locked by another process (waited {BUSY_TIMEOUT_S:g} s for its "
                                 "write to end); run again when it is done", path=shown)
+    return None
+
+
+def _copy_not_written(exc: sqlite3.Error, copy: Path) -> OSError | None:
+    """The OSError of a snapshot whose copy could not be written: SQLite reports a full disk
+    as SQLITE_FULL, or as an I/O error on a file system with no room left; None for anything
+    else (the input's own errors)."""
+    code = getattr(exc, "sqlite_errorcode", None)  # Python 3.11+; 3.10 has the message only
+    primary = None if code is None else code & 0xFF
+    if primary == _SQLITE_FULL or (code is None and "database or disk is full" in str(exc)) or \
+            (primary == _SQLITE_IOERR and atomic.disk_full(copy.parent)):
+        return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(copy))
     return None
 
 
@@ -167,6 +183,9 @@ def snapshot_database(path: PathLike, copy: PathLike, shown: PathLike | None = N
             return
         except sqlite3.Error as exc:
             copy.unlink(missing_ok=True)
+            not_written = _copy_not_written(exc, copy)
+            if not_written is not None:
+                raise not_written from None
             locked = _locked(exc, shown)
             if locked is not None:
                 raise locked from None
@@ -182,6 +201,9 @@ def snapshot_database(path: PathLike, copy: PathLike, shown: PathLike | None = N
                 rolled_back.execute("SELECT COUNT(*) FROM sqlite_master").fetchone()  # rolls the journal back
             return
         except sqlite3.Error as exc:
+            not_written = _copy_not_written(exc, copy)
+            if not_written is not None:
+                raise not_written from None
             raise InputError(f"unreadable SQLite database ({exc})", path=shown) from None
     raise InputLockedError("database keeps changing (its writers keep dying mid-transaction?)", path=shown)
 
