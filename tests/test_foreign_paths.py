@@ -112,6 +112,16 @@ def test_no_file_outside_the_input_out_and_python_is_opened(tmp_path):
     allowed = (str(database.parent), str(out), str(tmp_path / ".out."), *map(os.path.realpath, runtime), *runtime,
                "/usr/lib/", "/lib/", "/lib64/", "/usr/local/lib/", "/etc/ld.so.", "/etc/localtime",
                "/usr/share/locale/", "/usr/lib/locale/", "/proc/", "/sys/", "/dev/")
-    foreign = sorted(path for path in opened if path != str(tmp_path)
+    start_up = _interpreter_start_up(tmp_path)
+    foreign = sorted(path for path in opened if path != str(tmp_path) and path not in start_up
                      and not os.path.join(str(database.parent), path).startswith(allowed))
     assert not foreign, foreign
+
+
+def _interpreter_start_up(tmp_path: Path) -> set[str]:
+    """The files a bare ``python -c pass`` opens: the machine's own start-up (a ``.pth`` file
+    that installs a certificate, say), before any of rotonly's code runs."""
+    log = tmp_path / "bare.log"
+    subprocess.run(["strace", "-f", "-qq", "-e", "trace=open,openat,openat2,creat", "-o", str(log), sys.executable,
+                    "-c", "pass"], check=True, timeout=60)
+    return _opened_paths(log)[0]
