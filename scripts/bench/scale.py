@@ -3,7 +3,7 @@ simulated collections, each a process, side by side on the same database.
 
 Usage: python scripts/bench/scale.py [--recipes circular-200 circular-1000 ...] [--rounds 1]
                                      [--cache DIR] [-o RESULTS_DIR] [--no-mapper] [--jobs 2]
-                                     [--results-md docs/results.md] [--section scale]
+                                     [--results-md docs/results.md] [--section scale] [--mapper-only]
 
 Per recipe (``RECIPES``: `rotonly simulate multiview ... --format colmap` arguments), the input is
 made once (cached under ``--cache``), then in ``--rounds`` rounds, the order alternating:
@@ -189,7 +189,8 @@ def tables(rows: list[dict]) -> str:
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         counts = row["counts"]
-        mapper_wall = row.get("mapper", {}).get("wall_s")
+        mapper = row.get("mapper") or {}
+        mapper_wall = mapper.get("wall_s") if mapper.get("exit") == 0 else None  # a killed mapper: no ratio
         for method in ("rotonly", "mapper"):
             r = row.get(method)
             if not r:
@@ -220,6 +221,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cache", type=Path, default=Path("results/scale_inputs"))
     parser.add_argument("-o", "--output", type=Path, default=Path("results/scale"))
     parser.add_argument("--no-mapper", action="store_true")
+    parser.add_argument("--mapper-only", action="store_true",
+                        help="run the mapper only; rotonly's rows are taken from OUTPUT/results.json (an earlier "
+                             "invocation on the same recipes)")
     parser.add_argument("--timeout", type=float, default=None, help="seconds per process (killed after)")
     parser.add_argument("--results-md", type=Path, default=None)
     parser.add_argument("--section", default="scale",
@@ -229,12 +233,15 @@ def main(argv: list[str] | None = None) -> int:
     args.cache.mkdir(parents=True, exist_ok=True)
     args.output.mkdir(parents=True, exist_ok=True)
     rows = []
+    earlier = {}
+    if args.mapper_only:
+        earlier = {row["recipe"]: row for row in json.loads((args.output / "results.json").read_text())}
     for name in args.recipes:
         folder = make_input(name, args.cache)
         row = {"recipe": name, "counts": input_counts(folder / "database.db"), "rounds": []}
         work = args.output / name
         work.mkdir(parents=True, exist_ok=True)
-        methods = ["rotonly"] + ([] if args.no_mapper else ["mapper"])
+        methods = ["mapper"] if args.mapper_only else ["rotonly"] + ([] if args.no_mapper else ["mapper"])
         for k in range(args.rounds):
             done = {}
             for method in methods[k % len(methods):] + methods[:k % len(methods)]:
@@ -247,6 +254,9 @@ def main(argv: list[str] | None = None) -> int:
         for method in methods:  # the round of median wall time
             runs = sorted((r[method] for r in row["rounds"]), key=lambda r: r["wall_s"])
             row[method] = runs[len(runs) // 2]
+        if args.mapper_only:
+            row["rotonly"] = earlier[name]["rotonly"]
+            row["rounds"] = [{**old, **new} for old, new in zip(earlier[name]["rounds"], row["rounds"])]
         rows.append(row)
         (args.output / "results.json").write_text(json.dumps(rows, indent=1))
     table = tables(rows)
