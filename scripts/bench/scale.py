@@ -260,6 +260,9 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(row)
         (args.output / "results.json").write_text(json.dumps(rows, indent=1))
     table = tables(rows)
+    if args.mapper_only:
+        table = ("The mapper's rows from this command; rotonly's from the same command without --mapper-only, run "
+                 "before it into the same RESULTS (its results.json).\n\n" + table)
     print(table)
     title = "Scale: rotonly run against the global mapper on simulated collections"
     results_md.record(args.results_md, args.section, title if args.section == "scale" else f"{title} ({args.section})",
