@@ -253,6 +253,7 @@ def no_worse_than_given(result: Run, loaded: Run, chain=run_chain) -> Run:
     started = time.perf_counter()
     given = calibration.given_scene()
     check = {"calibrated_sigma_px": _reprojection_sigma(result), "calibrated_registered": _registered(result)}
+    given_run = None  # the full pass with the given intrinsics, when the screen asks for one
     try:
         graph = load_graph(loaded.input_path, loaded.input_kind, given, loaded.options, **ESTIMATION_LOAD)
         check["given_estimation_sigma_px"] = _reprojection_sigma(_rerun(graph, given, loaded, estimation=True,
@@ -268,18 +269,18 @@ def no_worse_than_given(result: Run, loaded: Run, chain=run_chain) -> Run:
         try:
             given_run = _rerun(graph, given, loaded, chain=chain)
         except AlgorithmError:
-            given_run = None
+            pass
         if given_run is not None:
             check.update(given_sigma_px=_reprojection_sigma(given_run), given_registered=_registered(given_run))
             if (check["given_sigma_px"] * (1.0 + WORSE_THAN_GIVEN) < check["calibrated_sigma_px"]
                     and check["given_registered"] >= check["calibrated_registered"]):
-                check["time_s"] = time.perf_counter() - started
-                calibration.time_s += check["time_s"]
-                calibration.back_to_given_after_check(check)
-                return given_run
+                result = given_run
     check["time_s"] = time.perf_counter() - started
-    calibration.steps.given_check = {**check, "reverted": False}
     calibration.time_s += check["time_s"]
+    if result is given_run:
+        calibration.back_to_given_after_check(check)
+        return result
+    calibration.steps.given_check = {**check, "reverted": False}
     logger.info("intrinsics: the calibrated reconstruction reprojects at sigma %.4f px, an estimation pass with the "
                 "given intrinsics at %.4f px%s: the calibration is kept", check["calibrated_sigma_px"],
                 check["given_estimation_sigma_px"],
