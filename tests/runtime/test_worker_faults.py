@@ -95,8 +95,11 @@ def test_workers_hold_no_copy_of_the_parents_pipe_ends():
 def test_ctrl_c_while_a_worker_is_forked_is_raised_in_the_parent():
     # SIGINT arrives inside os.fork's at-fork hooks (ours runs first, then logging's): raised there,
     # the KeyboardInterrupt was printed as "Exception ignored" and the run went on
+    # Python installs its KeyboardInterrupt handler only where SIGINT is not ignored, and a
+    # background job of a non-interactive shell (`pytest &`) starts with it ignored: set it here
     code = """if True:
         import logging, os, signal
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         from rotonly_cli.runtime import parallel
         armed = []
         os.register_at_fork(before=lambda: armed and os.kill(os.getpid(), signal.SIGINT))
