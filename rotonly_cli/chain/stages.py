@@ -9,6 +9,8 @@ load (INPUT -> view graph, re-estimated relative poses, min-inlier filter)
 
 from __future__ import annotations
 
+import logging
+import time
 from dataclasses import replace
 
 from rotonly_cli.chain.reject import rejection
@@ -17,6 +19,8 @@ from rotonly_cli.io.detect import InputKind
 from rotonly_cli.options import RunOptions
 from rotonly_cli.scene.types import SfMScene
 from rotonly_cli.stages.load import NOT_MEASURED
+
+logger = logging.getLogger(__name__)
 
 
 def load_options(options: RunOptions, **changes):
@@ -58,6 +62,17 @@ def average_stage(run: Run) -> None:
     from rotonly_cli.stages.average import average_graph
 
     run.rotations, run.reports["average"] = average_graph(run.graph, run.options.average)
+    if run.options.average.drop_minority_keypoints:
+        # once, before GRRM and LiGT (the rejection's re-solves keep what is left)
+        from rotonly_cli.scene.tracks import drop_minority_keypoint_matches
+
+        started = time.perf_counter()
+        report = drop_minority_keypoint_matches(run.graph, run.graph.active_edges())
+        report["time_s"] = time.perf_counter() - started
+        run.reports["average"]["minority_keypoints"] = report
+        run.reports["average"]["time_s"] += report["time_s"]
+        logger.info("average: %d of %d matches hang a second keypoint of a view on a track (fewer matches than "
+                    "the track's own): dropped", report["num_dropped"], report["num_matches"])
 
 
 def optimize_stage(run: Run) -> None:

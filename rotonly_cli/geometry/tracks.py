@@ -287,3 +287,39 @@ def even_ranges(sizes: np.ndarray, parts: int) -> list[tuple[int, int]]:
     cuts = [int(np.argmin(np.abs(before - before[-1] * k / parts))) for k in range(1, parts)]
     bounds = [0] + cuts + [len(sizes)]
     return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+
+
+def minority_keypoint_matches(node_keys: np.ndarray, num_feats: int) -> np.ndarray:
+    """(M,) bool: the matches with an end on a keypoint that its track (the connected
+    component of the match graph) sees in the same view through a keypoint with more matches.
+
+    ``node_keys``: (M, 2) int64 keys ``view * num_feats + keypoint`` of each match's two ends
+    (:func:`build_tracks`' numbering). A track sees a view once. A match moved along its
+    epipolar line passes every two-view test and hangs a second keypoint of a view on the
+    track with that one match, where the point's own keypoint has a match per view it is
+    matched in; GRRM's V_ik (eq:GRRMRes1) would weigh it by its wrong parallax, and LiGT
+    drops the whole track. Keypoints tied for the most matches of their view in a track are
+    all kept (two tracks merged: no minority to tell)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    node_keys = np.asarray(node_keys, dtype=np.int64).reshape(-1, 2)
+    if not len(node_keys):
+        return np.zeros(0, dtype=bool)
+    nodes = np.unique(node_keys)
+    # int32 node numbers below 2^31 nodes: half the memory of the per-match tables
+    node_of_end = np.searchsorted(nodes, node_keys).astype(np.int32 if nodes.size < 2**31 else np.int64)
+    n = nodes.size
+    _, label = connected_components(coo_matrix((np.ones(len(node_of_end), dtype=np.int8),
+                                                (node_of_end[:, 0], node_of_end[:, 1])), shape=(n, n)),
+                                    directed=False)
+    degree = np.bincount(node_of_end.ravel(), minlength=n)
+    # each (track, view)'s most matches on one keypoint
+    order = np.lexsort((nodes // num_feats, label))
+    first = np.r_[True, (np.diff(label[order]) != 0) | (np.diff(nodes[order] // num_feats) != 0)]
+    group = np.empty(n, dtype=np.int64)
+    group[order] = np.cumsum(first) - 1
+    most = np.zeros(int(group.max()) + 1, dtype=degree.dtype)
+    np.maximum.at(most, group, degree)
+    minority = degree < most[group]
+    return minority[node_of_end[:, 0]] | minority[node_of_end[:, 1]]

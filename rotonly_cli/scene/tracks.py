@@ -102,3 +102,36 @@ def graph_tracks(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: lis
             cache.last = (key, replace(tracks, conflicts=None) if keep_conflicts else tracks)
     per_view = [normalized.get(v, np.zeros((0, 2))) for v in graph.view_ids()]
     return tracks, gather_observations(tracks, per_view)
+
+
+#: Edge.dropped_matches reason of :func:`drop_minority_keypoint_matches`
+MINORITY_REASON = "minority keypoint of its track"
+
+
+def drop_minority_keypoint_matches(graph: ViewGraph, edges: list[int]) -> dict:
+    """Drop from ``edges`` the matches on a keypoint that its track sees in the same view
+    through a keypoint with more matches (geometry.tracks.minority_keypoint_matches). An edge
+    that would keep fewer than half its matches keeps them all (the edge filters judge such a
+    pair whole). Returns the report: matches looked at, dropped, edges touched."""
+    from rotonly_cli.geometry.tracks import minority_keypoint_matches
+
+    edges = [k for k in edges if graph.edges[k].num_inliers]
+    counts = np.array([graph.edges[k].num_inliers for k in edges], dtype=np.int64)
+    report = {"num_matches": int(counts.sum()), "num_dropped": 0, "edges_touched": 0}
+    if not edges:
+        return report
+    num_feats = max(int(graph.edges[k].matches.max()) for k in edges) + 1
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    keys = np.empty((int(bounds[-1]), 2), dtype=np.int64)  # filled edge by edge (no list of copies)
+    for k, a, b in zip(edges, bounds[:-1], bounds[1:]):
+        edge = graph.edges[k]
+        np.add(edge.matches, (edge.i * num_feats, edge.j * num_feats), out=keys[a:b], dtype=np.int64,
+               casting="unsafe")
+    drop = minority_keypoint_matches(keys, num_feats)
+    del keys
+    for k, a, b in zip(edges, bounds[:-1], bounds[1:]):
+        dropped = int(np.count_nonzero(drop[a:b]))
+        if dropped and 2 * dropped <= b - a:
+            report["num_dropped"] += graph.edges[k].drop_matches(~drop[a:b], MINORITY_REASON)
+            report["edges_touched"] += 1
+    return report

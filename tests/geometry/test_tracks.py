@@ -145,3 +145,32 @@ def test_segment_indices_and_ranks_are_the_python_loops(segments):
     np.testing.assert_array_equal(ranks_within(counts), [r for c in counts.tolist() for r in range(c)])
     np.testing.assert_array_equal(segment_indices(starts, counts),
                                   [s + r for s, c in zip(starts.tolist(), counts.tolist()) for r in range(c)])
+
+
+def _keys(rows, num_feats=100):
+    # (view_a, kp_a, view_b, kp_b) rows -> the (M, 2) node keys of minority_keypoint_matches
+    rows = np.asarray(rows, dtype=np.int64)
+    return np.stack([rows[:, 0] * num_feats + rows[:, 1], rows[:, 2] * num_feats + rows[:, 3]], axis=1)
+
+
+def test_a_second_keypoint_with_fewer_matches_is_the_minority():
+    from rotonly_cli.geometry.tracks import minority_keypoint_matches
+
+    # a point seen in views 0-3 (keypoint 0 each, all pairs matched), and a keypoint 7 of view 1
+    # hung on it by one match from view 0 (a match moved along its epipolar line); a second
+    # track of views 0-1 (keypoints 5, 6) is consistent
+    track = [(a, 0, b, 0) for a in range(4) for b in range(a + 1, 4)]
+    rows = track + [(0, 0, 1, 7), (0, 5, 1, 6)]
+    drop = minority_keypoint_matches(_keys(rows), 100)
+    assert drop.tolist() == [False] * len(track) + [True, False]
+
+
+def test_keypoints_tied_for_the_most_matches_are_kept():
+    from rotonly_cli.geometry.tracks import minority_keypoint_matches
+
+    # view 0's keypoint 0 matched to two keypoints of view 1, one match each: nothing tells
+    # which is the point's, both kept; a third view matching one of them makes it the majority
+    assert minority_keypoint_matches(_keys([(0, 0, 1, 0), (0, 0, 1, 1)]), 100).tolist() == [False, False]
+    rows = [(0, 0, 1, 0), (0, 0, 1, 1), (1, 0, 2, 0)]
+    assert minority_keypoint_matches(_keys(rows), 100).tolist() == [False, True, False]
+    assert not minority_keypoint_matches(np.zeros((0, 2), dtype=np.int64), 100).any()

@@ -62,3 +62,24 @@ def test_rotations_with_ten_percent_moved_matches_within_1_3_of_clean(setup):
     moved = [_rotation_error(simulate_multiview(setup, rng=seed, epipolar_outlier_fraction=0.1, **SMALL))
              for seed in range(30)]
     assert np.mean(moved) <= 1.3 * np.mean(clean), (np.mean(moved), np.mean(clean))
+
+
+def test_the_moved_matches_are_the_minority_keypoints_dropped():
+    """A moved match hangs a new keypoint of view j on the point's track, with that one match:
+    the minority-keypoint filter drops (nearly) exactly those (scene/tracks)."""
+    from rotonly_cli.scene.tracks import drop_minority_keypoint_matches
+
+    problem = simulate_multiview("circular", rng=4, epipolar_outlier_fraction=0.1, **SMALL)
+    graph, _ = build_view_graph(problem.scene, RunOptions().load)
+    edges = graph.active_edges()
+
+    def moved() -> int:  # matches on a keypoint the simulation appended to view j
+        return sum(int((graph.edges[k].matches[:, 1] >= problem.visibility[graph.edges[k].j].sum()).sum())
+                   for k in edges)
+
+    total, moved_before = sum(graph.edges[k].num_inliers for k in edges), moved()
+    report = drop_minority_keypoint_matches(graph, edges)
+    moved_after = moved()
+    assert moved_before > 0.08 * total and report["num_matches"] == total
+    assert moved_after <= 0.02 * moved_before, (moved_before, moved_after)
+    assert report["num_dropped"] - (moved_before - moved_after) <= 0.01 * total, report
