@@ -31,10 +31,12 @@ class LoadOptions:
     noise_sample_edges: int = 30
     #: seeded RANSAC runs per edge, keeping the matches all accept: three can agree on one wrong model
     consensus_runs: int = 4
-    #: off: an edge whose first two runs agree to this fraction keeps them (faster, less robust)
-    consensus_agreement: float | None = None
+    #: an edge whose first two runs agree to this fraction keeps them (4x faster); None: off
+    consensus_agreement: float | None = 0.01
     #: ... those two runs on at most this many matches
     agreement_max_matches: int = 500
+    #: ... on the edges of more matches than this only: four runs of a smaller edge cost little
+    agreement_min_matches: int = 1000
     #: a RANSAC run samples at most this many matches: its cost grows with them, its model hardly
     ransac_max_matches: int | None = 2000
     #: the matches are verified inliers already: pycolmap's floor of 1000 trials would dominate
@@ -64,7 +66,8 @@ class LoadOptions:
             raise InputError("must be > 0", field="ransac_trials_multiplier")
         if self.consensus_agreement is not None and not 0 <= self.consensus_agreement < 1:
             raise InputError("must be in [0, 1)", field="consensus_agreement")
-        if self.consensus_runs < 1 or self.noise_sample_edges < 1 or self.agreement_max_matches < 1:
+        if self.consensus_runs < 1 or self.noise_sample_edges < 1 or self.agreement_max_matches < 1 \
+                or self.agreement_min_matches < 0:
             raise InputError("must be >= 1", field="consensus_runs")
         if self.min_inliers < MIN_MATCHES:
             raise InputError(f"must be >= {MIN_MATCHES}", field="min_inliers")

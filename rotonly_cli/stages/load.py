@@ -14,7 +14,8 @@ that every run accepts (:func:`stable_consensus`); an edge whose first run falls
 ``min_inliers`` gets no further runs (it would be filtered anyway), and no run goes on beyond
 the trials an inlier ratio of ``min_inliers`` / its matches needs (a consensus run: beyond
 those its first run's inlier ratio needs). An edge whose first two runs, on a smaller subset,
-agree may keep them (``consensus_agreement``, off by default: :func:`_consensus_runs`).
+agree keep them (``consensus_agreement``, on edges of more than ``agreement_min_matches``
+matches: :func:`_consensus_runs`).
 Dropped matches are counted per edge and reason. It is per-edge C++ work, so a loop over edges is fine here.
 """
 
@@ -365,24 +366,25 @@ def _consensus_runs(pairs: EdgeCoordinates, threshold: float, options: LoadOptio
     short of --min-inliers is filtered whatever the others find (weak pairs are also the ones
     whose RANSAC runs to its trial limit).
 
-    With ``consensus_agreement`` (the fast front end, off by default), the consensus runs know
-    the edge's inlier ratio (the first run's) and stop at the trials it needs
-    (:func:`ransac_trials`; by default every run has the trials of the first: that bound
-    changes noisy pairs enough to change which pairs the refutation filters), and the first
-    two runs see at most ``agreement_max_matches`` matches; an edge whose two runs agree
-    (:func:`runs_agree`) keeps them. The others make their ``consensus_runs`` runs on
-    ``ransac_max_matches`` (those with no more matches than the smaller subset go on from the
-    two runs they made, which are the same)."""
-    fast = options.consensus_agreement is not None
-
+    With ``consensus_agreement``, the edges of more than ``agreement_min_matches`` matches
+    take the fast front end: their consensus runs know the edge's inlier ratio (the first
+    run's) and stop at the trials it needs (:func:`ransac_trials`; the other edges' runs all
+    have the trials of the first: that bound changes noisy pairs enough to change which pairs
+    the refutation filters), and their first two runs see at most ``agreement_max_matches``
+    matches; an edge whose two runs agree (:func:`runs_agree`) keeps them. The others make
+    their ``consensus_runs`` runs on ``ransac_max_matches``. Every run is seeded by the run's
+    number alone, so an edge's runs do not depend on which path the other edges take."""
     session = cluster.active()
+    runs_of_edge: list[list] = [[] for _ in range(len(pairs))]
 
     def estimate_run(run: tuple[int, int, float | None, LoadOptions]):
         x_i, x_j, focal_i, focal_j = pairs[run[0]]
         return _relative_pose_ransac(x_i, x_j, focal_i, focal_j, threshold, run[1], run[3], run[2])
 
     def make_runs(edges: list[int], r: int, ratio: dict, run_options: LoadOptions, what: str) -> None:
-        runs = [(n, options.seed + r, ratio.get(n) if fast else None, run_options) for n in edges]
+        if not edges:
+            return
+        runs = [(n, options.seed + r, ratio.get(n), run_options) for n in edges]
         estimates = _pool_map(estimate_run, runs, options.progress, what, options.jobs) if session is None \
             else _cluster_runs(session, pairs, runs, threshold, run_options)
         for (n, *_), estimate in zip(runs, estimates):
@@ -393,32 +395,49 @@ def _consensus_runs(pairs: EdgeCoordinates, threshold: float, options: LoadOptio
         return {n: float(runs_of_edge[n][0][2].mean()) for n in edges if runs_of_edge[n][0] is not None
                 and int(runs_of_edge[n][0][2].sum()) >= options.min_inliers}
 
+    every = range(len(pairs))
+    fast = [] if options.consensus_agreement is None else \
+        [n for n in every if pairs.num_matches(n) > options.agreement_min_matches]
+    fast_set = set(fast)
+    # the edges of few matches (all of them without consensus_agreement): every run with the first's trials
+    rest = [n for n in every if n not in fast_set]
+    make_runs(rest, 0, {}, options, "relative poses (RANSAC)")
+    pending = list(strong(rest))
+    for r in range(1, options.consensus_runs):
+        make_runs(pending, r, {}, options, f"relative poses (consensus run {r + 1})")
+        pending = [n for n in pending if runs_of_edge[n][-1] is not None]
+    if fast:
+        _fast_consensus_runs(fast, pairs, options, make_runs, strong, runs_of_edge)
+    return runs_of_edge
+
+
+def _fast_consensus_runs(edges: list[int], pairs: EdgeCoordinates, options: LoadOptions, make_runs, strong,
+                         runs_of_edge: list[list]) -> None:
+    """:func:`_consensus_runs`' fast front end on ``edges`` (``make_runs``, ``strong``: its own)."""
     full = options.ransac_max_matches
-    probing = options.consensus_agreement is not None and options.consensus_runs > 2
+    probing = options.consensus_runs > 2
     probe = replace(options, ransac_max_matches=options.agreement_max_matches if full is None
                     else min(full, options.agreement_max_matches)) if probing else options
-    runs_of_edge: list[list] = [[] for _ in range(len(pairs))]
-    make_runs(list(range(len(pairs))), 0, {}, probe, "relative poses (RANSAC)")
-    ratio = strong(range(len(pairs)))
+    make_runs(edges, 0, {}, probe, "relative poses (RANSAC)")
+    ratio = strong(edges)
     pending = list(ratio)
-    if probing:
-        make_runs(pending, 1, ratio, probe, "relative poses (second run)")
-        pending = [n for n in pending if runs_of_edge[n][1] is not None
-                   and not runs_agree(runs_of_edge[n], options.consensus_agreement)]
-        again = [n for n in pending if pairs.num_matches(n) > probe.ransac_max_matches]
-        for n in again:
-            runs_of_edge[n] = []
-        make_runs(again, 0, {}, options, "relative poses (RANSAC, all matches)")
-        ratio.update(strong(again))
-        pending = [n for n in pending if n in ratio]
+    if not probing:
         for r in range(1, options.consensus_runs):
-            make_runs([n for n in pending if len(runs_of_edge[n]) == r], r, ratio, options,
-                      f"relative poses (consensus run {r + 1})")
-        return runs_of_edge
+            make_runs(pending, r, ratio, options, f"relative poses (consensus run {r + 1})")
+            pending = [n for n in pending if runs_of_edge[n][-1] is not None]
+        return
+    make_runs(pending, 1, ratio, probe, "relative poses (second run)")
+    pending = [n for n in pending if runs_of_edge[n][1] is not None
+               and not runs_agree(runs_of_edge[n], options.consensus_agreement)]
+    again = [n for n in pending if pairs.num_matches(n) > probe.ransac_max_matches]
+    for n in again:
+        runs_of_edge[n] = []
+    make_runs(again, 0, {}, options, "relative poses (RANSAC, all matches)")
+    ratio.update(strong(again))
+    pending = [n for n in pending if n in ratio]
     for r in range(1, options.consensus_runs):
-        make_runs(pending, r, ratio, options, f"relative poses (consensus run {r + 1})")
-        pending = [n for n in pending if runs_of_edge[n][-1] is not None]
-    return runs_of_edge
+        make_runs([n for n in pending if len(runs_of_edge[n]) == r], r, ratio, options,
+                  f"relative poses (consensus run {r + 1})")
 
 
 #: :func:`measure_noise` found nothing to measure (a fixed threshold, no pair to re-estimate)

@@ -3,6 +3,8 @@ only on edges whose first run found enough inliers."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -212,3 +214,17 @@ def test_runs_that_agree_are_not_repeated_and_runs_that_differ_are():
     assert load.runs_agree([run(mask), run(one_off)], 0.01)  # 1 of 200 differs
     assert not load.runs_agree([run(mask), run(three_off)], 0.01)  # 3 of 200
     assert load.runs_agree([run(mask), run(three_off)], 0.02)
+
+
+def test_only_edges_of_many_matches_take_the_two_agreeing_runs():
+    """By default the agreeing runs are the front end of the edges above agreement_min_matches
+    (1000); a smaller edge makes its four runs on every match, exactly as without it."""
+    options = LoadOptions(ransac_max_error_px=1.0, jobs=1)
+    assert options.consensus_agreement is not None and options.agreement_min_matches == 1000
+    large, small = _simulated_pair(1500, 0), _simulated_pair(800, 0)
+    assert load.build_view_graph(large, options)[1]["ransac_runs"] == 2
+    graph, report = load.build_view_graph(small, options)
+    assert report["ransac_runs"] == 4
+    every, _ = load.build_view_graph(small, replace(options, consensus_agreement=None))
+    assert np.array_equal(graph.edges[0].matches, every.edges[0].matches)
+    assert np.array_equal(graph.edges[0].R_j_from_i, every.edges[0].R_j_from_i)
