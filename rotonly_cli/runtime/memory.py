@@ -109,7 +109,9 @@ STAGE_FOOTPRINTS: dict[str, Footprint] = {
     # batch and MatchTable (~210 B per match) freed before the next
     "identify": Footprint(PROCESS_BASE, per_match=30.0, per_chunk_match=230.0, chunk_matches=1 << 19, **HELD),
     "refine": Footprint(PROCESS_BASE, per_match=34.0, per_chunk_match=250.0, chunk_matches=1 << 19, **HELD),
-    "average": Footprint(PROCESS_BASE, per_match=20.0, **HELD),
+    # and the minority-keypoint drop's track tables (two int64 keys, int32 nodes, the match graph):
+    # measured 2.05 GB at 1000 views (21 M matches), 1.06 GB before it
+    "average": Footprint(PROCESS_BASE, per_match=80.0, **HELD),
     # GRRM: no pair lists (grrm/layout.py); per match its observation rows, the layout's two int32
     # per contribution, the weights and the layout's sort; per part (layout.PART_MATCHES incident
     # matches at most) a table of 16 float64 per side, the gathered coordinates and a block's work
