@@ -71,8 +71,8 @@ def average_stage(run: Run) -> None:
         report["time_s"] = time.perf_counter() - started
         run.reports["average"]["minority_keypoints"] = report
         run.reports["average"]["time_s"] += report["time_s"]
-        logger.info("average: %d of %d matches hang a second keypoint of a view on a track (fewer matches than "
-                    "the track's own): dropped", report["num_dropped"], report["num_matches"])
+        logger.info("average: %d of %d matches on a minority keypoint of their track dropped", report["num_dropped"],
+                    report["num_matches"])
 
 
 def optimize_stage(run: Run) -> None:

@@ -289,17 +289,24 @@ def even_ranges(sizes: np.ndarray, parts: int) -> list[tuple[int, int]]:
     return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
 
 
+#: a single-match keypoint is the minority when its view's keypoint in the track has at least
+#: this many matches (the point matched from three views or more); with any majority, castle-P19's
+#: repeated windows and a sequential capture's weak link lost accuracy (docs/tuning.md)
+MINORITY_MAJORITY_MATCHES = 3
+
+
 def minority_keypoint_matches(node_keys: np.ndarray, num_feats: int) -> np.ndarray:
-    """(M,) bool: the matches with an end on a keypoint that its track (the connected
-    component of the match graph) sees in the same view through a keypoint with more matches.
+    """(M,) bool: the matches with an end on a keypoint of a single match whose track (the
+    connected component of the match graph) sees the same view through a keypoint of at least
+    :data:`MINORITY_MAJORITY_MATCHES` matches.
 
     ``node_keys``: (M, 2) int64 keys ``view * num_feats + keypoint`` of each match's two ends
     (:func:`build_tracks`' numbering). A track sees a view once. A match moved along its
     epipolar line passes every two-view test and hangs a second keypoint of a view on the
     track with that one match, where the point's own keypoint has a match per view it is
     matched in; GRRM's V_ik (eq:GRRMRes1) would weigh it by its wrong parallax, and LiGT
-    drops the whole track. Keypoints tied for the most matches of their view in a track are
-    all kept (two tracks merged: no minority to tell)."""
+    drops the whole track. Anything less clear-cut is kept (two tracks merged, a keypoint of
+    two matches against one of three: docs/tuning.md)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -321,5 +328,5 @@ def minority_keypoint_matches(node_keys: np.ndarray, num_feats: int) -> np.ndarr
     group[order] = np.cumsum(first) - 1
     most = np.zeros(int(group.max()) + 1, dtype=degree.dtype)
     np.maximum.at(most, group, degree)
-    minority = degree < most[group]
+    minority = (degree == 1) & (most[group] >= MINORITY_MAJORITY_MATCHES)
     return minority[node_of_end[:, 0]] | minority[node_of_end[:, 1]]

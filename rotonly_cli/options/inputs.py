@@ -31,8 +31,8 @@ class LoadOptions:
     noise_sample_edges: int = 30
     #: seeded RANSAC runs per edge, keeping the matches all accept: three can agree on one wrong model
     consensus_runs: int = 4
-    #: an edge whose first two runs agree to this fraction keeps them (4x faster); None: off
-    consensus_agreement: float | None = 0.01
+    #: off: an edge whose first two runs agree to this fraction keeps them (faster, less robust)
+    consensus_agreement: float | None = None
     #: ... those two runs on at most this many matches
     agreement_max_matches: int = 500
     #: ... on the edges of more matches than this only: four runs of a smaller edge cost little

@@ -14,7 +14,7 @@ that every run accepts (:func:`stable_consensus`); an edge whose first run falls
 ``min_inliers`` gets no further runs (it would be filtered anyway), and no run goes on beyond
 the trials an inlier ratio of ``min_inliers`` / its matches needs (a consensus run: beyond
 those its first run's inlier ratio needs). An edge whose first two runs, on a smaller subset,
-agree keep them (``consensus_agreement``, on edges of more than ``agreement_min_matches``
+agree keep them (``consensus_agreement``, off by default; on edges of more than ``agreement_min_matches``
 matches: :func:`_consensus_runs`).
 Dropped matches are counted per edge and reason. It is per-edge C++ work, so a loop over edges is fine here.
 """

@@ -153,7 +153,7 @@ def _keys(rows, num_feats=100):
     return np.stack([rows[:, 0] * num_feats + rows[:, 1], rows[:, 2] * num_feats + rows[:, 3]], axis=1)
 
 
-def test_a_second_keypoint_with_fewer_matches_is_the_minority():
+def test_a_second_keypoint_of_one_match_is_the_minority():
     from rotonly_cli.geometry.tracks import minority_keypoint_matches
 
     # a point seen in views 0-3 (keypoint 0 each, all pairs matched), and a keypoint 7 of view 1
@@ -165,12 +165,15 @@ def test_a_second_keypoint_with_fewer_matches_is_the_minority():
     assert drop.tolist() == [False] * len(track) + [True, False]
 
 
-def test_keypoints_tied_for_the_most_matches_are_kept():
+def test_a_single_match_against_fewer_than_three_is_kept():
     from rotonly_cli.geometry.tracks import minority_keypoint_matches
 
     # view 0's keypoint 0 matched to two keypoints of view 1, one match each: nothing tells
-    # which is the point's, both kept; a third view matching one of them makes it the majority
+    # which is the point's, both kept; matched from a third view, one has two matches against
+    # one: still kept; from a fourth, three against one: the single match is dropped
     assert minority_keypoint_matches(_keys([(0, 0, 1, 0), (0, 0, 1, 1)]), 100).tolist() == [False, False]
     rows = [(0, 0, 1, 0), (0, 0, 1, 1), (1, 0, 2, 0)]
-    assert minority_keypoint_matches(_keys(rows), 100).tolist() == [False, True, False]
+    assert minority_keypoint_matches(_keys(rows), 100).tolist() == [False, False, False]
+    rows += [(1, 0, 3, 0)]
+    assert minority_keypoint_matches(_keys(rows), 100).tolist() == [False, True, False, False]
     assert not minority_keypoint_matches(np.zeros((0, 2), dtype=np.int64), 100).any()

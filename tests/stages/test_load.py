@@ -217,10 +217,11 @@ def test_runs_that_agree_are_not_repeated_and_runs_that_differ_are():
 
 
 def test_only_edges_of_many_matches_take_the_two_agreeing_runs():
-    """By default the agreeing runs are the front end of the edges above agreement_min_matches
-    (1000); a smaller edge makes its four runs on every match, exactly as without it."""
-    options = LoadOptions(ransac_max_error_px=1.0, jobs=1)
-    assert options.consensus_agreement is not None and options.agreement_min_matches == 1000
+    """With consensus_agreement the agreeing runs are the front end of the edges above
+    agreement_min_matches (1000); a smaller edge makes its four runs on every match, exactly as
+    without it."""
+    options = LoadOptions(ransac_max_error_px=1.0, jobs=1, consensus_agreement=0.01)
+    assert options.agreement_min_matches == 1000
     large, small = _simulated_pair(1500, 0), _simulated_pair(800, 0)
     assert load.build_view_graph(large, options)[1]["ransac_runs"] == 2
     graph, report = load.build_view_graph(small, options)
