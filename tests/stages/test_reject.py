@@ -335,7 +335,9 @@ def test_pairs_the_others_refute_are_filtered():
     assert any("refuted by the other pairs" in w and "12-17" in w for w in result.summary["warnings"])
     without = rotonly_cli.run(sfm_data, matches=matches, gt=CASTLE_NORMAL, progress=False,
                               options=RunOptions(reject=RejectOptions(refute_max_edges=0)))
-    assert without.evaluation["rotation_error_deg"]["mean"] > 0.2  # measured 0.2403
+    # measured 0.2403 before the minority-keypoint drop took some of the pairs' wrong matches, 0.187 after:
+    # still twice the refuted run's
+    assert without.evaluation["rotation_error_deg"]["mean"] > 1.8 * result.evaluation["rotation_error_deg"]["mean"]
 
 
 def test_refutation_spares_pairs_whose_loss_leaves_bridges(monkeypatch):
