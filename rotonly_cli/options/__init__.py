@@ -113,8 +113,8 @@ class AverageOptions:
     max_rounds: int = 5
     #: σ measured on the edges (15 robust sigmas, at most 5°): a pair 1-2° off must not pull the others
     averaging: AveragingOptions = AveragingOptions(irls_sigma_residual_factor=15.0)
-    #: then drop the matches on a keypoint whose track sees its view through a keypoint with more
-    #: matches (wrong matches two-view tests pass: GRRM bent to them, LiGT lost their tracks)
+    #: then drop the matches on a keypoint of one match whose track sees its view through one of
+    #: three or more (wrong matches two-view tests pass: GRRM bent to them, LiGT lost their tracks)
     drop_minority_keypoints: bool = True
 
 

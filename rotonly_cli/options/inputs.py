@@ -66,9 +66,10 @@ class LoadOptions:
             raise InputError("must be > 0", field="ransac_trials_multiplier")
         if self.consensus_agreement is not None and not 0 <= self.consensus_agreement < 1:
             raise InputError("must be in [0, 1)", field="consensus_agreement")
-        if self.consensus_runs < 1 or self.noise_sample_edges < 1 or self.agreement_max_matches < 1 \
-                or self.agreement_min_matches < 0:
+        if self.consensus_runs < 1 or self.noise_sample_edges < 1 or self.agreement_max_matches < 1:
             raise InputError("must be >= 1", field="consensus_runs")
+        if self.agreement_min_matches < 0:
+            raise InputError("must be >= 0", field="agreement_min_matches")
         if self.min_inliers < MIN_MATCHES:
             raise InputError(f"must be >= {MIN_MATCHES}", field="min_inliers")
         if self.jobs < 0:

@@ -109,8 +109,9 @@ MINORITY_REASON = "minority keypoint of its track"
 
 
 def drop_minority_keypoint_matches(graph: ViewGraph, edges: list[int]) -> dict:
-    """Drop from ``edges`` the matches on a keypoint that its track sees in the same view
-    through a keypoint with more matches (geometry.tracks.minority_keypoint_matches). An edge
+    """Drop from ``edges`` the matches on a keypoint of a single match that its track sees in
+    the same view through a keypoint of three matches or more
+    (geometry.tracks.minority_keypoint_matches). An edge
     that would keep fewer than half its matches keeps them all (the edge filters judge such a
     pair whole). Returns the report: matches looked at, dropped, edges touched."""
     from rotonly_cli.geometry.tracks import minority_keypoint_matches

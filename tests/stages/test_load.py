@@ -229,3 +229,12 @@ def test_only_edges_of_many_matches_take_the_two_agreeing_runs():
     every, _ = load.build_view_graph(small, replace(options, consensus_agreement=None))
     assert np.array_equal(graph.edges[0].matches, every.edges[0].matches)
     assert np.array_equal(graph.edges[0].R_j_from_i, every.edges[0].R_j_from_i)
+
+
+def test_a_negative_agreement_min_matches_is_refused():
+    from rotonly_cli.errors import InputError
+
+    with pytest.raises(InputError, match="must be >= 0") as raised:
+        LoadOptions(agreement_min_matches=-1).validate()
+    assert raised.value.field == "agreement_min_matches"
+    assert LoadOptions(agreement_min_matches=0).validate().agreement_min_matches == 0
