@@ -321,12 +321,12 @@ def minority_keypoint_matches(node_keys: np.ndarray, num_feats: int) -> np.ndarr
                                                 (node_of_end[:, 0], node_of_end[:, 1])), shape=(n, n)),
                                     directed=False)
     degree = np.bincount(node_of_end.ravel(), minlength=n)
-    # each (track, view)'s most matches on one keypoint
-    order = np.lexsort((nodes // num_feats, label))
-    first = np.r_[True, (np.diff(label[order]) != 0) | (np.diff(nodes[order] // num_feats) != 0)]
+    # each (track, view)'s most matches on one keypoint: one reduceat over the nodes so sorted
+    view = nodes // num_feats
+    order = np.lexsort((view, label))
+    first = np.flatnonzero(np.r_[True, (np.diff(label[order]) != 0) | (np.diff(view[order]) != 0)])
     group = np.empty(n, dtype=np.int64)
-    group[order] = np.cumsum(first) - 1
-    most = np.zeros(int(group.max()) + 1, dtype=degree.dtype)
-    np.maximum.at(most, group, degree)
+    group[order] = np.repeat(np.arange(first.size), np.diff(np.r_[first, n]))
+    most = np.maximum.reduceat(degree[order], first)
     minority = (degree == 1) & (most[group] >= MINORITY_MAJORITY_MATCHES)
     return minority[node_of_end[:, 0]] | minority[node_of_end[:, 1]]

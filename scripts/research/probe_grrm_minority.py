@@ -10,20 +10,17 @@ match); GRRM runs here in one process. Research only (ground truth scores the re
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from probe_grrm_vs_average import load_workspace
 
 from rotonly_cli.geometry.alignment import rotation_errors_after_alignment
-from rotonly_cli.geometry.averaging import average_rotations
 from rotonly_cli.geometry.grrm import GRRMOptions, optimize_global_rotations
 from rotonly_cli.geometry.pairwise import ObservedMatches
 from rotonly_cli.geometry.tracks import minority_keypoint_matches
-from rotonly_cli.io import detect
-from rotonly_cli.stages.load import read_input
 
 
 def main(argv=None) -> int:
@@ -34,25 +31,10 @@ def main(argv=None) -> int:
     parser.add_argument("--matches-dir", type=Path, default=None)
     parser.add_argument("--variants", nargs="+", default=["all", "minority-dropped"])
     args = parser.parse_args(argv)
-    state = np.load(args.out / "state.npz")
-    meta = json.loads(str(state["meta_json"]))
-    ids = [view[0] for view in meta["views"]]
-    names = [view[1] for view in meta["views"]]
-    row = {v: r for r, v in enumerate(ids)}
-    kept = np.array([e["status"] == "active" and e["scene_kind"] == "REGULAR" for e in meta["edges"]])
-    all_offsets = state["match_offsets"]
-    edge_ids = state["edge_views"][kept]
-    edge_rows = np.vectorize(row.get)(edge_ids)
-    averaged = average_rotations(len(ids), edge_rows[:, 0], edge_rows[:, 1],
-                                 state["R_j_from_i"][kept]).R_cam_from_world
-    gt = detect.read_scene(args.gt)
-    by_name = {view.name: gt.poses[k].R_cam_from_world for k, view in gt.views.items() if k in gt.poses}
-    R_gt = np.stack([by_name[n] for n in names])
-    scene, _ = read_input(args.input, args.matches_dir)
-    every = state["matches"]
-    counts = np.diff(all_offsets)[kept]
-    matches = np.concatenate([every[a:b] for a, b in zip(all_offsets[:-1][kept], all_offsets[1:][kept])])
-    bounds = np.concatenate([[0], np.cumsum(counts)])
+    ws = load_workspace(args.out, args.input, args.gt, args.matches_dir)
+    ids, edge_rows, matches, bounds = ws.ids, ws.edge_rows, ws.matches, ws.offsets
+    averaged, R_gt = ws.averaged, ws.R_gt
+    scene, counts = ws.scene, np.diff(ws.offsets)
     sizes = np.array([len(scene.normalized[v]) for v in ids])
     offset = np.concatenate([[0], np.cumsum(sizes)])
     edge_of_match = np.repeat(np.arange(len(counts)), counts)
@@ -62,7 +44,7 @@ def main(argv=None) -> int:
     if coords.shape[1] == 2:
         coords = np.hstack([coords, np.ones((len(coords), 1))])
     print(f"average: {rotation_errors_after_alignment(averaged, R_gt)[0].mean():.5f} deg; "
-          f"run's final: {rotation_errors_after_alignment(state['rotations'], R_gt)[0].mean():.5f} deg", flush=True)
+          f"run's final: {rotation_errors_after_alignment(ws.final, R_gt)[0].mean():.5f} deg", flush=True)
     for variant in args.variants:
         t0 = time.perf_counter()
         ob, b = obs_ids, bounds

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -61,14 +62,28 @@ def edge_costs(R_cam_from_world: np.ndarray, edge_rows: np.ndarray, offsets: np.
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--input", type=Path, required=True)
-    parser.add_argument("--gt", type=Path, required=True)
-    parser.add_argument("--matches-dir", type=Path, default=None)
-    args = parser.parse_args(argv)
-    state = np.load(args.out / "state.npz")
+@dataclass
+class Workspace:
+    """What a finished run's workspace holds of GRRM's problem: its views (ids, names, in the
+    rotation rows' order), the active REGULAR pairs as view ids and rows, their matches (one
+    table, ``offsets`` per pair), the L1-IRLS average of the pairs, the final rotations, the
+    ground truth and the input scene (its normalized keypoints)."""
+
+    ids: list
+    names: list
+    edge_ids: np.ndarray
+    edge_rows: np.ndarray
+    matches: np.ndarray
+    offsets: np.ndarray
+    averaged: np.ndarray
+    final: np.ndarray
+    R_gt: np.ndarray
+    scene: object
+
+
+def load_workspace(out: Path, input_path: Path, gt: Path, matches_dir: Path | None = None) -> Workspace:
+    """The :class:`Workspace` of ``out`` (a `rotonly run` OUT) on ``input_path`` against ``gt``."""
+    state = np.load(out / "state.npz")
     meta = json.loads(str(state["meta_json"]))
     ids = [view[0] for view in meta["views"]]
     names = [view[1] for view in meta["views"]]
@@ -80,13 +95,23 @@ def main(argv: list[str] | None = None) -> int:
     edge_rows = np.vectorize(row.get)(edge_ids)
     averaged = average_rotations(len(ids), edge_rows[:, 0], edge_rows[:, 1],
                                  state["R_j_from_i"][kept]).R_cam_from_world
-    final = state["rotations"]
-    R_gt = _gt_rotations(args.gt, names)
-    scene, _ = read_input(args.input, args.matches_dir)
     counts = np.diff(all_offsets)[kept]
     every_match = state["matches"]  # read once: each state[...] reads the whole array again
     matches = np.concatenate([every_match[a:b] for a, b in zip(all_offsets[:-1][kept], all_offsets[1:][kept])])
-    offsets = np.concatenate([[0], np.cumsum(counts)])
+    return Workspace(ids, names, edge_ids, edge_rows, matches, np.concatenate([[0], np.cumsum(counts)]), averaged,
+                     state["rotations"], _gt_rotations(gt, names), read_input(input_path, matches_dir)[0])
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--input", type=Path, required=True)
+    parser.add_argument("--gt", type=Path, required=True)
+    parser.add_argument("--matches-dir", type=Path, default=None)
+    args = parser.parse_args(argv)
+    ws = load_workspace(args.out, args.input, args.gt, args.matches_dir)
+    edge_ids, edge_rows, matches, offsets, scene = ws.edge_ids, ws.edge_rows, ws.matches, ws.offsets, ws.scene
+    averaged, final, R_gt = ws.averaged, ws.final, ws.R_gt
     results = {}
     for name, R in (("average", averaged), ("final (GRRM)", final)):
         errors = rotation_errors_after_alignment(R, R_gt)[0]
