@@ -51,13 +51,22 @@ def plausible(intrinsics: Intrinsics) -> bool:
                 and 0 <= cx <= intrinsics.width and 0 <= cy <= intrinsics.height)
 
 
-def longest_tracks(scene: SfMScene, max_points: int, seed: int = 0) -> SfMScene:
-    """``scene`` with only its ``max_points`` longest tracks (ties broken at random, seeded)."""
+def longest_tracks(scene: SfMScene, max_points: int, seed: int = 0, max_observations: int | None = None) -> SfMScene:
+    """``scene`` with only its ``max_points`` longest tracks (ties broken at random, seeded),
+    and of those no more than hold ``max_observations`` observations: the adjustment's memory
+    and time (and its covariance's) grow with the observations: on the 200-view circle of
+    docs/results.md "Scale" they took the run to its peak, 543 MB above their start on the 5000
+    longest tracks, 259 MB on the 1576 that hold 100 000 (docs/tuning.md)."""
     structure = scene.structure
-    if structure is None or len(structure.points) <= max_points:
+    if structure is None:
         return scene
     lengths, _ = structure.flat_observations()
+    if len(lengths) <= max_points and (max_observations is None or int(np.sum(lengths)) <= max_observations):
+        return scene
     order = np.lexsort((np.random.default_rng(seed).random(len(lengths)), -lengths))[:max_points]
+    if max_observations is not None:
+        within = np.cumsum(lengths[order]) <= max_observations
+        order = order[:max(int(within.sum()), 1)]
     keep = np.sort(order)
     subset = replace(structure, point_ids=np.asarray(structure.point_ids)[keep],
                      points=np.asarray(structure.points)[keep],
@@ -173,7 +182,7 @@ def estimate_intrinsics(scene: SfMScene, refine: set[int], options: IntrinsicsOp
     models = {camera_id: cameras.refinement_model(intrinsic) for camera_id, intrinsic in scene.intrinsics.items()}
     unsupported = sorted(c for c in refine if models.get(c) is None)
     refine = {c for c in refine if models.get(c) is not None}
-    subset = longest_tracks(scene, options.max_points, options.seed)
+    subset = longest_tracks(scene, options.max_points, options.seed, options.max_observations)
     subset = replace(subset, intrinsics={c: models[c] or cameras.to_colmap_intrinsics(k)
                                          for c, k in scene.intrinsics.items()})
     offset = id_offset(scene.intrinsics)

@@ -105,6 +105,8 @@ class IntrinsicsOptions:
     rotation_fit_max_matches: int = 300
     #: the bundle adjustment that estimates the intrinsics uses the longest tracks only
     max_points: int = 5000
+    #: ... and of those at most the ones holding this many observations: its memory grows with them
+    max_observations: int = 100_000
     #: the adjustment stops at a relative decrease below this (Ceres's default: fewer iterations)
     ba_function_tolerance: float = 1e-6
     #: Huber loss beyond this (px): wrong matches the rejection kept would pull the principal point
@@ -156,8 +158,9 @@ class IntrinsicsOptions:
             raise InputError("min_shift_noise_px > 0 needed", field="intrinsics")
         if not self.converged_focal_change > 0:
             raise InputError("converged_focal_change must be > 0", field="intrinsics")
-        if self.max_points < 100 or self.max_rounds < 1:
-            raise InputError("max_points >= 100 and max_rounds >= 1 needed", field="intrinsics")
+        if self.max_points < 100 or self.max_rounds < 1 or self.max_observations < 1000:
+            raise InputError("max_points >= 100, max_observations >= 1000 and max_rounds >= 1 needed",
+                             field="intrinsics")
         if not 0 <= self.ba_function_tolerance < 1:
             raise InputError("ba_function_tolerance must be in [0, 1)", field="intrinsics")
         if self.ba_huber_px is not None and not self.ba_huber_px > 0:
