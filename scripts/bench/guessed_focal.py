@@ -9,7 +9,7 @@ Both tools get the same database (``SCENE/database_guessed_focal.db`` by default
 CLI defaults, ``SIMPLE_RADIAL``, f guessed as 1.2 x the image size, ``prior_focal_length =
 0``; with ``--camera-per-image`` rewritten with a copy of the camera per image, as COLMAP's
 feature extractor leaves a database by default), the mapper on a private copy, in N
-alternating rounds (strecha_tools.alternating_runs: a slow stretch of the shared machine
+alternating rounds (tool_runs.alternating_runs: a slow stretch of the shared machine
 falls on both alike), timed as whole processes:
 
 * ``rotonly -q run DB -o OUT`` (default settings: ``--intrinsics auto`` calibrates the guess);
@@ -33,12 +33,12 @@ import time
 from pathlib import Path
 
 import numpy as np
-from strecha_tools import (
+from strecha_tools import fmt
+from tool_runs import (
     _round_dir,
     alternating_runs,
     byte_compile_rotonly,
     evaluate_scene,
-    fmt,
     reconstruction_scene,
     rotonly_run_command,
 )

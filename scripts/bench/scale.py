@@ -12,7 +12,7 @@ made once (cached under ``--cache``), then in ``--rounds`` rounds, the order alt
   and the process's peak RSS (the largest of those and of the kernel's accounting of the
   finished child, os.wait4, which then covers what follows the last stage), registered views, points, mean
   rotation error and position error (OUT/reports/run.json and eval/);
-* pycolmap's global mapper (GLOMAP, intrinsics fixed; scripts/bench/strecha_tools.py's worker
+* pycolmap's global mapper (GLOMAP, intrinsics fixed; scripts/bench/tool_runs.py's worker
   process) on a private copy of the database: wall time, peak RSS, registered views, points and
   the same evaluation (evaluation.quality) of its largest model.
 Bytes per match = peak RSS / the input's inlier matches (the verified matches in the database).
@@ -34,7 +34,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import strecha_tools  # noqa: E402
+import tool_runs  # noqa: E402
 
 from rotonly_cli.bench import results_md  # noqa: E402
 from rotonly_cli.io import detect  # noqa: E402
@@ -82,7 +82,7 @@ def make_input(name: str, cache: Path) -> Path:
         return folder
     if folder.exists():
         shutil.rmtree(folder)
-    argv = strecha_tools.rotonly_command() + ["-q", "simulate", "multiview", *RECIPES[name].split(), "--format",
+    argv = tool_runs.rotonly_command() + ["-q", "simulate", "multiview", *RECIPES[name].split(), "--format",
                                               "colmap", "-o", str(folder)]
     print(f"[{name}] making the input: {' '.join(argv[-len(RECIPES[name].split()) - 4:])}", flush=True)
     subprocess.run(argv, check=True)
@@ -104,7 +104,7 @@ def run_rotonly(folder: Path, work: Path, jobs: int, timeout: float | None) -> d
         shutil.rmtree(out)
     # evaluated here, as the mapper's model is: with --gt the run would also read the simulation's
     # ground truth (1 GB of JSON with its points at 1000 views) into its own memory
-    argv = strecha_tools.rotonly_command() + ["-q", "run", str(folder / "database.db"), "-o", str(out),
+    argv = tool_runs.rotonly_command() + ["-q", "run", str(folder / "database.db"), "-o", str(out),
                                               "--jobs", str(jobs)]
     # each stage's own peak in resources.json; the process's peak is then the largest of them
     # and of what the kernel reports (since the last reset: export and the exit)
@@ -112,7 +112,7 @@ def run_rotonly(folder: Path, work: Path, jobs: int, timeout: float | None) -> d
     reports = out / "reports"
     if result["exit"] == 0 and (reports / "run.json").is_file():
         run = json.loads((reports / "run.json").read_text())
-        evaluated = strecha_tools.evaluate_scene("rotonly", ground_truth(folder),
+        evaluated = tool_runs.evaluate_scene("rotonly", ground_truth(folder),
                                                  detect.read_scene(out / "sfm_data.json"), None)
         result.update(registered=run.get("num_registered"), points=run.get("num_points"),
                       rotation_mean_deg=evaluated.rotation_mean_deg, position_mean=evaluated.position_mean)
@@ -161,13 +161,13 @@ def run_mapper(folder: Path, work: Path, jobs: int, timeout: float | None) -> di
     with tempfile.TemporaryDirectory(prefix="scale_glomap_", dir=work) as tmp:
         db_copy = Path(tmp) / "database.db"
         shutil.copyfile(folder / "database.db", db_copy)  # Database.open rewrites the header even to read
-        argv = strecha_tools.mapper_worker_command(db_copy, Path(tmp) / "work", jobs, 0)
+        argv = tool_runs.mapper_worker_command(db_copy, Path(tmp) / "work", jobs, 0)
         result = timed_process(argv, work / "mapper.log", timeout)
         best = Path(tmp) / "work" / "best"
         if result["exit"] == 0 and best.is_dir():
             rec = pycolmap.Reconstruction(str(best))
-            evaluated = strecha_tools.evaluate_scene("mapper", ground_truth(folder),
-                                                     strecha_tools.reconstruction_scene(rec), None)
+            evaluated = tool_runs.evaluate_scene("mapper", ground_truth(folder),
+                                                     tool_runs.reconstruction_scene(rec), None)
             result.update(registered=rec.num_reg_images(), points=rec.num_points3D(),
                           rotation_mean_deg=evaluated.rotation_mean_deg, position_mean=evaluated.position_mean)
     return result
@@ -229,7 +229,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--section", default="scale",
                         help="the section of --results-md the table replaces (one per set of recipes)")
     args = parser.parse_args(argv)
-    strecha_tools.byte_compile_rotonly()
+    tool_runs.byte_compile_rotonly()
     args.cache.mkdir(parents=True, exist_ok=True)
     args.output.mkdir(parents=True, exist_ok=True)
     rows = []

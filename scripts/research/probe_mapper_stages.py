@@ -5,10 +5,10 @@ rotations held) and bundle adjustment. ``--skip-ba`` runs it with
 ``GlobalMapperOptions.skip_bundle_adjustment`` (and no retriangulation, which only feeds the
 BA), so the rotations written are rotation averaging's and the positions global
 positioning's: what BA adds is the difference to the full run. Intrinsics held, as in
-scripts/bench/strecha_tools.run_global_mapper; evaluated like ``rotonly eval`` (mean
+scripts/bench/tool_runs.run_global_mapper; evaluated like ``rotonly eval`` (mean
 rotation error after the best global rotation, position error after the best similarity).
 ``--ba-from OUT/sparse``: instead, pycolmap's bundle adjustment (K fixed) started from
-rotonly's COLMAP model (strecha_tools.run_ba_on_rotonly): where a BA takes rotonly's own
+rotonly's COLMAP model (tool_runs.run_ba_on_rotonly): where a BA takes rotonly's own
 poses and points on the same tracks.
 
     python scripts/research/probe_mapper_stages.py --database /work/scale/v200/database.db \\
@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     from rotonly_cli.pipeline import load_ground_truth
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-    from strecha_tools import reconstruction_scene, run_ba_on_rotonly
+    from tool_runs import reconstruction_scene, run_ba_on_rotonly
 
     if args.ba_from is not None:
         result = run_ba_on_rotonly("rotonly run", args.ba_from, load_ground_truth(args.gt))

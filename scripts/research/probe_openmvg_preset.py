@@ -82,7 +82,7 @@ def build_project(openmvg_bin: Path, scene_dir: Path, project: Path, preset: str
 def main(argv: list[str] | None = None) -> int:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-    from strecha_tools import rotations_scene, run_openmvg_global
+    from tool_runs import rotations_scene, run_openmvg_global
 
     import rotonly_cli
     from rotonly_cli.baselines.references import pycolmap_global_mapper

@@ -1,4 +1,4 @@
-"""scripts/bench/strecha_tools.py and scripts/bench/scale.py on small fixtures / simulated scenes."""
+"""scripts/bench/strecha_tools.py, tool_runs.py and scale.py on small fixtures / simulated scenes."""
 
 from __future__ import annotations
 
@@ -29,6 +29,8 @@ def _load_script(name: str):
 
 
 bench_strecha = _load_script("strecha_tools")
+#: the tool runs strecha_tools imported (it put scripts/bench on sys.path): one module, so that a patch reaches it
+bench_tools = sys.modules["tool_runs"]
 bench_scale = _load_script("scale")
 
 
@@ -47,7 +49,7 @@ def _gt_scene(rng: np.random.Generator, n: int) -> SfMScene:
 # ============================================================================ bench_strecha pieces
 
 def test_pycolmap_rotation_averaging_recovers_exact_rotations_both_weightings():
-    """The reference bench_strecha.pycolmap_ra_results calls, with the inlier counts it passes."""
+    """The reference bench_tools.pycolmap_ra_results calls, with the inlier counts it passes."""
     from rotonly_cli.baselines.references import pycolmap_rotation_averaging
 
     rng = np.random.default_rng(3)
@@ -66,8 +68,8 @@ def test_evaluate_scene_rotation_only_and_with_centres():
     gt = _gt_scene(rng, 5)
     S = so3.random_rotations(1, rng)[0]
     names = {v: gt.views[v].name for v in gt.views}
-    exact = bench_strecha.rotations_scene(names, {v: gt.poses[v].R_cam_from_world @ S for v in gt.views})
-    result = bench_strecha.evaluate_scene("exact", gt, exact, 1.5)
+    exact = bench_tools.rotations_scene(names, {v: gt.poses[v].R_cam_from_world @ S for v in gt.views})
+    result = bench_tools.evaluate_scene("exact", gt, exact, 1.5)
     assert result.rotation_mean_deg < 1e-6 and result.position_mean is None  # zero centres: rotation-only
     assert (result.num_registered, result.num_gt, result.time_s) == (5, 5, 1.5)
 
@@ -76,11 +78,11 @@ def test_evaluate_scene_rotation_only_and_with_centres():
     R_off[2] = so3.exp(np.radians(1.0) * np.array([0.0, 0.0, 1.0])) @ R_off[2]
     centers = {v: 2.0 * S.T @ gt.poses[v].center + 1.0 for v in gt.views}
     del R_off[4]
-    result = bench_strecha.evaluate_scene("off", gt, bench_strecha.rotations_scene(names, R_off, centers), None)
+    result = bench_tools.evaluate_scene("off", gt, bench_tools.rotations_scene(names, R_off, centers), None)
     assert result.num_registered == 4
     assert result.position_mean < 1e-9
     assert 0.2 < result.rotation_mean_deg < 0.5  # 1° spread over 4 cameras by the L2 alignment
-    assert bench_strecha.evaluate_scene("none", gt, SfMScene(), None).error == "no pose estimated"
+    assert bench_tools.evaluate_scene("none", gt, SfMScene(), None).error == "no pose estimated"
 
 
 def _fixture_root(tmp_path: Path) -> tuple[Path, list[Path]]:
@@ -210,26 +212,26 @@ def test_openmvg_global_rerun_is_timed_converted_and_evaluated(tmp_path: Path):
                                            for k, v in gt.intrinsics.items()})
     openmvg.write_sfm_data(tmp_path / "result.json", result_scene)
     tools = _fake_openmvg_tools(tmp_path / "bin", tmp_path / "result.json")
-    assert bench_strecha.check_openmvg_bin(tools) is None
-    assert "openMVG_main_SfM" in bench_strecha.check_openmvg_bin(tmp_path)
+    assert bench_tools.check_openmvg_bin(tools) is None
+    assert "openMVG_main_SfM" in bench_tools.check_openmvg_bin(tmp_path)
     before = {p.name: _digest(p) for p in (scene_dir / "openmvg").iterdir()}
     (tmp_path / "work").mkdir()
     (tmp_path / "logs").mkdir()
-    result = bench_strecha.run_openmvg_global(scene_dir / "openmvg", gt, tools, tmp_path / "work", tmp_path / "logs")
+    result = bench_tools.run_openmvg_global(scene_dir / "openmvg", gt, tools, tmp_path / "work", tmp_path / "logs")
     assert result.error == ""
     assert result.num_registered == 8 and result.rotation_mean_deg < 1e-6
     assert result.extra["openmvg_reported_s"] == 3.0 and 0 < result.time_s < 30
     assert result.time_note.startswith("subprocess wall")
     assert (tmp_path / "work" / "openmvg_project" / "matches.e.bin").is_file()
     assert "-f" not in (tmp_path / "work" / "openmvg_global" / "argv.txt").read_text().split()
-    held = bench_strecha.run_openmvg_global(scene_dir / "openmvg", gt, tools, tmp_path / "work", tmp_path / "logs",
+    held = bench_tools.run_openmvg_global(scene_dir / "openmvg", gt, tools, tmp_path / "work", tmp_path / "logs",
                                             hold_intrinsics=True)
     assert held.error == "" and "intrinsics held" in held.method and held.method != result.method
     assert (tmp_path / "work" / "openmvg_global_held_k" / "argv.txt").read_text().endswith("-f NONE")
     assert {p.name: _digest(p) for p in (scene_dir / "openmvg").iterdir()} == before
 
     (tools / "openMVG_main_SfM").write_text("#!/bin/sh\necho 'cannot open matches' >&2\nexit 3\n")
-    failed = bench_strecha.run_openmvg_global(scene_dir / "openmvg", gt, tools, tmp_path / "work2", tmp_path / "logs")
+    failed = bench_tools.run_openmvg_global(scene_dir / "openmvg", gt, tools, tmp_path / "work2", tmp_path / "logs")
     assert failed.error.startswith("exit 3") and "cannot open matches" in failed.error
 
 
@@ -239,13 +241,13 @@ def test_alternating_runs_rotate_the_order_and_report_failures(tmp_path: Path):
     def command(name):
         return lambda k: [sys.executable, "-c", f"open({str(log)!r}, 'a').write('{name}{k} '); print('{name}{k}')"]
 
-    runs = bench_strecha.alternating_runs({"a": command("a"), "b": command("b")}, 3)
+    runs = bench_tools.alternating_runs({"a": command("a"), "b": command("b")}, 3)
     assert log.read_text().split() == ["a0", "b0", "b1", "a1", "a2", "b2"]
     assert [[out.strip() for _, out in runs[n]] for n in "ab"] == [["a0", "a1", "a2"], ["b0", "b1", "b2"]]
     assert all(t > 0 for v in runs.values() for t, _ in v)
     failing = {"a": command("a"), "bad": lambda k: [sys.executable, "-c", "import sys; sys.exit('no matches')"]}
     with pytest.raises(RuntimeError, match="bad: exit 1: .*no matches"):
-        bench_strecha.alternating_runs(failing, 2)
+        bench_tools.alternating_runs(failing, 2)
 
 
 def test_openmvg_input_timing_runs_both_tools_on_one_copy(tmp_path: Path):
@@ -258,18 +260,18 @@ def test_openmvg_input_timing_runs_both_tools_on_one_copy(tmp_path: Path):
                                             "time.sleep(0.2)\n")
     before = {p.name: _digest(p) for p in (scene_dir / "openmvg").iterdir()}
     (tmp_path / "work").mkdir()
-    timing = bench_strecha.openmvg_input_timing(scene_dir / "openmvg", tools, tmp_path / "work", 2)
+    timing = bench_tools.openmvg_input_timing(scene_dir / "openmvg", tools, tmp_path / "work", 2)
     assert {p.name: _digest(p) for p in (scene_dir / "openmvg").iterdir()} == before
     assert timing["rounds"] == 2 and len(timing["rotonly_s"]) == len(timing["reference_s"]) == 2
     assert min(timing["reference_s"]) >= 0.2 and min(timing["rotonly_s"]) > 0.3  # a real rotonly run
     assert timing["ratio_of_medians"] == pytest.approx(timing["median_rotonly_s"] / timing["median_reference_s"])
     assert (tmp_path / "work" / "rotonly_timing" / "sfm_data.json").is_file()
-    row = bench_strecha.MethodResult("rotonly run openmvg/sfm_data.json", time_s=1.0,
+    row = bench_tools.MethodResult("rotonly run openmvg/sfm_data.json", time_s=1.0,
                                      extra={"alternating_timing": timing})
     lines = bench_strecha.ratio_lines([row])
     assert any(line.startswith("- 2 alternating rounds, rotonly run openmvg/sfm_data.json / OpenMVG")
                and f"{timing['ratio_of_medians']:.2f}x" in line for line in lines)
-    failed = bench_strecha.ratio_lines([bench_strecha.MethodResult(
+    failed = bench_strecha.ratio_lines([bench_tools.MethodResult(
         "rotonly run openmvg/sfm_data.json", time_s=1.0, extra={"alternating_timing": {"error": "boom"}})])
     assert "- alternating wall times of rotonly run openmvg/sfm_data.json failed: boom" in failed
 
@@ -286,9 +288,9 @@ def test_database_timing_compares_with_the_mapper_call_and_process(tmp_path: Pat
         return {"rotonly": [(1.0, ""), (1.5, ""), (1.2, "")],
                 "mapper": [(c + 1.0, json.dumps({"call_s": c, "num_models": 1}) + "\n") for c in calls]}
 
-    monkeypatch.setattr(bench_strecha, "alternating_runs", fake_runs)
+    monkeypatch.setattr(bench_tools, "alternating_runs", fake_runs)
     (tmp_path / "work").mkdir()
-    timing = bench_strecha.database_timing(database, tmp_path / "work", 2, 3)
+    timing = bench_tools.database_timing(database, tmp_path / "work", 2, 3)
     assert timing["median_rotonly_s"] == 1.2 and timing["median_reference_s"] == 5.0
     assert timing["ratio_of_medians"] == pytest.approx(1.2 / 5.0)
     assert timing["ratio_to_process_medians"] == pytest.approx(1.2 / 6.0)
@@ -298,7 +300,7 @@ def test_database_timing_compares_with_the_mapper_call_and_process(tmp_path: Pat
     copy = Path(mapper_argv[mapper_argv.index("--mapper-worker") + 1])
     assert copy.parent.parent == tmp_path / "work" and _digest(copy) == _digest(database)
     assert seen["rotonly"][0][-4:] == ["run", str(database), "-o", str(tmp_path / "work" / "rotonly_db_timing")]
-    line = bench_strecha.ratio_lines([bench_strecha.MethodResult("rotonly run database.db", time_s=1.0,
+    line = bench_strecha.ratio_lines([bench_tools.MethodResult("rotonly run database.db", time_s=1.0,
                                                                  extra={"alternating_timing": timing})])[-1]
     assert line.startswith("- 3 alternating rounds, rotonly run database.db / pycolmap global mapper")
     assert "**0.24x**" in line and "0.20x of its process wall" in line
@@ -313,11 +315,11 @@ def test_global_mapper_runs_as_a_process_and_both_times_are_kept(tmp_path):
     scene_dir = FIXTURES / "herzjesu_p8"
     gt = detect.read_ground_truth(scene_dir)
     before = _digest(scene_dir / "database.db")
-    mapper = bench_strecha.run_global_mapper(scene_dir / "database.db", gt, threads=2)
+    mapper = bench_tools.run_global_mapper(scene_dir / "database.db", gt, threads=2)
     assert _digest(scene_dir / "database.db") == before
     assert mapper.error == "" and mapper.num_registered == 8 and mapper.rotation_mean_deg < 0.1
     assert 0.0 < mapper.time_s < mapper.extra["process_wall_s"]
-    ours = bench_strecha.MethodResult("rotonly run database.db", time_s=mapper.time_s / 4)
+    ours = bench_tools.MethodResult("rotonly run database.db", time_s=mapper.time_s / 4)
     lines = bench_strecha.ratio_lines([ours, mapper])
     assert len(lines) == 2 and "0.25x (global_mapping call" in lines[1]
     assert f"{mapper.time_s / 4 / mapper.extra['process_wall_s']:.2f}x of its process wall" in lines[1]
