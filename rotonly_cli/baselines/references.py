@@ -104,20 +104,26 @@ def _write_pairs(pycolmap, database_path: Path, pairs: dict) -> None:
         database.close()
 
 
+def global_mapper_options(pycolmap, seed: int, num_threads: int):
+    """``pycolmap.GlobalPipelineOptions`` of the reference global mapper: seeded, on
+    ``num_threads`` threads, the intrinsics held in its bundle adjustment (formats.md §4.7)."""
+    options = pycolmap.GlobalPipelineOptions()
+    options.random_seed = options.mapper.random_seed = int(seed)
+    options.num_threads = options.mapper.num_threads = int(num_threads)
+    bundle_adjustment = options.mapper.bundle_adjustment
+    bundle_adjustment.refine_focal_length = False
+    bundle_adjustment.refine_principal_point = False
+    bundle_adjustment.refine_extra_params = False
+    return options
+
+
 def _global_mapper(pycolmap, database_path, seed: int, num_threads: int, pairs: dict | None) -> dict[str, np.ndarray]:
     with tempfile.TemporaryDirectory(prefix="rotonly_glomap_") as tmp:
         db_copy = Path(tmp) / "database.db"
         shutil.copyfile(database_path, db_copy)
         if pairs is not None:
             _write_pairs(pycolmap, db_copy, pairs)
-        options = pycolmap.GlobalPipelineOptions()
-        options.random_seed = int(seed)
-        options.num_threads = int(num_threads)
-        options.mapper.random_seed = int(seed)
-        options.mapper.num_threads = int(num_threads)
-        options.mapper.bundle_adjustment.refine_focal_length = False
-        options.mapper.bundle_adjustment.refine_principal_point = False
-        options.mapper.bundle_adjustment.refine_extra_params = False
+        options = global_mapper_options(pycolmap, seed, num_threads)
         (Path(tmp) / "images").mkdir()  # must exist; the images themselves are not read
         (Path(tmp) / "out").mkdir()
         models = pycolmap.global_mapping(db_copy, Path(tmp) / "images", Path(tmp) / "out", options)

@@ -153,15 +153,10 @@ def _mapper_worker(database: str, out: str, threads: str, seed: str) -> int:
     imports, database reading) is measured the way ``rotonly run``'s is."""
     import pycolmap
 
+    from rotonly_cli.baselines.references import global_mapper_options
+
     pycolmap.logging.minloglevel = 2
-    options = pycolmap.GlobalPipelineOptions()
-    options.random_seed = int(seed)
-    options.num_threads = int(threads)
-    options.mapper.random_seed = int(seed)
-    options.mapper.num_threads = int(threads)
-    options.mapper.bundle_adjustment.refine_focal_length = False
-    options.mapper.bundle_adjustment.refine_principal_point = False
-    options.mapper.bundle_adjustment.refine_extra_params = False
+    options = global_mapper_options(pycolmap, int(seed), int(threads))
     work = Path(out)
     (work / "images").mkdir(parents=True)  # must exist; the images are not read
     (work / "models").mkdir()

@@ -96,8 +96,8 @@ def load_workspace(out: Path, input_path: Path, gt: Path, matches_dir: Path | No
     averaged = average_rotations(len(ids), edge_rows[:, 0], edge_rows[:, 1],
                                  state["R_j_from_i"][kept]).R_cam_from_world
     counts = np.diff(all_offsets)[kept]
-    every_match = state["matches"]  # read once: each state[...] reads the whole array again
-    matches = np.concatenate([every_match[a:b] for a, b in zip(all_offsets[:-1][kept], all_offsets[1:][kept])])
+    # the kept pairs' rows of the match table, in one mask (state[...] reads the whole array each time)
+    matches = state["matches"][np.repeat(kept, np.diff(all_offsets))]
     return Workspace(ids, names, edge_ids, edge_rows, matches, np.concatenate([[0], np.cumsum(counts)]), averaged,
                      state["rotations"], _gt_rotations(gt, names), read_input(input_path, matches_dir)[0])
 
