@@ -215,9 +215,12 @@ def _levenberg_marquardt(problem: GRRMSystem, R: np.ndarray, edge_views: np.ndar
             return None
         return H[np.ix_(free, free)] if isinstance(H, np.ndarray) else H[free][:, free]
 
+    exact_failed = False  # the exact Hessian's model has raised the cost once in this problem
+
     def lm_iteration(R_at: np.ndarray, cost_now: float, JtJ, grad, remainder, mu: float):
         """Alg. 4's inner loop: solve, evaluate, raise the damping until the cost decreases.
         Returns (accepted, R, cost, JᵀWJ, JᵀWV, remainder, step, damping) of the candidate."""
+        nonlocal exact_failed
         JtJ, remainder = restrict(JtJ), restrict(remainder)
         grad = grad[free]
         retry = False
@@ -233,10 +236,12 @@ def _levenberg_marquardt(problem: GRRMSystem, R: np.ndarray, edge_views: np.ndar
                 # step_tolerance, after which LM stops if it is accepted. A retry (without
                 # the exact term, or at a higher damping) is costed alone first (a quarter of
                 # a linearisation): near the optimum a rejected candidate would otherwise
-                # cost a full Jacobian
+                # cost a full Jacobian. So is an exact model's candidate once that model has
+                # failed: where it fails it tends to fail again (the 200-view circle: in
+                # iterations 2 and 3, each time a full Jacobian thrown away)
                 with_jacobian = step >= options.step_tolerance
                 exact = step < options.exact_curvature_below
-                if retry:
+                if retry or (exact_failed and remainder is not None):
                     cost_c, JtJ_c, grad_c, rem_c = linearize(R_cand, False)
                     if cost_c <= cost_now and with_jacobian:
                         cost_c, JtJ_c, grad_c, rem_c = linearize(R_cand, True, exact)
@@ -246,6 +251,7 @@ def _levenberg_marquardt(problem: GRRMSystem, R: np.ndarray, edge_views: np.ndar
                     return True, R_cand, cost_c, JtJ_c, grad_c, rem_c, step, max(mu / 10.0, 1e-15)
             retry = True
             if remainder is not None:
+                exact_failed = True
                 # the exact Hessian's model failed: the clamped PSD model at the same
                 # damping before any more damping (it is accepted where the exact model fails
                 # up to far more damping)
