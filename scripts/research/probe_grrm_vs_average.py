@@ -5,6 +5,10 @@ scores that could tell them apart (the pairs' own TRRM costs at the global rotat
     python scripts/research/probe_grrm_vs_average.py --out OUT --input DATABASE_OR_SFM_DATA \
         --gt GT/sfm_data.json [--matches-dir DIR]
 
+``--smooth-views K`` also splits each view's error (the rotation vector of R_est Sᵀ R_gtᵀ, views
+in id order: capture order for `rotonly simulate multiview`) into its moving average over K
+neighbouring views (the smooth bend along the path) and the rest.
+
 OUT/state.npz holds the pairs as the run ended (their TRRM-refined relative rotations and
 inlier matches, the reject stage's drops applied) and the final rotations (GRRM's, after the
 reject stage's re-solves). The average here is averaging.average_rotations on those pairs (the
@@ -62,6 +66,20 @@ def edge_costs(R_cam_from_world: np.ndarray, edge_rows: np.ndarray, offsets: np.
     return out
 
 
+def smooth_and_rough(R_aligned: np.ndarray, R_gt: np.ndarray, width: int) -> tuple[float, float]:
+    """Mean angle (deg) of the moving average over ``width`` consecutive views of the error
+    rotation vectors log(R_aligned R_gtᵀ), and of what is left of them (ends padded by their
+    last value)."""
+    from rotonly_cli.geometry import so3
+
+    v = so3.log(R_aligned @ np.swapaxes(R_gt, 1, 2))
+    padded = np.pad(v, ((width // 2, width - 1 - width // 2), (0, 0)), mode="edge")
+    kernel = np.ones(width) / width
+    smooth = np.stack([np.convolve(padded[:, c], kernel, mode="valid") for c in range(3)], axis=1)
+    return (float(np.degrees(np.linalg.norm(smooth, axis=1)).mean()),
+            float(np.degrees(np.linalg.norm(v - smooth, axis=1)).mean()))
+
+
 @dataclass
 class Workspace:
     """What a finished run's workspace holds of GRRM's problem: its views (ids, names, in the
@@ -108,13 +126,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--input", type=Path, required=True)
     parser.add_argument("--gt", type=Path, required=True)
     parser.add_argument("--matches-dir", type=Path, default=None)
+    parser.add_argument("--smooth-views", type=int, default=0, help="split the errors at this moving-average width")
     args = parser.parse_args(argv)
     ws = load_workspace(args.out, args.input, args.gt, args.matches_dir)
     edge_ids, edge_rows, matches, offsets, scene = ws.edge_ids, ws.edge_rows, ws.matches, ws.offsets, ws.scene
     averaged, final, R_gt = ws.averaged, ws.final, ws.R_gt
     results = {}
     for name, R in (("average", averaged), ("final (GRRM)", final)):
-        errors = rotation_errors_after_alignment(R, R_gt)[0]
+        errors, S = rotation_errors_after_alignment(R, R_gt)
+        if args.smooth_views > 1:
+            smooth, rough = smooth_and_rough(R @ S.T, R_gt, args.smooth_views)
+            print(f"{name:14s} error along the path: smooth part mean {smooth:.5f} deg, the rest {rough:.5f} deg "
+                  f"({args.smooth_views}-view moving average)")
         costs = edge_costs(R, edge_rows, offsets, matches, edge_ids, scene.normalized)
         results[name] = costs
         print(f"{name:14s} rotation error mean {errors.mean():.5f} deg, max {errors.max():.4f}; "
