@@ -28,6 +28,9 @@ from rotonly_cli.options import IntrinsicsOptions
 from rotonly_cli.scene.types import Intrinsics, SfMScene
 
 GROUPS = ("focal", "principal_point", "distortion")
+#: pycolmap chooses its iterative Schur solver above this many images (1000 by default); the
+#: adjustment's tracks are bounded by IntrinsicsOptions.max_observations, so the direct one stays small
+DIRECT_SPARSE_MAX_IMAGES = 1_000_000
 
 
 def half_diagonal(intrinsics: Intrinsics) -> float:
@@ -93,6 +96,9 @@ def _adjust(subset: SfMScene, refine: set[int], offset: int, options: Intrinsics
     ba.ceres.solver_options.max_num_iterations = 100
     ba.ceres.solver_options.function_tolerance = options.ba_function_tolerance
     ba.ceres.solver_options.num_threads = 1
+    # the direct sparse Schur solver at every size: pycolmap's iterative one above 1000 images
+    # took 110 s on the 10 000-view strip's 1984 longest tracks (docs/tuning.md "Intrinsics")
+    ba.ceres.max_num_images_direct_sparse_cpu_solver = DIRECT_SPARSE_MAX_IMAGES
     if options.ba_huber_px is not None:
         ba.ceres.loss_function_type = pycolmap.LossFunctionType.HUBER
         ba.ceres.loss_function_scale = options.ba_huber_px
