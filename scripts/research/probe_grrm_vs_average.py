@@ -70,12 +70,12 @@ def smooth_and_rough(R_aligned: np.ndarray, R_gt: np.ndarray, width: int) -> tup
     """Mean angle (deg) of the moving average over ``width`` consecutive views of the error
     rotation vectors log(R_aligned R_gtᵀ), and of what is left of them (ends padded by their
     last value)."""
+    from scipy.ndimage import uniform_filter1d
+
     from rotonly_cli.geometry import so3
 
     v = so3.log(R_aligned @ np.swapaxes(R_gt, 1, 2))
-    padded = np.pad(v, ((width // 2, width - 1 - width // 2), (0, 0)), mode="edge")
-    kernel = np.ones(width) / width
-    smooth = np.stack([np.convolve(padded[:, c], kernel, mode="valid") for c in range(3)], axis=1)
+    smooth = uniform_filter1d(v, width, axis=0, mode="nearest")
     return (float(np.degrees(np.linalg.norm(smooth, axis=1)).mean()),
             float(np.degrees(np.linalg.norm(v - smooth, axis=1)).mean()))
 
