@@ -62,7 +62,8 @@ def grrm_inputs(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_
     offset = np.concatenate([[0], np.cumsum(sizes_kp)])
     counts = np.array([graph.edges[k].num_inliers for k in edges], dtype=np.int64)
     bounds = np.concatenate([[0], np.cumsum(counts)])
-    obs_ids = np.empty((int(bounds[-1]), 2), dtype=np.int64)  # filled edge by edge (no list of copies)
+    # filled edge by edge (no list of copies); int32 rows of the coordinate table (8 bytes per match) where it fits
+    obs_ids = np.empty((int(bounds[-1]), 2), dtype=np.int32 if offset[-1] < 2**31 else np.int64)
     for k, m0, m1 in zip(edges, bounds[:-1], bounds[1:]):
         obs_ids[m0:m1, 0] = offset[local[graph.edges[k].i]] + graph.edges[k].matches[:, 0]
         obs_ids[m0:m1, 1] = offset[local[graph.edges[k].j]] + graph.edges[k].matches[:, 1]

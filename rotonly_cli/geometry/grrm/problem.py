@@ -48,6 +48,27 @@ def _to_image_plane(side: np.ndarray, x, with_jacobian: bool) -> None:
             side[13 + c] = 0.0
 
 
+def _summed_view_blocks(n: int, terms) -> sp.csc_matrix:
+    """The 3n x 3n sparse sum of 3x3 blocks given as ``terms`` (rows, cols, block maker) of
+    view-block addresses and (K, 3, 3) blocks (made one term at a time): the duplicates of a
+    view pair summed per address first (a bincount per component), then one BSR matrix of the
+    distinct view pairs, so no per-entry triplet of every block is ever made (at 1000 views
+    those were ~0.7 GB beside the problem)."""
+    keys = [rows * n + cols for rows, cols, _ in terms]
+    unique, inverse = np.unique(np.concatenate(keys), return_inverse=True)
+    blocks = np.zeros((len(unique), 9))
+    start = 0
+    for key, (_, _, block) in zip(keys, terms):
+        data, where = block().reshape(-1, 9), inverse[start:start + len(key)]
+        for k in range(9):
+            blocks[:, k] += np.bincount(where, weights=data[:, k], minlength=len(unique))
+        start += len(key)
+    del keys, inverse
+    block_rows = unique // n
+    indptr = np.searchsorted(block_rows, np.arange(n + 1))
+    return sp.bsr_matrix((blocks.reshape(-1, 3, 3), unique % n, indptr), shape=(3 * n, 3 * n)).tocsc()
+
+
 class GRRMSystem:
     """The fixed structure of a GRRM problem (:class:`~rotonly_cli.geometry.grrm.layout.Layout`:
     observations, parts, pair-block addressing) and its evaluation.
@@ -392,18 +413,19 @@ class GRRMSystem:
         e = np.concatenate([np.arange(E), row, col])
         f = np.concatenate([np.arange(E), col, row])
         M = np.concatenate([diag.reshape(E, 3, 3), off_blocks, np.swapaxes(off_blocks, 1, 2)])
+        del off_blocks, row, col
         MR = M @ R_ij[f]
-        data = np.concatenate([M, -MR, -(Rt[e] @ M), Rt[e] @ MR])
-        rows = np.concatenate([vj[e], vj[e], vi[e], vi[e]])
-        cols = np.concatenate([vj[f], vi[f], vj[f], vi[f]])
+        # the four view blocks of each (e, f), made one kind at a time
+        terms = ((vj[e], vj[f], lambda: M), (vj[e], vi[f], lambda: -MR), (vi[e], vj[f], lambda: -(Rt[e] @ M)),
+                 (vi[e], vi[f], lambda: Rt[e] @ MR))
         if dense:
+            data = np.concatenate([block() for _, _, block in terms])
+            key = np.concatenate([rows * n + cols for rows, cols, _ in terms])
             H = np.zeros((n * n, 9))
             for k in range(9):
-                H[:, k] = np.bincount(rows * n + cols, weights=data[:, k // 3, k % 3], minlength=n * n)
+                H[:, k] = np.bincount(key, weights=data[:, k // 3, k % 3], minlength=n * n)
             return H.reshape(n, n, 3, 3).transpose(0, 2, 1, 3).reshape(3 * n, 3 * n), grad.ravel()
-        r3 = np.broadcast_to((3 * rows)[:, None, None] + np.arange(3)[None, :, None], data.shape).ravel()
-        c3 = np.broadcast_to((3 * cols)[:, None, None] + np.arange(3)[None, None, :], data.shape).ravel()
-        return sp.csc_matrix((data.ravel(), (r3, c3)), shape=(3 * n, 3 * n)), grad.ravel()
+        return _summed_view_blocks(n, terms), grad.ravel()
 
     def normal_equations(self, R: np.ndarray, V: np.ndarray, B: np.ndarray, row_weight: np.ndarray,
                          radial_curvature: np.ndarray | None = None):

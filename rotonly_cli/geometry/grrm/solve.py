@@ -56,8 +56,10 @@ def validate_inputs(R_cam_from_world, edge_views, batch: pg.EdgeBatch | pg.Obser
     M = pg.num_matches(batch)
     if obs_ids.shape != (M, 2) or not np.issubdtype(obs_ids.dtype, np.integer):
         raise ValueError(f"obs_ids: expected an integer array of shape ({M}, 2), got {obs_ids.shape}")
-    # copy=False: obs_ids is (M, 2), 16 bytes per match, already int64 from stages.optimize
-    return R, edge_views.astype(np.int64, copy=False), obs_ids.astype(np.int64, copy=False)
+    # (M, 2): int32 from stages.optimize where the keypoints allow (8 bytes per match), kept as given
+    if obs_ids.dtype not in (np.int32, np.int64):
+        obs_ids = obs_ids.astype(np.int64)
+    return R, edge_views.astype(np.int64, copy=False), obs_ids
 
 
 def _block_diag(blocks: np.ndarray) -> sp.csr_matrix:
