@@ -101,10 +101,11 @@ def write_workspace(out_dir: Path, run: Run, stages_done: list[str]) -> None:
 
 
 def load_ground_truth(path: str | Path) -> SfMScene:
-    """GT for --gt: a Strecha folder, an OpenMVG sfm_data.json or a COLMAP model."""
+    """GT for --gt: a Strecha folder, an OpenMVG sfm_data.json or a COLMAP model (its poses:
+    held through the run, and all the evaluation reads)."""
     from rotonly_cli.io.detect import read_scene
 
-    return read_scene(path, field="--gt")
+    return read_scene(path, field="--gt", poses_only=True)
 
 
 def ground_truth_for(options: RunOptions, stages: tuple[str, ...] | list[str]) -> SfMScene | None:

@@ -25,10 +25,13 @@ In CI: rotonly eval --gt GT OUT -o EVAL --max-rotation-deg 0.05 --baseline BASE/
 
 
 def load_scene(path: str | Path, role: str) -> SfMScene:
-    """Read GT or estimate (``role`` "gt" or "estimate"; a Strecha folder is GT only)."""
+    """Read GT or estimate (``role`` "gt" or "estimate"; a Strecha folder is GT only). Of the
+    ground truth only its poses (all the evaluation compares); the estimate whole, so that a
+    broken file is refused."""
     from rotonly_cli.io.detect import read_scene
 
-    return read_scene(path, field="--gt" if role == "gt" else "ESTIMATE", ground_truth=role == "gt")
+    return read_scene(path, field="--gt" if role == "gt" else "ESTIMATE", ground_truth=role == "gt",
+                      poses_only=role == "gt")
 
 
 @click.command("eval", epilog=EPILOG)

@@ -119,11 +119,14 @@ def _reader(module: str, name: str):
     return getattr(importlib.import_module(f"rotonly_cli.io.{module}"), name)
 
 
-def read_scene(path: PathLike, field: str | None = None, ground_truth: bool = True) -> SfMScene:
+def read_scene(path: PathLike, field: str | None = None, ground_truth: bool = True,
+               poses_only: bool = False) -> SfMScene:
     """A ground truth or an estimate: an OpenMVG sfm_data .json file, a Strecha folder (its
     ``gt_dense_cameras/`` or the folder holding it; ground truth only), a COLMAP model, or a
     folder holding ``sfm_data.json`` or a COLMAP model in ``sparse/`` (a `rotonly run` OUT).
-    ``field`` names the option in error messages."""
+    ``field`` names the option in error messages. ``poses_only``: views, cameras and poses,
+    no points or keypoints (all an evaluation reads; a simulated collection's ground truth
+    holds 1 GB of points at 1000 views)."""
     path = Path(path)
     if not path.exists():
         raise InputError("no such file or folder", path=str(path), field=field)
@@ -132,20 +135,20 @@ def read_scene(path: PathLike, field: str | None = None, ground_truth: bool = Tr
         if path.suffix.lower() != ".json":
             raise InputError("expected an OpenMVG sfm_data .json file or a folder" + unread_format_hint(path),
                              path=str(path), field=field)
-        return _reader("openmvg", "read_sfm_data")(str(path))
+        return _reader("openmvg", "read_sfm_data")(str(path), poses_only)
     if ground_truth and is_strecha_folder(path):
         return _reader("strecha", "read_strecha_dir")(str(path))
     if is_colmap_model(path):
-        return _reader("colmap", "read_model")(str(path))
+        return _reader("colmap", "read_model")(str(path), poses_only)
     if (path / "sfm_data.json").is_file():
-        return _reader("openmvg", "read_sfm_data")(str(path / "sfm_data.json"))
+        return _reader("openmvg", "read_sfm_data")(str(path / "sfm_data.json"), poses_only)
     if is_colmap_model(path / "sparse"):
-        return _reader("colmap", "read_model")(str(path / "sparse"))
+        return _reader("colmap", "read_model")(str(path / "sparse"), poses_only)
     expected = f"{GT_SUBDIR}/, *.camera, " if ground_truth else ""
     raise InputError(f"folder holds none of {expected}sfm_data.json, a COLMAP model (cameras/images .bin|.txt)"
                      + unread_format_hint(path), path=str(path), field=field)
 
 
 def read_ground_truth(path: PathLike) -> SfMScene:
-    """:func:`read_scene` of a ground truth."""
-    return read_scene(path, ground_truth=True)
+    """:func:`read_scene` of a ground truth (its poses)."""
+    return read_scene(path, ground_truth=True, poses_only=True)

@@ -103,7 +103,7 @@ def run_rotonly(folder: Path, work: Path, jobs: int, timeout: float | None) -> d
     if out.exists():
         shutil.rmtree(out)
     # evaluated here, as the mapper's model is: with --gt the run would also read the simulation's
-    # ground truth (1 GB of JSON with its points at 1000 views) into its own memory
+    # ground truth (1 GB of JSON with its points at 1000 views, 6 s to skip them) in its own time
     argv = tool_runs.rotonly_command() + ["-q", "run", str(folder / "database.db"), "-o", str(out),
                                               "--jobs", str(jobs)]
     # each stage's own peak in resources.json; the process's peak is then the largest of them
@@ -113,7 +113,7 @@ def run_rotonly(folder: Path, work: Path, jobs: int, timeout: float | None) -> d
     if result["exit"] == 0 and (reports / "run.json").is_file():
         run = json.loads((reports / "run.json").read_text())
         evaluated = tool_runs.evaluate_scene("rotonly", ground_truth(folder),
-                                                 detect.read_scene(out / "sfm_data.json"), None)
+                                                 detect.read_scene(out / "sfm_data.json", poses_only=True), None)
         result.update(registered=run.get("num_registered"), points=run.get("num_points"),
                       rotation_mean_deg=evaluated.rotation_mean_deg, position_mean=evaluated.position_mean)
         resources = reports / "resources.json"
@@ -131,28 +131,8 @@ def ground_truth(folder: Path):
     """The recipe's ground truth (poses; read once per recipe)."""
     if folder not in _GT:
         _GT.clear()
-        _GT[folder] = detect.read_scene(poses_only(folder / "gt" / "sfm_data.json"))
+        _GT[folder] = detect.read_ground_truth(folder / "gt" / "sfm_data.json")
     return _GT[folder]
-
-
-def poses_only(sfm_data: Path, chunk: int = 1 << 24) -> Path:
-    """A copy of the simulation's sfm_data.json without its structure (made once beside it): the
-    evaluation needs the poses only, and the structure is ~300 bytes per observation (3 GB at
-    10 000 views), more than the bench process should hold as JSON objects. The simulator writes
-    "structure" after the views, intrinsics and extrinsics."""
-    target = sfm_data.with_name("poses_" + sfm_data.name)
-    if target.is_file():
-        return target
-    head = b""
-    with open(sfm_data, "rb") as f:
-        while b'"structure"' not in head:
-            block = f.read(chunk)
-            if not block:
-                return sfm_data  # no structure: the file is poses only already
-            head += block
-    head = head[:head.index(b'"structure"')]
-    target.write_bytes(head + b'"structure": [], "control_points": []}\n')
-    return target
 
 
 def run_mapper(folder: Path, work: Path, jobs: int, timeout: float | None) -> dict:

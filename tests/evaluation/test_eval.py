@@ -314,7 +314,7 @@ def minimal_readers(monkeypatch):
 
     readers = {("strecha", "read_strecha_dir"): lambda p: _read_strecha_minimal(
                    Path(p) if (Path(p) / "gt_dense_cameras").is_dir() else Path(p).parent),
-               ("openmvg", "read_sfm_data"): lambda p: _read_sfm_data_minimal(Path(p))}
+               ("openmvg", "read_sfm_data"): lambda p, poses_only=False: _read_sfm_data_minimal(Path(p))}
     monkeypatch.setattr(detect, "_reader", lambda module, name: readers[(module, name)])
 
 

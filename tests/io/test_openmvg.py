@@ -553,3 +553,19 @@ def test_fast_structure_text_equals_json_dumps():
     expected = json.dumps(openmvg.sfm_data_document(scene), indent=4, ensure_ascii=False)
     assert openmvg.sfm_data_bytes(scene) == expected.encode("utf-8")
     assert '"observations": []' in expected and "1e-05" in expected
+
+
+def test_poses_only_read_equals_the_full_read_without_structure(tmp_path):
+    path = tmp_path / "sfm_data.json"
+    path.write_bytes(openmvg.sfm_data_bytes(_synthetic_scene(np.random.default_rng(5))))
+    full = openmvg.read_sfm_data(path)
+    poses = openmvg.read_sfm_data(path, poses_only=True)
+    assert full.structure is not None and len(full.structure.points) > 0 and full.poses
+    assert poses.structure is None
+    assert poses.views == full.views and poses.intrinsics.keys() == full.intrinsics.keys()
+    assert poses.poses.keys() == full.poses.keys()
+    for view_id, pose in full.poses.items():
+        np.testing.assert_array_equal(poses.poses[view_id].R_cam_from_world, pose.R_cam_from_world)
+        np.testing.assert_array_equal(poses.poses[view_id].center, pose.center)
+    for intrinsic_id, intrinsics in full.intrinsics.items():
+        np.testing.assert_array_equal(poses.intrinsics[intrinsic_id].params, intrinsics.params)

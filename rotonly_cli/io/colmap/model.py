@@ -258,9 +258,10 @@ def to_reconstruction(scene: SfMScene):
         return _model_reconstruction(pycolmap, scene, Path(workdir))
 
 
-def read_model(path: PathLike) -> SfMScene:
+def read_model(path: PathLike, poses_only: bool = False) -> SfMScene:
     """COLMAP sparse model folder -> SfMScene with cameras, (registered) views, poses,
-    keypoints = the images' points2D, normalized, and structure with tracks and colours."""
+    keypoints = the images' points2D, normalized, and structure with tracks and colours
+    (``poses_only``: no keypoints and no structure)."""
     pycolmap = import_pycolmap()
     path = Path(path)
     if not path.exists():
@@ -274,10 +275,10 @@ def read_model(path: PathLike) -> SfMScene:
     except Exception:  # noqa: BLE001 - a disagreement check_model does not know; pycolmap's text is internal
         raise InputError("pycolmap cannot read this model (its files disagree with each other)",
                          path=str(path)) from None
-    return scene_from_reconstruction(reconstruction)
+    return scene_from_reconstruction(reconstruction, poses_only)
 
 
-def scene_from_reconstruction(reconstruction) -> SfMScene:
+def scene_from_reconstruction(reconstruction, poses_only: bool = False) -> SfMScene:
     """A pycolmap.Reconstruction (in memory) as an SfMScene, as :func:`read_model` reads one."""
     scene = SfMScene(source="colmap-model")
     for camera_id, camera in reconstruction.cameras.items():
@@ -289,17 +290,18 @@ def scene_from_reconstruction(reconstruction) -> SfMScene:
         camera = reconstruction.cameras[image.camera_id]
         scene.views[int(image_id)] = View(int(image_id), image.name, int(image.camera_id),
                                           width=int(camera.width), height=int(camera.height))
-        points = image.points2D
-        keypoints = (np.array([p.xy for p in points], dtype=np.float64).reshape(-1, 2)
-                     if len(points) else np.zeros((0, 2)))
-        scene.keypoints[int(image_id)] = keypoints
-        scene.normalized[int(image_id)] = normalize_keypoints(camera, keypoints)
+        if not poses_only:
+            points = image.points2D
+            keypoints = (np.array([p.xy for p in points], dtype=np.float64).reshape(-1, 2)
+                         if len(points) else np.zeros((0, 2)))
+            scene.keypoints[int(image_id)] = keypoints
+            scene.normalized[int(image_id)] = normalize_keypoints(camera, keypoints)
         if image.has_pose:
             cam_from_world = image.cam_from_world()
             R = np.array(cam_from_world.rotation.matrix(), dtype=np.float64)
             t = np.array(cam_from_world.translation, dtype=np.float64)
             scene.poses[int(image_id)] = Pose(R, -R.T @ t)
-    point_ids = sorted(reconstruction.points3D)
+    point_ids = [] if poses_only else sorted(reconstruction.points3D)
     if point_ids:
         points3D = [reconstruction.points3D[point_id] for point_id in point_ids]
         scene.structure = Structure(

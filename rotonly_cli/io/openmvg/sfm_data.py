@@ -175,14 +175,15 @@ def _is_rotation(R: np.ndarray, tolerance: float = 1e-3) -> bool:
     return bool(np.abs(R @ R.T - np.eye(3)).max() < tolerance and np.linalg.det(R) > 0)
 
 
-def read_sfm_data(path: PathLike) -> SfMScene:
+def read_sfm_data(path: PathLike, poses_only: bool = False) -> SfMScene:
     """Read an OpenMVG ``sfm_data.json`` (any version 0.1-0.3) into an SfMScene.
 
     Poses are keyed by *view* id (a pose shared by several views is copied to each);
-    ``View.pose_id`` keeps OpenMVG's pose id. Control points are not read.
+    ``View.pose_id`` keeps OpenMVG's pose id. Control points are not read. ``poses_only``:
+    views, intrinsics and poses; the structure is skipped unparsed (what an evaluation reads).
     """
     fields = _JsonFields(path)
-    document = load_json(path)
+    document = load_json(path, skip_member="structure" if poses_only else None)
     if not isinstance(document, dict):
         raise fields.fail("", "expected a JSON object at the top level")
     fields.string(document, "sfm_data_version", "")
@@ -231,7 +232,7 @@ def read_sfm_data(path: PathLike) -> SfMScene:
         if pose is not None:
             scene.poses[view.id] = Pose(pose.R_cam_from_world.copy(), pose.center.copy())
 
-    landmarks = fields.map_items(document, "structure")
+    landmarks = [] if poses_only else fields.map_items(document, "structure")
     if landmarks:
         point_ids = np.empty(len(landmarks), dtype=np.int64)
         points = np.empty((len(landmarks), 3))
