@@ -99,27 +99,28 @@ HELD = {"per_stored_match": 20.0, "per_keypoint": 48.0}
 #: plus 10 %; GRRM's two costs solve both scenes (31 B per pair: its pair_a, pair_b, pair_block int64
 #: arrays and a key). Recalibrate here when a stage's memory changes (GRRM without the pair lists: its
 #: per_pair goes to 0). docs/tuning.md "Memory guard" has the table of predicted against measured.
-#: Recalibrated on scripts/bench/scale.py's runs (each stage's own peak, reports/resources.json) after
-#: GRRM's layout and the chunked stages: circular 200 views (4.4 M matches) and 1000 views (21 M),
-#: 50 views seeing ~31 each (6.1 M): measured GRRM 0.99 / 4.01 / 1.29 GB, translate 0.64 / 2.64 /
-#: 0.84, triangulate 0.74 / 3.83 / 0.94; the costs below predict them 17-45 % high.
+#: Recalibrated since on today's code with scripts/bench/memory_calibration.py --no-limit (each stage's
+#: own peak) on three of scripts/bench/scale.py's collections, circular 200 views (4.4 M matches),
+#: 50 views seeing ~31 each (6.1 M) and circular 1000 views (21 M): each stage's per-match cost the
+#: largest of the three plus 10 %, the rest as it was; they predict the measured peaks 3-26 % high
+#: (docs/tuning.md "Memory guard", the table of the refit).
 STAGE_FOOTPRINTS: dict[str, Footprint] = {
-    "load": Footprint(PROCESS_BASE, per_match=34.0, per_keypoint=48.0),  # matches: every row the database stores
+    "load": Footprint(PROCESS_BASE, per_match=19.0, per_keypoint=48.0),  # matches: every row the database stores
     # identify, refine: edges in groups of 2^19 matches (runtime/parallel.STAGE_CHUNK_MATCHES), each a
     # batch and MatchTable (~210 B per match) freed before the next
-    "identify": Footprint(PROCESS_BASE, per_match=30.0, per_chunk_match=230.0, chunk_matches=1 << 19, **HELD),
-    "refine": Footprint(PROCESS_BASE, per_match=34.0, per_chunk_match=250.0, chunk_matches=1 << 19, **HELD),
+    "identify": Footprint(PROCESS_BASE, per_match=15.0, per_chunk_match=230.0, chunk_matches=1 << 19, **HELD),
+    "refine": Footprint(PROCESS_BASE, per_match=15.0, per_chunk_match=250.0, chunk_matches=1 << 19, **HELD),
     # and the minority-keypoint drop's track tables (two int64 keys, int32 nodes, the match graph):
     # measured 2.05 GB at 1000 views (21 M matches), 1.06 GB before it
-    "average": Footprint(PROCESS_BASE, per_match=80.0, **HELD),
+    "average": Footprint(PROCESS_BASE, per_match=75.0, **HELD),
     # GRRM: no pair lists (grrm/layout.py); per match its observation rows, the layout's two int32
-    # per contribution, the weights and the layout's sort; per part (layout.PART_MATCHES incident
-    # matches at most) a table of 16 float64 per side, the gathered coordinates and a block's work
-    "optimize": Footprint(PROCESS_BASE, per_match=150.0, per_chunk_match=420.0, chunk_matches=1 << 20, **HELD),
-    "translate": Footprint(PROCESS_BASE, per_match=100.0, per_chunk_row=2000.0, **HELD),
-    "reject": Footprint(PROCESS_BASE, per_match=100.0, per_chunk_row=2000.0, **HELD),  # and GRRM's, LiGT's: predict
-    "triangulate": Footprint(PROCESS_BASE, per_match=150.0, **HELD),
-    "export": Footprint(PROCESS_BASE, per_match=150.0, **HELD),
+    # per contribution, the weights and the layout's sort, and the parts' tables, gathered coordinates
+    # and work (the fit gives them no cost of their own: 128 B per match and -53 per chunk match)
+    "optimize": Footprint(PROCESS_BASE, per_match=141.0, **HELD),
+    "translate": Footprint(PROCESS_BASE, per_match=95.0, per_chunk_row=2000.0, **HELD),
+    "reject": Footprint(PROCESS_BASE, per_match=52.0, per_chunk_row=2000.0, **HELD),  # and GRRM's, LiGT's: predict
+    "triangulate": Footprint(PROCESS_BASE, per_match=104.0, **HELD),
+    "export": Footprint(PROCESS_BASE, per_match=121.0, **HELD),
 }
 #: smallest LiGT chunk the guard degrades to (constraints per chunk; LiGTOptions.chunk_size)
 MIN_CHUNK = 2_000

@@ -97,7 +97,7 @@ def test_memory_error_in_a_stage_is_one_line(capsys, previous_out, monkeypatch):
     assert code == 1
     assert len(err) == 1
     assert re.fullmatch(r"error: optimize ran out of memory \(Unable to allocate 64\.0 TiB for an array with shape "
-                        r"\(70368744177664,\) and data type uint8\); it needs about 0\.17 GB \(12071 matches, .*\)",
+                        r"\(70368744177664,\) and data type uint8\); it needs about 0\.16 GB \(12071 matches, .*\)",
                         err[0]), err[0]
     assert folder_bytes(previous_out) == before
 
