@@ -120,9 +120,10 @@ def _options(options: RunOptions | None, settings: dict) -> RunOptions:
 
 def run(input, out: str | os.PathLike | None = None, *, gt=None, matches_dir=None, matches=None, image_path=None,
         min_inliers: int | None = None, reestimate: str | None = None, ransac_max_error: float | None = None,
-        seed: int | None = None, intrinsics: str | None = None, max_residual_deg: float | None = None,
-        grrm: bool | None = None, jobs: int | None = None, cluster: str | None = None, progress: bool | None = None,
-        max_memory: float | None = None, options: RunOptions | None = None) -> RunResult:
+        seed: int | None = None, consensus: str | None = None, intrinsics: str | None = None,
+        max_residual_deg: float | None = None, grrm: bool | None = None, jobs: int | None = None,
+        cluster: str | None = None, progress: bool | None = None, max_memory: float | None = None,
+        options: RunOptions | None = None) -> RunResult:
     """`rotonly run` in memory: camera poses and points from feature matches.
 
     ``input``: a COLMAP database or an OpenMVG sfm_data.json (path), a ``pycolmap.Database``,
@@ -138,7 +139,8 @@ def run(input, out: str | os.PathLike | None = None, *, gt=None, matches_dir=Non
 
     options = _options(options, {"gt": gt, "matches_dir": matches_dir, "matches": matches, "image_path": image_path,
                                  "min_inliers": min_inliers, "reestimate": reestimate,
-                                 "ransac_max_error": ransac_max_error, "seed": seed, "intrinsics": intrinsics,
+                                 "ransac_max_error": ransac_max_error, "seed": seed, "consensus": consensus,
+                                 "intrinsics": intrinsics,
                                  "max_residual_deg": max_residual_deg, "grrm": grrm, "jobs": jobs,
                                  "cluster": cluster, "progress": progress, "max_memory": max_memory})
     options.load.validate()

@@ -11,6 +11,7 @@ option                 commands
 --reestimate           run, identify
 --ransac-max-error     run, identify, refine (simulated edge)
 --seed (RANSAC)        run, identify
+--consensus            run, identify
 --max-residual-deg     run, average
 --gt (GT_PATH)         run, triangulate
 --jobs                 run, identify, refine
@@ -26,7 +27,14 @@ from pathlib import Path
 
 import click
 
-from rotonly_cli.options import INTRINSICS_MODES, REESTIMATE_MODES, AverageOptions, IntrinsicsOptions, LoadOptions
+from rotonly_cli.options import (
+    CONSENSUS_MODES,
+    INTRINSICS_MODES,
+    REESTIMATE_MODES,
+    AverageOptions,
+    IntrinsicsOptions,
+    LoadOptions,
+)
 
 #: `rotonly refine FILE.npz`: the 5-point RANSAC threshold (px) when --ransac-max-error is not given
 SIMULATION_RANSAC_MAX_ERROR_PX = 2.0
@@ -84,6 +92,13 @@ ransac_max_error = click.option(
     f"{SIMULATION_RANSAC_MAX_ERROR_PX:g} px).")
 seed = click.option("--seed", type=click.IntRange(0, 2 ** 31 - 1), default=LoadOptions.seed, show_default=True,
                     help="RANSAC seed (runs are deterministic).")
+consensus = click.option(
+    "--consensus", type=click.Choice(CONSENSUS_MODES), default="full", show_default=True,
+    help=f"How each edge's inlier matches are settled: full = {LoadOptions.consensus_runs} seeded RANSAC runs, the "
+         "matches all of them accept kept; fast = on edges of more than "
+         f"{LoadOptions.agreement_min_matches} matches, two runs on {LoadOptions.agreement_max_matches} matches "
+         "whose inliers agree are kept as they are (the relative poses of a large collection ~5x faster, less "
+         "robust on repeated structure).")
 intrinsics = click.option(
     "--intrinsics", type=click.Choice(INTRINSICS_MODES), default=IntrinsicsOptions.mode.value, show_default=True,
     help="Camera intrinsics: fixed = used as given; refine = every camera calibrated (focal from the view graph, "
@@ -94,7 +109,7 @@ intrinsics = click.option(
          "rotation-only stages.")
 #: the load stage's options (`run` and `identify`)
 load_options = _all(matches_dir, matches_file, image_path, min_inliers, reestimate, ransac_max_error, seed,
-                    intrinsics)
+                    consensus, intrinsics)
 
 max_residual_deg = click.option(
     "--max-residual-deg", type=FiniteFloatRange(min=0, min_open=True), default=AverageOptions.max_residual_deg,

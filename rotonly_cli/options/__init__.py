@@ -14,11 +14,13 @@ from dataclasses import dataclass
 
 from rotonly_cli.errors import InputError
 from rotonly_cli.options.common import (
+    CONSENSUS_MODES,
     INTRINSICS_MODES,
     LOSSES,
     MIN_MATCHES,
     REESTIMATE_MODES,
     RESIDUALS,
+    Consensus,
     Intrinsics,
     Reestimate,
     ResidualForm,
@@ -41,10 +43,10 @@ from rotonly_cli.options.solvers import (
 )
 
 __all__ = [
-    "AverageOptions", "AveragingOptions", "GRRMOptions", "IdentificationOptions", "Intrinsics", "IntrinsicsOptions",
-    "LiGTOptions", "LoadOptions", "Reestimate", "RejectOptions", "ResectionOptions", "ResidualForm", "RobustLoss",
-    "RobustWeight", "RunOptions", "TRRMOptions", "TriangulationOptions",
-    "INTRINSICS_MODES", "LOSSES", "MIN_MATCHES", "REESTIMATE_MODES", "RESIDUALS",
+    "AverageOptions", "AveragingOptions", "Consensus", "GRRMOptions", "IdentificationOptions", "Intrinsics",
+    "IntrinsicsOptions", "LiGTOptions", "LoadOptions", "Reestimate", "RejectOptions", "ResectionOptions",
+    "ResidualForm", "RobustLoss", "RobustWeight", "RunOptions", "TRRMOptions", "TriangulationOptions",
+    "CONSENSUS_MODES", "INTRINSICS_MODES", "LOSSES", "MIN_MATCHES", "REESTIMATE_MODES", "RESIDUALS",
 ]
 
 

@@ -40,6 +40,16 @@ class Reestimate(StrEnum):
     NONE = "none"  #: none: edges without a usable stored pose are filtered
 
 
+class Consensus(StrEnum):
+    """How the load stage settles each edge's inlier matches from its seeded RANSAC runs."""
+
+    #: ``LoadOptions.consensus_runs`` runs on every edge, the matches every run accepts kept
+    FULL = "full"
+    #: on edges of more than ``agreement_min_matches`` matches, two runs on a subset that agree
+    #: are kept as they are (``LoadOptions.consensus_agreement``): cheaper, less robust
+    FAST = "fast"
+
+
 class Intrinsics(StrEnum):
     """What ``rotonly run`` does with the camera intrinsics it is given (calibration/)."""
 
@@ -60,6 +70,7 @@ LOSSES = tuple(loss.value for loss in RobustLoss)
 RESIDUALS = tuple(form.value for form in ResidualForm)
 REESTIMATE_MODES = tuple(mode.value for mode in Reestimate)
 INTRINSICS_MODES = tuple(mode.value for mode in Intrinsics)
+CONSENSUS_MODES = tuple(mode.value for mode in Consensus)
 
 
 def cluster_address(address: str) -> tuple[str, int | str]:

@@ -14,6 +14,10 @@ from rotonly_cli.options.common import (
     Reestimate,
 )
 
+#: ``consensus_agreement`` of ``--consensus fast`` (an edge's two first runs differing in at most 1 %
+#: of the matches either accepts; docs/tuning.md, Load)
+FAST_CONSENSUS_AGREEMENT = 0.01
+
 
 @dataclass(frozen=True)
 class LoadOptions:

@@ -7,8 +7,10 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+from rotonly_cli.errors import InputError
 from rotonly_cli.options import RunOptions
-from rotonly_cli.options.common import INTRINSICS_MODES, Intrinsics, Reestimate
+from rotonly_cli.options.common import CONSENSUS_MODES, INTRINSICS_MODES, Consensus, Intrinsics, Reestimate
+from rotonly_cli.options.inputs import FAST_CONSENSUS_AGREEMENT
 
 #: name -> (the part of RunOptions it sets: "" for RunOptions itself, else its field holding
 #: that stage's options; the field)
@@ -26,6 +28,7 @@ SETTINGS = {
     "reestimate": ("load", "reestimate"),
     "ransac_max_error": ("load", "ransac_max_error_px"),
     "seed": ("load", "seed"),
+    "consensus": ("load", "consensus_agreement"),
     "max_residual_deg": ("average", "max_residual_deg"),
     "intrinsics": ("intrinsics", "mode"),
 }
@@ -42,6 +45,10 @@ def _value(field: str, value):
         return str(value)
     if field == "reestimate":
         return Reestimate(value)
+    if field == "consensus_agreement":
+        if value not in CONSENSUS_MODES:
+            raise InputError(f"{value!r}: must be one of {', '.join(CONSENSUS_MODES)}", field="consensus")
+        return FAST_CONSENSUS_AGREEMENT if value == Consensus.FAST else None
     if field == "mode":
         return Intrinsics(value) if value in INTRINSICS_MODES else value
     return value

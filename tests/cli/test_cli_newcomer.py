@@ -141,3 +141,40 @@ def test_unmatched_share_that_warns():
     # a GT camera whose image was given but not registered is not another scene's (its own warning says so)
     assert unmatched_warning(report(19, 11, 0), input_names=[f"{k}.jpg" for k in range(19)]) is None
     assert unmatched_warning(report(19, 11, 0), input_names=[f"images/{k}.jpg" for k in range(19)]) is None
+
+
+def test_consensus_fast_is_the_agreeing_runs_of_the_load_stage(capsys, tmp_path):
+    """--consensus maps to LoadOptions.consensus_agreement (fast: the agreeing runs; full: off,
+    as by default) in the CLI and the API alike, and a bad value names the option."""
+    import json
+
+    from rotonly_cli.errors import InputError
+    from rotonly_cli.options import LoadOptions, RunOptions
+    from rotonly_cli.options.inputs import FAST_CONSENSUS_AGREEMENT
+    from rotonly_cli.options.settings import with_settings
+
+    assert LoadOptions().consensus_agreement is None
+    assert with_settings(RunOptions(), {"consensus": "fast"}).load.consensus_agreement == FAST_CONSENSUS_AGREEMENT
+    fast = with_settings(RunOptions(), {"consensus": "fast"})
+    assert with_settings(fast, {"consensus": "full"}).load.consensus_agreement is None
+    with pytest.raises(InputError, match="consensus"):
+        with_settings(RunOptions(), {"consensus": "quick"})
+    # five views, a pair of each adjacent two holding ~2500 matches (the fixtures hold 1000 at most)
+    code, _, err = _rotonly(capsys, "-q", "simulate", "multiview", "--setup", "circular", "--views", "5", "--points",
+                            "4000", "--window", "1", "--init", "perturbed", "--format", "colmap",
+                            "-o", tmp_path / "sim")
+    assert code == 0, err
+    runs = {}
+    for mode in ("full", "fast"):
+        out = tmp_path / mode
+        code, _, err = _rotonly(capsys, "-q", "identify", tmp_path / "sim" / "database.db", "-o", out, "--consensus",
+                                mode)
+        assert code == 0, err
+        report = json.loads((out / "reports" / "load.json").read_text())
+        runs[mode] = report["ransac_runs"], report["num_reestimated"]
+    (full_runs, edges), (fast_runs, _) = runs["full"], runs["fast"]
+    assert full_runs == LoadOptions.consensus_runs * edges  # every edge's four runs
+    # an edge of more than 1000 matches whose first two runs agree stops there (most of these clean pairs)
+    assert 2 * edges <= fast_runs <= full_runs - 2 * (edges // 2)
+    code, _, err = _rotonly(capsys, "identify", HERZ_JESU / "database.db", "-o", tmp_path / "bad", "--consensus", "x")
+    assert code == 2 and "--consensus" in err and not (tmp_path / "bad").exists()
