@@ -4,10 +4,11 @@ simulated collections, each a process, side by side on the same database.
 Usage: python scripts/bench/scale.py [--recipes circular-200 circular-1000 ...] [--rounds 1]
                                      [--cache DIR] [-o RESULTS_DIR] [--no-mapper] [--jobs 2]
                                      [--results-md docs/results.md] [--section scale] [--mapper-only]
+                                     [--consensus full|fast]
 
 Per recipe (``RECIPES``: `rotonly simulate multiview ... --format colmap` arguments), the input is
 made once (cached under ``--cache``), then in ``--rounds`` rounds, the order alternating:
-* `rotonly -q run DATABASE -o OUT --jobs J` as a process, with ROTONLY_STAGE_PEAKS=1:
+* `rotonly -q run DATABASE -o OUT --jobs J [--consensus C]` as a process, with ROTONLY_STAGE_PEAKS=1:
   wall time, the per-stage time and peak RSS it recorded itself (OUT/reports/resources.json)
   and the process's peak RSS (the largest of those and of the kernel's accounting of the
   finished child, os.wait4, which then covers what follows the last stage), registered views, points, mean
@@ -98,14 +99,14 @@ def input_counts(database: Path) -> dict:
     return {"images": images, "pairs": pairs, "matches": matches}
 
 
-def run_rotonly(folder: Path, work: Path, jobs: int, timeout: float | None) -> dict:
+def run_rotonly(folder: Path, work: Path, jobs: int, timeout: float | None, consensus: str = "full") -> dict:
     out = work / "rotonly_out"
     if out.exists():
         shutil.rmtree(out)
     # evaluated here, as the mapper's model is: with --gt the run would also read the simulation's
     # ground truth (1 GB of JSON with its points at 1000 views, 6 s to skip them) in its own time
     argv = tool_runs.rotonly_command() + ["-q", "run", str(folder / "database.db"), "-o", str(out),
-                                              "--jobs", str(jobs)]
+                                              "--jobs", str(jobs), "--consensus", consensus]
     # each stage's own peak in resources.json; the process's peak is then the largest of them
     # and of what the kernel reports (since the last reset: export and the exit)
     result = timed_process(argv, work / "rotonly.log", timeout, env={**os.environ, "ROTONLY_STAGE_PEAKS": "1"})
@@ -171,6 +172,7 @@ def tables(rows: list[dict]) -> str:
         counts = row["counts"]
         mapper = row.get("mapper") or {}
         mapper_wall = mapper.get("wall_s") if mapper.get("exit") == 0 else None  # a killed mapper: no ratio
+        rotonly_label = "rotonly run" + (" --consensus fast" if row.get("consensus") == "fast" else "")
         for method in ("rotonly", "mapper"):
             r = row.get(method)
             if not r:
@@ -179,7 +181,7 @@ def tables(rows: list[dict]) -> str:
             per_match = r["peak_rss_mb"] * 1048576 / counts["matches"] if r.get("peak_rss_mb") and counts["matches"] \
                 else None
             lines.append(f"| {row['recipe']} | {counts['images']} | {counts['pairs']} | {counts['matches']} | "
-                         f"{'rotonly run' if method == 'rotonly' else 'pycolmap global mapper'} | {r.get('exit')} | "
+                         f"{rotonly_label if method == 'rotonly' else 'pycolmap global mapper'} | {r.get('exit')} | "
                          f"{fmt(r['wall_s'])} | {fmt(ratio, 2)} | {fmt(r.get('peak_rss_mb'), 0)} | "
                          f"{fmt(per_match, 0)} | {fmt(r.get('registered'))} | {fmt(r.get('points'))} | "
                          f"{fmt(r.get('rotation_mean_deg'), 4)} | {fmt(r.get('position_mean'), 4)} |")
@@ -206,6 +208,7 @@ def main(argv: list[str] | None = None) -> int:
                              "invocation on the same recipes)")
     parser.add_argument("--timeout", type=float, default=None, help="seconds per process (killed after)")
     parser.add_argument("--results-md", type=Path, default=None)
+    parser.add_argument("--consensus", choices=["full", "fast"], default="full", help="rotonly run's --consensus")
     parser.add_argument("--section", default="scale",
                         help="the section of --results-md the table replaces (one per set of recipes)")
     args = parser.parse_args(argv)
@@ -218,7 +221,8 @@ def main(argv: list[str] | None = None) -> int:
         earlier = {row["recipe"]: row for row in json.loads((args.output / "results.json").read_text())}
     for name in args.recipes:
         folder = make_input(name, args.cache)
-        row = {"recipe": name, "counts": input_counts(folder / "database.db"), "rounds": []}
+        row = {"recipe": name, "counts": input_counts(folder / "database.db"), "rounds": [],
+               "consensus": args.consensus}
         work = args.output / name
         work.mkdir(parents=True, exist_ok=True)
         methods = ["mapper"] if args.mapper_only else ["rotonly"] + ([] if args.no_mapper else ["mapper"])
@@ -226,8 +230,10 @@ def main(argv: list[str] | None = None) -> int:
             done = {}
             for method in methods[k % len(methods):] + methods[:k % len(methods)]:
                 print(f"[{name}] round {k + 1}: {method}", flush=True)
-                run = run_rotonly if method == "rotonly" else run_mapper
-                done[method] = run(folder, work, args.jobs, args.timeout)
+                if method == "rotonly":
+                    done[method] = run_rotonly(folder, work, args.jobs, args.timeout, args.consensus)
+                else:
+                    done[method] = run_mapper(folder, work, args.jobs, args.timeout)
                 print(f"[{name}]   {json.dumps({key: v for key, v in done[method].items() if key != 'stages'})}",
                       flush=True)
             row["rounds"].append(done)
