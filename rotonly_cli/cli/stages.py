@@ -44,13 +44,14 @@ def _stage_command(stage: str, summary: str, *options):
 average = _stage_command("average", "Robust rotation averaging (L1 + IRLS, weighted by inlier count) of the "
                          "active edges; edges beyond --max-residual-deg are filtered.", cli_options.max_residual_deg)
 optimize = _stage_command("optimize", "GRRM (the paper's Algorithm 4) refines the averaged global rotations on the "
-                          "reprojection residuals of all REGULAR edges.")
+                          "reprojection residuals of all REGULAR edges.", cli_options.jobs)
 translate = _stage_command("translate", "Camera centres by LiGT from the rotations and the tracks of the REGULAR "
-                           "edges.")
+                           "edges.", cli_options.jobs)
 reject = _stage_command("reject", "Drop the matches inconsistent with the global poses (Sampson error under the "
-                        "rotations and LiGT centres), then run GRRM and LiGT again, until nothing changes.")
+                        "rotations and LiGT centres), then run GRRM and LiGT again, until nothing changes.",
+                        cli_options.jobs)
 triangulate = _stage_command("triangulate", "Triangulate the tracks and write OUT/sfm_data.json and OUT/sparse/.",
-                             cli_options.image_path, cli_options.gt)
+                             cli_options.image_path, cli_options.gt, cli_options.jobs)
 
 commands = {"identify": identify, "average": average, "optimize": optimize, "translate": translate,
             "reject": reject, "triangulate": triangulate}

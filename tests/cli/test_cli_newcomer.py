@@ -178,3 +178,22 @@ def test_consensus_fast_is_the_agreeing_runs_of_the_load_stage(capsys, tmp_path)
     assert 2 * edges <= fast_runs <= full_runs - 2 * (edges // 2)
     code, _, err = _rotonly(capsys, "identify", HERZ_JESU / "database.db", "-o", tmp_path / "bad", "--consensus", "x")
     assert code == 2 and "--consensus" in err and not (tmp_path / "bad").exists()
+
+
+@pytest.mark.parametrize("stage", ["optimize", "translate", "reject", "triangulate"])
+def test_stage_commands_use_the_cpus_as_run_does(capsys, monkeypatch, tmp_path, stage):
+    """GRRM and LiGT run in two processes under `rotonly run`; the stage commands that run them
+    take --jobs with the same default (the usable CPUs), not one process."""
+    from rotonly_cli import pipeline
+    from rotonly_cli.runtime.parallel import usable_cpus
+
+    jobs = []
+
+    def resume(workspace, name, options):
+        jobs.append((name, options.jobs))
+        return {"stages": [name], "num_active_edges": 0, "time_s": 0.0}
+
+    monkeypatch.setattr(pipeline, "resume", resume)
+    assert _rotonly(capsys, "-q", stage, tmp_path)[0] == 0
+    assert _rotonly(capsys, "-q", stage, tmp_path, "--jobs", "3")[0] == 0
+    assert jobs == [(stage, usable_cpus()), (stage, 3)]
