@@ -14,7 +14,7 @@ option                 commands
 --consensus            run, identify
 --max-residual-deg     run, average
 --gt (GT_PATH)         run, triangulate
---jobs                 run, identify, refine
+--jobs                 run, identify, refine, optimize, translate, reject, triangulate
 --cluster              run, identify
 --intrinsics           run, identify
 --max-memory           run, identify
