@@ -32,6 +32,7 @@ from rotonly_cli.options import (
     INTRINSICS_MODES,
     REESTIMATE_MODES,
     AverageOptions,
+    Consensus,
     IntrinsicsOptions,
     LoadOptions,
 )
@@ -93,7 +94,7 @@ ransac_max_error = click.option(
 seed = click.option("--seed", type=click.IntRange(0, 2 ** 31 - 1), default=LoadOptions.seed, show_default=True,
                     help="RANSAC seed (runs are deterministic).")
 consensus = click.option(
-    "--consensus", type=click.Choice(CONSENSUS_MODES), default="full", show_default=True,
+    "--consensus", type=click.Choice(CONSENSUS_MODES), default=Consensus.FULL.value, show_default=True,
     help=f"How each edge's inlier matches are settled: full = {LoadOptions.consensus_runs} seeded RANSAC runs, the "
          "matches all of them accept kept; fast = on edges of more than "
          f"{LoadOptions.agreement_min_matches} matches, two runs on {LoadOptions.agreement_max_matches} matches "

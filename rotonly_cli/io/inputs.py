@@ -109,16 +109,22 @@ def _parse_float(text: str) -> float | Oversized:
 _NOT_STRUCTURAL = bytes(sorted(set(range(256)) - set(b'"[]{}')))
 
 
-def json_depth(payload: bytes) -> int:
-    """The deepest array/object nesting of a JSON text, without parsing it (brackets inside
-    strings do not count). Linear, in C loops: escapes removed, every byte but quotes and
-    brackets dropped, the strings left (quote, brackets, quote) removed, a running sum."""
+def _brackets_outside_strings(payload: bytes) -> bytes:
+    """The brackets of a JSON text (or of a piece that starts outside a string) that are not
+    inside a string, in order. In C loops: escapes removed, every byte but quotes and brackets
+    dropped, the strings left (quote, brackets, quote) removed."""
     if b"\\" in payload:
         payload = re.sub(rb"\\.", b"", payload, flags=re.DOTALL)
     structure = payload.translate(None, _NOT_STRUCTURAL).replace(b'""', b"")
     if b'"' in structure:  # strings that hold brackets
         structure = re.sub(rb'"[^"]*"?', b"", structure)
-    codes = np.frombuffer(structure, dtype=np.uint8)
+    return structure
+
+
+def json_depth(payload: bytes) -> int:
+    """The deepest array/object nesting of a JSON text, without parsing it (brackets inside
+    strings do not count): a running sum over :func:`_brackets_outside_strings`."""
+    codes = np.frombuffer(_brackets_outside_strings(payload), dtype=np.uint8)
     if codes.size == 0:
         return 0
     steps = np.where((codes == ord("[")) | (codes == ord("{")), 1, -1).astype(np.int32)
@@ -177,13 +183,14 @@ def without_top_level_array(payload: bytes, key: str) -> bytes:
     if b"\\" in payload:
         return payload
     needle = json.dumps(key).encode()
-    found = payload.find(needle)
+    found, scanned, depth = payload.find(needle), 0, 0
     while found >= 0:
         # without backslashes every quote opens or closes a string: the needle's first quote
-        # opens one (closing one it would make the text malformed), and the brackets outside
-        # the strings before it give its depth
-        brackets = re.sub(rb'"[^"]*"', b"", payload[:found].translate(None, _NOT_STRUCTURAL))
-        depth = brackets.count(b"[") + brackets.count(b"{") - brackets.count(b"]") - brackets.count(b"}")
+        # opens one (closing one it would make the text malformed), so the text from one
+        # occurrence to the next starts outside a string, and its brackets add to the depth
+        brackets = _brackets_outside_strings(payload[scanned:found])
+        depth += brackets.count(b"[") + brackets.count(b"{") - brackets.count(b"]") - brackets.count(b"}")
+        scanned = found
         after = _NAME_SEPARATOR.match(payload, found + len(needle))
         if depth == 1 and after is not None:  # a member of the top-level object, not a value
             value = after.end()

@@ -40,7 +40,8 @@ PATHS = ("matches_dir", "matches_file", "image_path", "gt")
 
 def _value(field: str, value):
     """``value`` as the field holds it: paths as text, the choices as their StrEnum (a mode
-    that is not one stays as given, for the options' validate() to name)."""
+    that is not one stays as given, for the options' validate() to name), ``consensus`` as
+    the agreement it stands for (a name that is not one refused here: the field is a number)."""
     if field in PATHS:
         return str(value)
     if field == "reestimate":
