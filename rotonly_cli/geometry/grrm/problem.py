@@ -139,14 +139,15 @@ class GRRMSystem:
         self._peer.submit((kind, batch, args))
 
     def _part_table(self, part: Part, R_ij: np.ndarray, with_jacobian: bool) -> np.ndarray:
-        """The part's per-contribution terms in the order of its edges' matches, row-major:
-        columns 0-2 the residual (in the camera of the observation), 3 the ω numerator,
-        4-6 its derivative, 7-15 the residual's derivative (7 + 3a + c = d res_a / dδ_c),
-        w.r.t. the left perturbation of the contribution's edge; rows of side j after those
-        of side i."""
+        """The part's per-contribution terms in the order of its edges' matches, one row per
+        term (each row contiguous: the chunks write into it and the blocks gather from it
+        without a transpose): rows 0-2 the residual (in the camera of the observation), 3 the
+        ω numerator, 4-6 its derivative, 7-15 the residual's derivative (7 + 3a + c =
+        d res_a / dδ_c), w.r.t. the left perturbation of the contribution's edge; columns of
+        side j after those of side i."""
         width = 16 if with_jacobian else 4
         Mp = part.num_matches
-        table = np.empty((2 * Mp, width))
+        table = np.empty((width, 2 * Mp))
         if len(part.edges) == self.E and isinstance(self.batch, pg.EdgeBatch):
             batch = self.batch
         else:
@@ -157,8 +158,8 @@ class GRRMSystem:
             terms = self.chunk_terms(R_chunk, edges, cnt, starts, xi, xj, with_jacobian, wk)
             Rm = [np.repeat(R_chunk.reshape(-1, 9)[:, k], cnt) for k in range(9)]  # Rm[3b + a] = R_ij[b, a]
             r = terms["r"]  # 6 arrays: r_i in camera-j axes, then r_j
-            side_i = np.empty((width, m1 - m0))
-            side_j = np.empty((width, m1 - m0))
+            side_i = table[:, m0:m1]
+            side_j = table[:, Mp + m0:Mp + m1]
             for a in range(3):
                 # R_ij^T r: view i's residual in camera i
                 side_i[a] = Rm[a] * r[0] + Rm[3 + a] * r[1] + Rm[6 + a] * r[2]
@@ -177,8 +178,6 @@ class GRRMSystem:
             if self.image_plane:
                 _to_image_plane(side_i, xi, with_jacobian)
                 _to_image_plane(side_j, xj, with_jacobian)
-            table[m0:m1] = side_i.T
-            table[Mp + m0:Mp + m1] = side_j.T
         return table
 
     def chunk_terms(self, R_ij: np.ndarray, edges: np.ndarray, cnt: np.ndarray, starts: np.ndarray, xi, xj,
@@ -195,7 +194,7 @@ class GRRMSystem:
         width = 16 if with_jacobian else 4
         for blk in part.blocks:
             s0, s1, g0, g1 = blk
-            cols = np.ascontiguousarray(table[part.rows[s0:s1], :width].T)
+            cols = table.take(part.rows[s0:s1], axis=1)
             res, b = cols[0:3], cols[3]
             sizes = part.sizes[g0:g1]
             seg = np.concatenate([[0], np.cumsum(sizes)[:-1]])
