@@ -12,6 +12,7 @@ from rotonly_cli.geometry.tracks import (
     build_tracks,
     compact_track_ids,
     gather_observations,
+    node_numbers,
     pairs_in_track_chunks,
     pairs_within_tracks,
     ranks_within,
@@ -177,3 +178,16 @@ def test_a_single_match_against_fewer_than_three_is_kept():
     rows += [(1, 0, 3, 0)]
     assert minority_keypoint_matches(_keys(rows), 100).tolist() == [False, True, False, False]
     assert not minority_keypoint_matches(np.zeros((0, 2), dtype=np.int64), 100).any()
+
+
+@given(st.lists(st.integers(0, 40), min_size=1, max_size=60), st.integers(0, 200))
+def test_node_numbers_matches_unique_on_either_path(keys, extra_space):
+    """Both paths of node_numbers (the presence mask where the key space is at most twice the
+    keys, np.unique beyond) give np.unique's sorted keys and its inverse."""
+    keys = np.array(keys, dtype=np.int64).reshape(-1, 1)
+    space = int(keys.max()) + 1 + extra_space
+    nodes, place = node_numbers(keys, space)
+    expected, inverse = np.unique(keys, return_inverse=True)
+    assert np.array_equal(nodes, expected)
+    assert np.array_equal(place.ravel(), inverse.ravel())
+    assert place.shape == keys.shape and place.dtype == np.int32

@@ -191,7 +191,6 @@ class GRRMSystem:
         """Yields, per block of the part: the block, its observations' residuals V (3, g) and
         weight sums S (g,), and with the Jacobian its contributions' blocks B (9, s) w.r.t.
         their edge's δ_e (row a*3+c = dV_a / dδ_c)."""
-        width = 16 if with_jacobian else 4
         for blk in part.blocks:
             s0, s1, g0, g1 = blk
             cols = table.take(part.rows[s0:s1], axis=1)
