@@ -7,7 +7,8 @@ the run (``chain.Run.tracks``), builds them once. Without a cache every call bui
 
 from __future__ import annotations
 
-from dataclasses import replace
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -30,12 +31,31 @@ class TrackCache:
         self.last: tuple[tuple, Tracks] | None = None
 
 
-def inlier_matches(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: list[int],
-                   R_cam_from_world: np.ndarray, min_match_weight: float = MIN_MATCH_WEIGHT,
-                   cache: TrackCache | None = None) -> list[np.ndarray]:
-    """The matches of ``edges`` without gross outliers at the global rotations."""
+@dataclass
+class MatchWeights:
+    """Per-match robust TRRM weights of some edges, in their order (a per-edge result of
+    runtime.parallel.map_edge_chunks: its chunks and processes concatenate)."""
+
+    weights: np.ndarray
+
+
+def robust_weights(R_ij: np.ndarray, batch) -> MatchWeights:
+    """The robust TRRM weights (two IRLS rounds, geometry.trrm.robust_match_weights) of the
+    matches of ``batch`` at the relative rotations ``R_ij``; an edge's depend on its own
+    matches only."""
     from rotonly_cli.geometry.trrm import TRRMOptions, robust_match_weights
 
+    with np.errstate(all="ignore"):
+        w = robust_match_weights(R_ij, batch, None, TRRMOptions())
+        return MatchWeights(robust_match_weights(R_ij, batch, w, TRRMOptions()))
+
+
+def inlier_matches(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: list[int],
+                   R_cam_from_world: np.ndarray, min_match_weight: float = MIN_MATCH_WEIGHT,
+                   cache: TrackCache | None = None, weigh: Callable | None = None) -> list[np.ndarray]:
+    """The matches of ``edges`` without gross outliers at the global rotations. ``weigh``
+    (edges, R_ij (E, 3, 3)) -> :func:`robust_weights` of those edges' matches, concatenated
+    (the stages pass one that spreads the edges over processes); None: in this process."""
     matches = [graph.edges[k].matches for k in edges]
     if min_match_weight <= 0 or not edges:
         return matches
@@ -46,17 +66,21 @@ def inlier_matches(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: l
     key = {k: (graph.edges[k].i, graph.edges[k].j, hash(graph.edges[k].matches.tobytes()), R_ij[k].tobytes(),
                min_match_weight) for k in edges}
     missing = [k for k in edges if key[k] not in kept]
-    # the weights of an edge depend on its own matches only: a group of edges at a time keeps
-    # the TRRM tables (~200 B per match) to one group's matches
-    for group in _edge_groups(missing, [graph.edges[k].matches.shape[0] for k in missing]):
-        batch = edge_batch(graph, normalized, group)
-        R = np.stack([R_ij[k] for k in group])
-        with np.errstate(all="ignore"):
-            w = robust_match_weights(R, batch, None, TRRMOptions())
-            w = robust_match_weights(R, batch, w, TRRMOptions())
-        for row, k in enumerate(group):
-            keep = w[batch.offsets[row]:batch.offsets[row + 1]] >= min_match_weight
+    if missing and weigh is not None:
+        groups = [(missing, weigh(missing, np.stack([R_ij[k] for k in missing])))]
+    else:
+        # the weights of an edge depend on its own matches only: a group of edges at a time
+        # keeps the TRRM tables (~200 B per match) to one group's matches
+        groups = ((group, robust_weights(np.stack([R_ij[k] for k in group]),
+                                         edge_batch(graph, normalized, group)).weights)
+                  for group in _edge_groups(missing, [graph.edges[k].matches.shape[0] for k in missing]))
+    for group, w in groups:
+        start = 0
+        for k in group:
+            stop = start + graph.edges[k].matches.shape[0]
+            keep = w[start:stop] >= min_match_weight
             kept[key[k]] = keep if keep.sum() >= 6 else np.ones_like(keep)
+            start = stop
     # an edge that keeps every match is passed as it is: no copy of all matches beside the graph's
     return [m if kept[key[k]].all() else m[kept[key[k]]] for k, m in zip(edges, matches)]
 
@@ -81,14 +105,15 @@ def _edge_groups(edges: list[int], counts: list[int]) -> list[list[int]]:
 
 def graph_tracks(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: list[int],
                  R_cam_from_world: np.ndarray | None = None, cache: TrackCache | None = None,
-                 keep_conflicts: bool = False):
+                 keep_conflicts: bool = False, weigh: Callable | None = None):
     """(Tracks in sorted-view-id row space, (N_obs, 2) normalized observations) of ``edges``;
     with the global rotations, gross outlier matches are left out (MIN_MATCH_WEIGHT).
     ``keep_conflicts``: the components that see a view twice in ``Tracks.conflicts``
-    (geometry.tracks.build_tracks); the tracks themselves are the same either way."""
+    (geometry.tracks.build_tracks); the tracks themselves are the same either way.
+    ``weigh``: as for :func:`inlier_matches`."""
     index = view_index(graph)
     matches = [graph.edges[k].matches for k in edges] if R_cam_from_world is None else \
-        inlier_matches(graph, normalized, edges, R_cam_from_world, cache=cache)
+        inlier_matches(graph, normalized, edges, R_cam_from_world, cache=cache, weigh=weigh)
     pair_keys = [(index[graph.edges[k].i], index[graph.edges[k].j]) for k in edges]
     key = (len(index), tuple(pair_keys), tuple(hash(m.tobytes()) for m in matches),
            tuple(m.shape[0] for m in matches))

@@ -25,8 +25,16 @@ from rotonly_cli.geometry.ligt import (
     views_off_their_baselines,
 )
 from rotonly_cli.geometry.resection import resect_left_out_views
-from rotonly_cli.scene.tracks import TrackCache, graph_tracks
-from rotonly_cli.scene.view_graph import ViewGraph, largest_component_of, regular_edges, view_index
+from rotonly_cli.scene.tracks import TrackCache, graph_tracks, robust_weights
+from rotonly_cli.scene.view_graph import (
+    ViewGraph,
+    batch_of_arrays,
+    edge_arrays,
+    edge_batch,
+    largest_component_of,
+    regular_edges,
+    view_index,
+)
 from rotonly_cli.stages import listed
 
 logger = logging.getLogger(__name__)
@@ -35,6 +43,24 @@ logger = logging.getLogger(__name__)
 #: observations on: below, a fork gains nothing worth it (docs/tuning.md "Measurements behind
 #: the code")
 LIGT_HELPER_MIN_OBSERVATIONS = 50_000
+#: matches per --cluster task of the tracks' robust match weights (as TRRM's, stages/refine.py)
+WEIGH_TASK_MATCHES = 1 << 19
+
+
+def match_weigher(graph: ViewGraph, normalized: dict[int, np.ndarray], jobs: int):
+    """scene.tracks.inlier_matches' ``weigh``: the robust weights of the matches of some edges
+    computed over ``jobs`` forked processes (or the --cluster session), chunk by chunk, as the
+    per-edge stages are (the 1000-view recipe: 20 M matches, 6-7 s in one process)."""
+    from rotonly_cli.runtime import cluster
+
+    def weigh(edges: list[int], R_ij: np.ndarray) -> np.ndarray:
+        counts = np.array([graph.edges[k].num_inliers for k in edges], dtype=np.int64)
+        result, _ = cluster.map_edges("tracks", robust_weights, R_ij, counts, jobs,
+                                      lambda e0, e1: edge_arrays(graph, edges[e0:e1]), batch_of_arrays, normalized,
+                                      lambda e0, e1: edge_batch(graph, normalized, edges[e0:e1]), WEIGH_TASK_MATCHES)
+        return result.weights
+
+    return weigh
 
 
 def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_from_world: np.ndarray,
@@ -52,7 +78,8 @@ def translate_graph(graph: ViewGraph, normalized: dict[int, np.ndarray], R_cam_f
     if not edges:
         return _pure_rotation_capture(graph, index, registered, start)
     R = np.where(registered[:, None, None], R_cam_from_world, np.eye(3))
-    tracks, obs_xy = graph_tracks(graph, normalized, edges, R, cache=track_cache)
+    tracks, obs_xy = graph_tracks(graph, normalized, edges, R, cache=track_cache,
+                                  weigh=match_weigher(graph, normalized, jobs))
     focal = np.full(len(index), 1000.0) if focal_px is None else np.where(np.isfinite(focal_px), focal_px, 1000.0)
     from rotonly_cli.runtime.parallel import helper_class
 

@@ -165,8 +165,8 @@ def test_bad_jobs_is_a_value_error_naming_it(jobs):
 
 
 def test_run_with_jobs_writes_the_same_files(tmp_path, small_parts):
-    """`rotonly run --jobs 2` (identification and TRRM in two processes) writes the
-    sfm_data.json of --jobs 1."""
+    """`rotonly run --jobs 2` (identification, TRRM and the tracks' robust match weights in two
+    processes) writes the sfm_data.json of --jobs 1."""
     from rotonly_cli.io import colmap
     from rotonly_cli.options import IntrinsicsOptions
     from rotonly_cli.pipeline import RunOptions, run_pipeline
@@ -181,7 +181,7 @@ def test_run_with_jobs_writes_the_same_files(tmp_path, small_parts):
     fixed = IntrinsicsOptions(mode="fixed")
     run_pipeline(db, tmp_path / "one", RunOptions(jobs=1, intrinsics=fixed))
     run_pipeline(db, tmp_path / "two", RunOptions(jobs=2, intrinsics=fixed))
-    assert small_parts == [2, 2]  # identify and refine
+    assert small_parts == [2, 2, 2]  # identify, refine, and translate's match weights (scene/tracks)
     for stage in ("identify", "refine"):
         assert json.loads((tmp_path / "two" / "reports" / f"{stage}.json").read_text())["processes"] == 2
         assert json.loads((tmp_path / "one" / "reports" / f"{stage}.json").read_text())["processes"] == 1
