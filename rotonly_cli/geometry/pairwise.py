@@ -126,15 +126,18 @@ def num_matches(batch: EdgeBatch | ObservedMatches) -> int:
     return batch.num_matches
 
 
-def edge_group_batches(batch: EdgeBatch | ObservedMatches, max_matches: int = 1 << 19):
+def edge_group_batches(batch: EdgeBatch | ObservedMatches, max_matches: int = 1 << 19, e_lo: int = 0,
+                       e_hi: int | None = None):
     """(e0, e1, EdgeBatch of edges [e0, e1)) for consecutive groups of about ``max_matches``
-    matches: per-edge work on either form without a full per-match copy at once."""
+    matches of edges [e_lo, e_hi) (default: all): per-edge work on either form without a full
+    per-match copy at once."""
     counts = batch.counts
     before = np.concatenate([[0], np.cumsum(counts)])
-    e0 = 0
-    while e0 < len(counts):
+    e_hi = len(counts) if e_hi is None else e_hi
+    e0 = e_lo
+    while e0 < e_hi:
         e1 = max(e0 + 1, int(np.searchsorted(before, before[e0] + max_matches, side="right")) - 1)
-        e1 = min(e1, len(counts))
+        e1 = min(e1, e_hi)
         if isinstance(batch, EdgeBatch):
             yield e0, e1, batch.edge_range(e0, e1)
         else:

@@ -236,6 +236,25 @@ def test_a_helper_process_leaves_grrm_unchanged_bit_for_bit():
     assert np.array_equal(one.R_cam_from_world, dead.R_cam_from_world) and one.cost == dead.cost
 
 
+def test_translation_weights_in_halves_equal_the_whole_and_a_helper_computes_the_same_bits():
+    """GRRM's per-match translation weights are computed in two halves of the edges (the
+    second in the helper process, if there is one): the same weights as one pass over all the
+    edges, and the same bits with or without the helper."""
+    from rotonly_cli.runtime import parallel
+
+    p, prob, R_gt = _problem(noise=1.0, seed=4, views=8, window=3)
+    R = so3.exp(np.random.default_rng(5).normal(scale=0.003, size=(8, 3))) @ R_gt
+    system = grrm.GRRMSystem(8, prob.edge_views, prob.batch, prob.obs_ids)
+    assert 0 < system._weights_split < system.E
+    whole = grrm.problem.translation_weights(system.relative(R), prob.batch)
+    halves = system.translation_weights(R, prob.batch)
+    assert halves.shape == (prob.batch.x_i.shape[0],) and np.all(halves > 0) and np.any(halves < 1)
+    np.testing.assert_allclose(halves, whole, rtol=1e-12, atol=1e-15)
+    with system.parallel(parallel.ForkedPeer):
+        assert system.processes == 2
+        assert np.array_equal(system.translation_weights(R, prob.batch), halves)
+
+
 def test_a_failed_exact_step_is_retried_from_the_psd_model_at_the_same_damping(monkeypatch):
     """When the step of the exact Hessian (JᵀWJ minus the remainder) raises the cost, LM tries
     the clamped PSD model at the same damping before it damps more. Simulated: every exact

@@ -100,6 +100,8 @@ class GRRMSystem:
         # the parts of this process and of the helper (EVALUATION_PARTS shares of about equal contributions)
         shares = even_ranges([p.num_contributions for p in self.layout.parts], EVALUATION_PARTS)
         self.shares = [self.layout.parts[a:b] for a, b in shares]
+        # the edge where the helper's share of the translation weights begins (half the matches)
+        self._weights_split = even_ranges(batch.counts, 2)[0][1] if self.E > 1 else self.E
 
     def relative(self, R: np.ndarray) -> np.ndarray:
         return R[self.edge_views[:, 1]] @ np.swapaxes(R[self.edge_views[:, 0]], 1, 2)
@@ -124,19 +126,38 @@ class GRRMSystem:
                 self._peer = None
 
     def _serve(self, message):
-        """The helper's side of :meth:`parallel`: the sums (or residuals) of the second share."""
+        """The helper's side of :meth:`parallel`: the sums (or residuals, or translation
+        weights) of the second share."""
         kind, batch, args = message
-        if batch is not None:
+        if isinstance(batch, tuple):  # the same matches, other weights
+            self.batch = self.batch.with_weights(batch[1])
+        elif batch is not None:
             self.batch = batch
         if kind == "residuals":
             return [self._part_residuals(*args, part) for part in self.shares[1]]
+        if kind == "weights":
+            return translation_weights(args[0], self.batch, self._weights_split)
         return self._share_sums(*args, self.shares[1])
 
     def _submit(self, kind: str, *args) -> None:
         batch = None
         if self._peer_batch is not self.batch:
-            batch = self._peer_batch = self.batch
+            # a batch that differs from the helper's by its weights only sends those
+            batch = ("weights", self.batch.weights) if _same_matches(self._peer_batch, self.batch) else self.batch
+            self._peer_batch = self.batch
         self._peer.submit((kind, batch, args))
+
+    def translation_weights(self, R: np.ndarray, batch: pg.EdgeBatch | pg.ObservedMatches) -> np.ndarray:
+        """:func:`translation_weights` of ``batch`` (this problem's matches, any weights) at
+        the rotations R, in two halves (the edges from ``_weights_split`` on in the helper, if
+        there is one; in halves either way, so the bits do not depend on it)."""
+        R_ij = self.relative(R)
+        if self._peer is not None:
+            self._peer.submit(("weights", None, (R_ij,)))
+        first = translation_weights(R_ij, batch, 0, self._weights_split)
+        second = self._peer.collect() if self._peer is not None else \
+            translation_weights(R_ij, batch, self._weights_split)
+        return np.concatenate([first, second])
 
     def _part_table(self, part: Part, R_ij: np.ndarray, with_jacobian: bool) -> np.ndarray:
         """The part's per-contribution terms in the order of its edges' matches, one row per
@@ -453,6 +474,34 @@ class GRRMSystem:
                                  V[g].T, row_weight[g], None if alpha is None else alpha[g])
             c_offset += part.num_contributions
         return self._assemble(R, sums, dense=False)
+
+
+def translation_weights(R_ij: np.ndarray, batch: pg.EdgeBatch | pg.ObservedMatches, e_lo: int = 0,
+                        e_hi: int | None = None) -> np.ndarray:
+    """Each match's weight in its edge's t (Σ w θθᵀ), for the matches of edges [e_lo, e_hi)
+    (default: all; ``R_ij`` of all the edges): two Huber IRLS rounds of its TRRM residual
+    (geometry/trrm.robust_match_weights, per edge), group by group of edges so that no
+    per-match table of all the matches is made at once (the numbers are per edge, so they do
+    not depend on the groups or the range)."""
+    from rotonly_cli.geometry.trrm import TRRMOptions, robust_match_weights
+
+    e_hi = batch.num_edges if e_hi is None else e_hi
+    base = int(batch.offsets[e_lo])
+    w = np.empty(int(batch.offsets[e_hi]) - base)
+    for e0, e1, sub in pg.edge_group_batches(batch, e_lo=e_lo, e_hi=e_hi):
+        m0, m1 = int(batch.offsets[e0]) - base, int(batch.offsets[e1]) - base
+        first = robust_match_weights(R_ij[e0:e1], sub, None, TRRMOptions(), kind="huber")
+        w[m0:m1] = robust_match_weights(R_ij[e0:e1], sub, first, TRRMOptions(), kind="huber")
+    return w
+
+
+def _same_matches(a, b) -> bool:
+    """Whether batches ``a`` and ``b`` hold the same match arrays (the same objects), whatever
+    their weights."""
+    if type(a) is not type(b):
+        return False
+    names = ("coords", "rows", "offsets") if isinstance(a, pg.ObservedMatches) else ("x_i", "x_j", "offsets")
+    return all(getattr(a, name) is getattr(b, name) for name in names)
 
 
 def _view_products(layout: Layout, Bw: np.ndarray, sizes: np.ndarray, edges: np.ndarray, side: np.ndarray,

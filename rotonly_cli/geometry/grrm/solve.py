@@ -111,20 +111,6 @@ def _epipolar_terms(R_ij: np.ndarray, batch: pg.EdgeBatch | pg.ObservedMatches) 
                                  Jtr=np.concatenate([g.Jtr for g in groups]))
 
 
-def translation_weights(R_ij: np.ndarray, batch: pg.EdgeBatch | pg.ObservedMatches) -> np.ndarray:
-    """(M,) each match's weight in its edge's t (Σ w θθᵀ): two Huber IRLS rounds of its TRRM
-    residual (geometry/trrm.robust_match_weights, per edge), group by group of edges so that
-    no per-match table of all the matches is made at once (the numbers are per edge)."""
-    from rotonly_cli.geometry.trrm import TRRMOptions, robust_match_weights
-
-    w = np.empty(pg.num_matches(batch))
-    for e0, e1, sub in pg.edge_group_batches(batch):
-        m0, m1 = int(batch.offsets[e0]), int(batch.offsets[e1])
-        first = robust_match_weights(R_ij[e0:e1], sub, None, TRRMOptions(), kind="huber")
-        w[m0:m1] = robust_match_weights(R_ij[e0:e1], sub, first, TRRMOptions(), kind="huber")
-    return w
-
-
 def epipolar_phase(R: np.ndarray, edge_views: np.ndarray, batch: pg.EdgeBatch | pg.ObservedMatches,
                    free: np.ndarray, max_iterations: int, step_tolerance: float) -> tuple[np.ndarray, int]:
     """LM on Σ_e λ_min(Pˢ_e(R_j R_i^T)) (bearing-normalised θ): per-edge normal equations
@@ -209,8 +195,7 @@ def _levenberg_marquardt(problem: GRRMSystem, R: np.ndarray, edge_views: np.ndar
         # phase (weights from a start far off would down-weight good matches).
         if not (options.robust_translation and batch.num_edges):
             return batch
-        R_ij = R_at[edge_views[:, 1]] @ np.swapaxes(R_at[edge_views[:, 0]], 1, 2)
-        return batch.with_weights(translation_weights(R_ij, batch))
+        return batch.with_weights(problem.translation_weights(R_at, batch))
 
     def restrict(H):  # the free parameters' rows and columns
         if H is None:
