@@ -94,12 +94,13 @@ ransac_max_error = click.option(
 seed = click.option("--seed", type=click.IntRange(0, 2 ** 31 - 1), default=LoadOptions.seed, show_default=True,
                     help="RANSAC seed (runs are deterministic).")
 consensus = click.option(
-    "--consensus", type=click.Choice(CONSENSUS_MODES), default=Consensus.FULL.value, show_default=True,
+    "--consensus", type=click.Choice(CONSENSUS_MODES), default=Consensus.AUTO.value, show_default=True,
     help=f"How each edge's inlier matches are settled: full = {LoadOptions.consensus_runs} seeded RANSAC runs, the "
          "matches all of them accept kept; fast = on edges of more than "
          f"{LoadOptions.agreement_min_matches} matches, two runs on {LoadOptions.agreement_max_matches} matches "
          "whose inliers agree are kept as they are (the relative poses of a large collection ~5x faster, less "
-         "robust on repeated structure).")
+         f"robust on repeated structure); auto = fast from {LoadOptions.agreement_min_edges} pairs to "
+         "re-estimate on, else full.")
 intrinsics = click.option(
     "--intrinsics", type=click.Choice(INTRINSICS_MODES), default=IntrinsicsOptions.mode.value, show_default=True,
     help="Camera intrinsics: fixed = used as given; refine = every camera calibrated (focal from the view graph, "

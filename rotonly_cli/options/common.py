@@ -43,6 +43,9 @@ class Reestimate(StrEnum):
 class Consensus(StrEnum):
     """How the load stage settles each edge's inlier matches from its seeded RANSAC runs."""
 
+    #: ``FAST`` on a load of at least ``LoadOptions.agreement_min_edges`` edges (a collection),
+    #: ``FULL`` on fewer (a scene, where one pair's wrong model bends the views)
+    AUTO = "auto"
     #: ``LoadOptions.consensus_runs`` runs on every edge, the matches every run accepts kept
     FULL = "full"
     #: on edges of more than ``agreement_min_matches`` matches, two runs on a subset that agree

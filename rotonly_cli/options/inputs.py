@@ -17,6 +17,9 @@ from rotonly_cli.options.common import (
 #: ``consensus_agreement`` of ``--consensus fast`` (an edge's two first runs differing in at most 1 %
 #: of the matches either accepts; docs/tuning.md, Load)
 FAST_CONSENSUS_AGREEMENT = 0.01
+#: ``agreement_min_edges`` of ``--consensus auto``: the Strecha scenes re-estimate at most 171 pairs,
+#: the simulated collections where the agreeing runs measured the same rotations 1225 and more
+AUTO_AGREEMENT_MIN_EDGES = 1000
 
 
 @dataclass(frozen=True)
@@ -35,8 +38,10 @@ class LoadOptions:
     noise_sample_edges: int = 30
     #: seeded RANSAC runs per edge, keeping the matches all accept: three can agree on one wrong model
     consensus_runs: int = 4
-    #: off: an edge whose first two runs agree to this fraction keeps them (faster, less robust)
-    consensus_agreement: float | None = None
+    #: an edge whose first two runs agree to this fraction keeps them (faster, less robust); None: off
+    consensus_agreement: float | None = FAST_CONSENSUS_AGREEMENT
+    #: ... in a load of at least this many edges to re-estimate only (--consensus auto; 0: any)
+    agreement_min_edges: int = AUTO_AGREEMENT_MIN_EDGES
     #: ... those two runs on at most this many matches
     agreement_max_matches: int = 500
     #: ... on the edges of more matches than this only: four runs of a smaller edge cost little
@@ -74,6 +79,8 @@ class LoadOptions:
             raise InputError("must be >= 1", field="consensus_runs")
         if self.agreement_min_matches < 0:
             raise InputError("must be >= 0", field="agreement_min_matches")
+        if self.agreement_min_edges < 0:
+            raise InputError("must be >= 0", field="agreement_min_edges")
         if self.min_inliers < MIN_MATCHES:
             raise InputError(f"must be >= {MIN_MATCHES}", field="min_inliers")
         if self.jobs < 0:

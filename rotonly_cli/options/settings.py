@@ -10,7 +10,7 @@ from dataclasses import replace
 from rotonly_cli.errors import InputError
 from rotonly_cli.options import RunOptions
 from rotonly_cli.options.common import CONSENSUS_MODES, INTRINSICS_MODES, Consensus, Intrinsics, Reestimate
-from rotonly_cli.options.inputs import FAST_CONSENSUS_AGREEMENT
+from rotonly_cli.options.inputs import AUTO_AGREEMENT_MIN_EDGES, FAST_CONSENSUS_AGREEMENT
 
 #: name -> (the part of RunOptions it sets: "" for RunOptions itself, else its field holding
 #: that stage's options; the field)
@@ -28,11 +28,18 @@ SETTINGS = {
     "reestimate": ("load", "reestimate"),
     "ransac_max_error": ("load", "ransac_max_error_px"),
     "seed": ("load", "seed"),
-    "consensus": ("load", "consensus_agreement"),
+    "consensus": ("load", "consensus"),
     "max_residual_deg": ("average", "max_residual_deg"),
     "intrinsics": ("intrinsics", "mode"),
 }
 
+
+#: the LoadOptions fields each --consensus mode sets
+CONSENSUS_FIELDS = {
+    Consensus.AUTO: {"consensus_agreement": FAST_CONSENSUS_AGREEMENT, "agreement_min_edges": AUTO_AGREEMENT_MIN_EDGES},
+    Consensus.FULL: {"consensus_agreement": None},
+    Consensus.FAST: {"consensus_agreement": FAST_CONSENSUS_AGREEMENT, "agreement_min_edges": 0},
+}
 
 #: the fields that hold a path, as text
 PATHS = ("matches_dir", "matches_file", "image_path", "gt")
@@ -40,16 +47,13 @@ PATHS = ("matches_dir", "matches_file", "image_path", "gt")
 
 def _value(field: str, value):
     """``value`` as the field holds it: paths as text, the choices as their StrEnum (a mode
-    that is not one stays as given, for the options' validate() to name), ``consensus`` as
-    the agreement it stands for (a name that is not one refused here: the field is a number)."""
+    that is not one stays as given, for the options' validate() to name). ``consensus`` is a
+    mode that sets several fields (CONSENSUS_FIELDS, :func:`with_settings`; a name that is not
+    one is refused there)."""
     if field in PATHS:
         return str(value)
     if field == "reestimate":
         return Reestimate(value)
-    if field == "consensus_agreement":
-        if value not in CONSENSUS_MODES:
-            raise InputError(f"{value!r}: must be one of {', '.join(CONSENSUS_MODES)}", field="consensus")
-        return FAST_CONSENSUS_AGREEMENT if value == Consensus.FAST else None
     if field == "mode":
         return Intrinsics(value) if value in INTRINSICS_MODES else value
     return value
@@ -62,6 +66,11 @@ def with_settings(options: RunOptions, settings: dict) -> RunOptions:
     for name, value in settings.items():
         if value is not None:
             part, field = SETTINGS[name]
+            if field == "consensus":  # a mode: the fields it sets
+                if value not in CONSENSUS_MODES:
+                    raise InputError(f"{value!r}: must be one of {', '.join(CONSENSUS_MODES)}", field="consensus")
+                changes.setdefault(part, {}).update(CONSENSUS_FIELDS[Consensus(value)])
+                continue
             changes.setdefault(part, {})[field] = _value(field, value)
     parts = {part: replace(getattr(options, part), **fields) for part, fields in changes.items() if part}
     return replace(options, **changes.get("", {}), **parts)

@@ -14,8 +14,8 @@ that every run accepts (:func:`stable_consensus`); an edge whose first run falls
 ``min_inliers`` gets no further runs (it would be filtered anyway), and no run goes on beyond
 the trials an inlier ratio of ``min_inliers`` / its matches needs (a consensus run: beyond
 those its first run's inlier ratio needs). An edge whose first two runs, on a smaller subset,
-agree keep them (``consensus_agreement``, off by default; on edges of more than ``agreement_min_matches``
-matches: :func:`_consensus_runs`).
+agree keep them (``consensus_agreement``; on edges of more than ``agreement_min_matches`` matches, in a
+load of at least ``agreement_min_edges`` edges (--consensus auto, the default): :func:`_consensus_runs`).
 Dropped matches are counted per edge and reason. It is per-edge C++ work, so a loop over edges is fine here.
 """
 
@@ -357,6 +357,12 @@ def _ransac_task(normalized: dict, arrays: tuple, seeds: np.ndarray, ratios: np.
     return estimates
 
 
+def uses_agreement(options: LoadOptions, num_edges: int) -> bool:
+    """Whether a load that re-estimates ``num_edges`` edges takes the agreeing runs' front end
+    (``consensus_agreement`` set, and at least ``agreement_min_edges`` edges)."""
+    return options.consensus_agreement is not None and num_edges >= options.agreement_min_edges
+
+
 def _consensus_runs(pairs: EdgeCoordinates, threshold: float, options: LoadOptions) -> list[list]:
     """Every edge's seeded RANSAC runs (R, t, inlier mask; None where one failed), for
     :func:`stable_consensus`.
@@ -396,7 +402,7 @@ def _consensus_runs(pairs: EdgeCoordinates, threshold: float, options: LoadOptio
                 and int(runs_of_edge[n][0][2].sum()) >= options.min_inliers}
 
     every = range(len(pairs))
-    fast = [] if options.consensus_agreement is None else \
+    fast = [] if not uses_agreement(options, len(pairs)) else \
         [n for n in every if pairs.num_matches(n) > options.agreement_min_matches]
     fast_set = set(fast)
     # the edges of few matches (all of them without consensus_agreement): every run with the first's trials
@@ -503,7 +509,7 @@ def build_view_graph(scene: SfMScene, options: LoadOptions = LoadOptions(),
         "unregistered_views": list(graph.unregistered_views),
         "num_inlier_matches": int(sum(graph.edges[k].num_inliers for k in graph.active_edges())),
         "noise_sigma_px": sigma, "ransac_max_error_px": threshold, "consensus_runs": options.consensus_runs,
-        "ransac_runs": consensus_runs_made,
+        "ransac_runs": consensus_runs_made, "agreeing_runs": uses_agreement(options, len(pairs)),
         "dropped_matches": dict(sorted(dropped.items())), "min_inliers": options.min_inliers,
         "time_s": time.perf_counter() - start,
     }

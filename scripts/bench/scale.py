@@ -4,7 +4,7 @@ simulated collections, each a process, side by side on the same database.
 Usage: python scripts/bench/scale.py [--recipes circular-200 circular-1000 ...] [--rounds 1]
                                      [--cache DIR] [-o RESULTS_DIR] [--no-mapper] [--jobs 2]
                                      [--results-md docs/results.md] [--section scale] [--mapper-only]
-                                     [--consensus full|fast]
+                                     [--consensus auto|full|fast]
 
 Per recipe (``RECIPES``: `rotonly simulate multiview ... --format colmap` arguments), the input is
 made once (cached under ``--cache``), then in ``--rounds`` rounds, the order alternating:
@@ -99,7 +99,7 @@ def input_counts(database: Path) -> dict:
     return {"images": images, "pairs": pairs, "matches": matches}
 
 
-def run_rotonly(folder: Path, work: Path, jobs: int, timeout: float | None, consensus: str = "full") -> dict:
+def run_rotonly(folder: Path, work: Path, jobs: int, timeout: float | None, consensus: str = "auto") -> dict:
     out = work / "rotonly_out"
     if out.exists():
         shutil.rmtree(out)
@@ -172,7 +172,8 @@ def tables(rows: list[dict]) -> str:
         counts = row["counts"]
         mapper = row.get("mapper") or {}
         mapper_wall = mapper.get("wall_s") if mapper.get("exit") == 0 else None  # a killed mapper: no ratio
-        rotonly_label = "rotonly run" + (" --consensus fast" if row.get("consensus") == "fast" else "")
+        mode = row.get("consensus", "auto")
+        rotonly_label = "rotonly run" + ("" if mode == "auto" else f" --consensus {mode}")
         for method in ("rotonly", "mapper"):
             r = row.get(method)
             if not r:
@@ -208,7 +209,8 @@ def main(argv: list[str] | None = None) -> int:
                              "invocation on the same recipes)")
     parser.add_argument("--timeout", type=float, default=None, help="seconds per process (killed after)")
     parser.add_argument("--results-md", type=Path, default=None)
-    parser.add_argument("--consensus", choices=["full", "fast"], default="full", help="rotonly run's --consensus")
+    parser.add_argument("--consensus", choices=["auto", "full", "fast"], default="auto",
+                        help="rotonly run's --consensus")
     parser.add_argument("--section", default="scale",
                         help="the section of --results-md the table replaces (one per set of recipes)")
     args = parser.parse_args(argv)

@@ -144,19 +144,23 @@ def test_unmatched_share_that_warns():
 
 
 def test_consensus_fast_is_the_agreeing_runs_of_the_load_stage(capsys, tmp_path):
-    """--consensus maps to LoadOptions.consensus_agreement (fast: the agreeing runs; full: off,
-    as by default) in the CLI and the API alike, and a bad value names the option."""
+    """--consensus maps to LoadOptions.consensus_agreement and agreement_min_edges (fast: the
+    agreeing runs on any load; full: off; auto, the default: from AUTO_AGREEMENT_MIN_EDGES edges
+    on) in the CLI and the API alike, and a bad value names the option."""
     import json
 
     from rotonly_cli.errors import InputError
     from rotonly_cli.options import LoadOptions, RunOptions
-    from rotonly_cli.options.inputs import FAST_CONSENSUS_AGREEMENT
+    from rotonly_cli.options.inputs import AUTO_AGREEMENT_MIN_EDGES, FAST_CONSENSUS_AGREEMENT
     from rotonly_cli.options.settings import with_settings
 
-    assert LoadOptions().consensus_agreement is None
-    assert with_settings(RunOptions(), {"consensus": "fast"}).load.consensus_agreement == FAST_CONSENSUS_AGREEMENT
+    auto = (FAST_CONSENSUS_AGREEMENT, AUTO_AGREEMENT_MIN_EDGES)
+    assert (LoadOptions().consensus_agreement, LoadOptions().agreement_min_edges) == auto
     fast = with_settings(RunOptions(), {"consensus": "fast"})
+    assert (fast.load.consensus_agreement, fast.load.agreement_min_edges) == (FAST_CONSENSUS_AGREEMENT, 0)
     assert with_settings(fast, {"consensus": "full"}).load.consensus_agreement is None
+    back = with_settings(with_settings(fast, {"consensus": "full"}), {"consensus": "auto"}).load
+    assert (back.consensus_agreement, back.agreement_min_edges) == auto
     with pytest.raises(InputError, match="consensus"):
         with_settings(RunOptions(), {"consensus": "quick"})
     # five views, a pair of each adjacent two holding ~2500 matches (the fixtures hold 1000 at most)

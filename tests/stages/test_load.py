@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from rotonly_cli.errors import InputError
 from rotonly_cli.io.colmap import read_database
 from rotonly_cli.options import LoadOptions
 from rotonly_cli.stages import load
@@ -198,7 +199,7 @@ def test_runs_that_agree_are_not_repeated_and_runs_that_differ_are():
     two runs, not four, and keeps the matches both accept. Masks that differ in more than the agreement do not agree."""
     scene = _simulated_pair(1500, 0)
     graph, report = load.build_view_graph(scene, LoadOptions(ransac_max_error_px=1.0, jobs=1,
-                                                             consensus_agreement=0.01))
+                                                             consensus_agreement=0.01, agreement_min_edges=0))
     assert report["ransac_runs"] == 2
     assert graph.edges[0].num_inliers >= 1450
     every, _ = load.build_view_graph(scene, LoadOptions(ransac_max_error_px=1.0, jobs=1, consensus_agreement=None))
@@ -220,7 +221,7 @@ def test_only_edges_of_many_matches_take_the_two_agreeing_runs():
     """With consensus_agreement the agreeing runs are the front end of the edges above
     agreement_min_matches (1000); a smaller edge makes its four runs on every match, exactly as
     without it."""
-    options = LoadOptions(ransac_max_error_px=1.0, jobs=1, consensus_agreement=0.01)
+    options = LoadOptions(ransac_max_error_px=1.0, jobs=1, consensus_agreement=0.01, agreement_min_edges=0)
     assert options.agreement_min_matches == 1000
     large, small = _simulated_pair(1500, 0), _simulated_pair(800, 0)
     assert load.build_view_graph(large, options)[1]["ransac_runs"] == 2
@@ -229,6 +230,26 @@ def test_only_edges_of_many_matches_take_the_two_agreeing_runs():
     every, _ = load.build_view_graph(small, replace(options, consensus_agreement=None))
     assert np.array_equal(graph.edges[0].matches, every.edges[0].matches)
     assert np.array_equal(graph.edges[0].R_j_from_i, every.edges[0].R_j_from_i)
+
+
+def test_auto_takes_the_agreeing_runs_from_agreement_min_edges_edges_on():
+    """--consensus auto (the default): the agreeing runs only in a load of at least
+    agreement_min_edges edges to re-estimate; below, every edge makes its four runs and keeps
+    what full keeps, bit for bit; the report says which front end ran."""
+    options = LoadOptions(ransac_max_error_px=1.0, jobs=1)
+    assert options.consensus_agreement == 0.01 and options.agreement_min_edges == 1000
+    large = _simulated_pair(1500, 0)  # one edge of 1500 matches
+    graph, report = load.build_view_graph(large, options)
+    assert report["ransac_runs"] == 4 and report["agreeing_runs"] is False
+    full, full_report = load.build_view_graph(large, replace(options, consensus_agreement=None))
+    assert full_report["agreeing_runs"] is False
+    assert np.array_equal(graph.edges[0].matches, full.edges[0].matches)
+    assert np.array_equal(graph.edges[0].R_j_from_i, full.edges[0].R_j_from_i)
+    _, report = load.build_view_graph(large, replace(options, agreement_min_edges=1))
+    assert report["ransac_runs"] == 2 and report["agreeing_runs"] is True
+    with pytest.raises(InputError, match="must be >= 0") as raised:
+        LoadOptions(agreement_min_edges=-1).validate()
+    assert raised.value.field == "agreement_min_edges"
 
 
 def test_a_negative_agreement_min_matches_is_refused():
