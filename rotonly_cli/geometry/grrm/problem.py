@@ -481,8 +481,10 @@ def translation_weights(R_ij: np.ndarray, batch: pg.EdgeBatch | pg.ObservedMatch
     """Each match's weight in its edge's t (Σ w θθᵀ), for the matches of edges [e_lo, e_hi)
     (default: all; ``R_ij`` of all the edges): two Huber IRLS rounds of its TRRM residual
     (geometry/trrm.robust_match_weights, per edge), group by group of edges so that no
-    per-match table of all the matches is made at once (the numbers are per edge, so they do
-    not depend on the groups or the range)."""
+    per-match table of all the matches is made at once (the numbers are per edge, but other
+    groups move them by rounding: 1e-13° in GRRM's end at 1000 views, so a caller whose bits
+    must not depend on its processes cuts the edges the same way every time, as
+    GRRMSystem.translation_weights does)."""
     from rotonly_cli.geometry.trrm import TRRMOptions, robust_match_weights
 
     e_hi = batch.num_edges if e_hi is None else e_hi
