@@ -161,8 +161,10 @@ class GRRMOptions:
     residual: ResidualForm = ResidualForm.BEARING
     #: the loss's second-order term in the Hessian: the same optimum in fewer iterations
     robust_hessian: bool = True
-    #: full radial curvature after steps below this (rad): LM's linear rate turns quadratic
-    exact_curvature_below: float = 1e-3
+    #: full radial curvature after steps below this (rad; 0: never): LM's linear rate turns
+    #: quadratic, but the exact model fails on large collections, and step_tolerance stops the
+    #: clamped one as early (docs/tuning.md, GRRM)
+    exact_curvature_below: float = 0.0
     #: per-edge t from IRLS-weighted Pˢ (weights fixed at the start; see TRRMOptions.loss)
     robust_translation: bool = True
 
