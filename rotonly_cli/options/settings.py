@@ -45,11 +45,20 @@ CONSENSUS_FIELDS = {
 PATHS = ("matches_dir", "matches_file", "image_path", "gt")
 
 
+def _fields(field: str, value) -> dict:
+    """The fields a setting sets, as they hold its ``value``: paths as text, the choices as
+    their StrEnum (a mode that is not one stays as given, for the options' validate() to
+    name); ``consensus``, a mode that sets several fields, those of CONSENSUS_FIELDS (a name
+    that is not one refused here: the fields are numbers)."""
+    if field == "consensus":
+        if value not in CONSENSUS_MODES:
+            raise InputError(f"{value!r}: must be one of {', '.join(CONSENSUS_MODES)}", field="consensus")
+        return CONSENSUS_FIELDS[Consensus(value)]
+    return {field: _value(field, value)}
+
+
 def _value(field: str, value):
-    """``value`` as the field holds it: paths as text, the choices as their StrEnum (a mode
-    that is not one stays as given, for the options' validate() to name). ``consensus`` is a
-    mode that sets several fields (CONSENSUS_FIELDS, :func:`with_settings`; a name that is not
-    one is refused there)."""
+    """``value`` as the field holds it (:func:`_fields`)."""
     if field in PATHS:
         return str(value)
     if field == "reestimate":
@@ -66,11 +75,6 @@ def with_settings(options: RunOptions, settings: dict) -> RunOptions:
     for name, value in settings.items():
         if value is not None:
             part, field = SETTINGS[name]
-            if field == "consensus":  # a mode: the fields it sets
-                if value not in CONSENSUS_MODES:
-                    raise InputError(f"{value!r}: must be one of {', '.join(CONSENSUS_MODES)}", field="consensus")
-                changes.setdefault(part, {}).update(CONSENSUS_FIELDS[Consensus(value)])
-                continue
-            changes.setdefault(part, {})[field] = _value(field, value)
+            changes.setdefault(part, {}).update(_fields(field, value))
     parts = {part: replace(getattr(options, part), **fields) for part, fields in changes.items() if part}
     return replace(options, **changes.get("", {}), **parts)

@@ -16,16 +16,13 @@ from functools import partial
 import numpy as np
 
 from rotonly_cli.geometry.identification import IdentificationOptions, identify
-from rotonly_cli.runtime import cluster
 from rotonly_cli.scene.view_graph import (
     ViewGraph,
-    batch_of_arrays,
-    edge_arrays,
-    edge_batch,
     filter_rotation_singular,
     kind_counts,
     kinds_text,
 )
+from rotonly_cli.stages import map_graph_edges
 
 logger = logging.getLogger(__name__)
 #: matches per --cluster task: identification takes ~0.25 us per match (the 200-view recipe's
@@ -42,12 +39,9 @@ def identify_edges(graph: ViewGraph, normalized: dict[int, np.ndarray],
     processes = 1
     if edges:
         R = np.stack([graph.edges[k].R_j_from_i for k in edges])
-        counts = np.array([graph.edges[k].num_inliers for k in edges], dtype=np.int64)
         # --cluster: tasks of CLUSTER_TASK_MATCHES (runtime/cluster.py); else forked processes
-        result, processes = cluster.map_edges("identify", partial(identify, options=options), R, counts, jobs,
-                                              lambda e0, e1: edge_arrays(graph, edges[e0:e1]), batch_of_arrays,
-                                              normalized, lambda e0, e1: edge_batch(graph, normalized, edges[e0:e1]),
-                                              CLUSTER_TASK_MATCHES)
+        result, processes = map_graph_edges("identify", partial(identify, options=options), graph, normalized, edges,
+                                            R, jobs, CLUSTER_TASK_MATCHES)
         for row, k in enumerate(edges):
             edge = graph.edges[k]
             edge.scene_kind = result.kinds[row].value

@@ -16,16 +16,13 @@ import numpy as np
 from rotonly_cli.geometry import so3
 from rotonly_cli.geometry.identification import IdentificationOptions
 from rotonly_cli.geometry.trrm import TRRMOptions, refine
-from rotonly_cli.runtime import cluster
 from rotonly_cli.scene.view_graph import (
     ViewGraph,
-    batch_of_arrays,
-    edge_arrays,
-    edge_batch,
     filter_rotation_singular,
     kind_counts,
     kinds_text,
 )
+from rotonly_cli.stages import map_graph_edges
 
 logger = logging.getLogger(__name__)
 #: matches per --cluster task: TRRM takes ~1.1 us per match (the 200-view recipe's 4.4 M
@@ -43,12 +40,10 @@ def refine_edges(graph: ViewGraph, normalized: dict[int, np.ndarray], options: T
     report: dict = {"num_edges": len(edges)}
     if edges:
         R0 = np.stack([graph.edges[k].R_j_from_i for k in edges])
-        counts = np.array([graph.edges[k].num_inliers for k in edges], dtype=np.int64)
         fn = partial(refine, options=options, identification_options=identification_options)
         # --cluster: tasks of CLUSTER_TASK_MATCHES (runtime/cluster.py); else forked processes
-        result, report["processes"] = cluster.map_edges(
-            "refine", fn, R0, counts, jobs, lambda e0, e1: edge_arrays(graph, edges[e0:e1]), batch_of_arrays,
-            normalized, lambda e0, e1: edge_batch(graph, normalized, edges[e0:e1]), CLUSTER_TASK_MATCHES)
+        result, report["processes"] = map_graph_edges("refine", fn, graph, normalized, edges, R0, jobs,
+                                                      CLUSTER_TASK_MATCHES)
         change = np.degrees(so3.geodesic_angle(result.rotations, R0))
         for row, k in enumerate(edges):
             edge = graph.edges[k]

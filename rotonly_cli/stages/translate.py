@@ -26,16 +26,8 @@ from rotonly_cli.geometry.ligt import (
 )
 from rotonly_cli.geometry.resection import resect_left_out_views
 from rotonly_cli.scene.tracks import TrackCache, graph_tracks, robust_weights
-from rotonly_cli.scene.view_graph import (
-    ViewGraph,
-    batch_of_arrays,
-    edge_arrays,
-    edge_batch,
-    largest_component_of,
-    regular_edges,
-    view_index,
-)
-from rotonly_cli.stages import listed
+from rotonly_cli.scene.view_graph import ViewGraph, largest_component_of, regular_edges, view_index
+from rotonly_cli.stages import listed, map_graph_edges
 
 logger = logging.getLogger(__name__)
 
@@ -51,14 +43,9 @@ def match_weigher(graph: ViewGraph, normalized: dict[int, np.ndarray], jobs: int
     """scene.tracks.inlier_matches' ``weigh``: the robust weights of the matches of some edges
     computed over ``jobs`` forked processes (or the --cluster session), chunk by chunk, as the
     per-edge stages are (the 1000-view recipe: 20 M matches, 6-7 s in one process)."""
-    from rotonly_cli.runtime import cluster
-
     def weigh(edges: list[int], R_ij: np.ndarray) -> np.ndarray:
-        counts = np.array([graph.edges[k].num_inliers for k in edges], dtype=np.int64)
-        result, _ = cluster.map_edges("tracks", robust_weights, R_ij, counts, jobs,
-                                      lambda e0, e1: edge_arrays(graph, edges[e0:e1]), batch_of_arrays, normalized,
-                                      lambda e0, e1: edge_batch(graph, normalized, edges[e0:e1]), WEIGH_TASK_MATCHES)
-        return result.weights
+        return map_graph_edges("tracks", robust_weights, graph, normalized, edges, R_ij, jobs,
+                               WEIGH_TASK_MATCHES)[0].weights
 
     return weigh
 
