@@ -140,10 +140,14 @@ class GRRMOptions:
     """Multi-view GRRM (paper Alg. 3-4; geometry/grrm/)."""
 
     max_iterations: int = 30  #: k_max of Alg. 4
-    function_tolerance: float = 1e-8  #: stop at a relative cost decrease below this (ε of Alg. 4)
+    #: stop at a relative cost decrease below this (ε of Alg. 4; Ceres' default): on a long strip
+    #: what follows is a nearly free bend (docs/tuning.md, GRRM)
+    function_tolerance: float = 1e-6
     #: stop after a step below this (rad): far below real rotation errors, even at LM's linear rate
     step_tolerance: float = 1e-4
-    initial_damping: float = 1e-4  #: μ relative to diag(JᵀJ)
+    #: μ relative to diag(JᵀJ): small, or a long chain's smooth bend (eigenvalues far below the
+    #: diagonal) is unlocked a tenth of μ per iteration
+    initial_damping: float = 1e-8
     #: μ's ceiling: beyond it LM gives up (no step lowers the cost)
     max_damping: float = 1e10
     #: redescending: wrong matches a few px off their epipolar lines keep pulling under Cauchy

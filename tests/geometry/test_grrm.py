@@ -282,3 +282,23 @@ def test_a_failed_exact_step_is_retried_from_the_psd_model_at_the_same_damping(m
     plain = grrm.optimize_global_rotations(R0, prob.edge_views, prob.batch, prob.obs_ids,
                                            options=grrm.GRRMOptions(robust_hessian=False, **tight))
     assert np.max(so3.geodesic_angle(result.R_cam_from_world, plain.R_cam_from_world)) < 1e-8
+
+
+def test_stops_at_the_relative_cost_decrease_and_damping_keeps_the_optimum():
+    """function_tolerance: LM stops after the first accepted step whose cost decrease is below
+    that fraction of the cost (the tight run's history tells where); initial_damping changes
+    the path, not the optimum."""
+    p, prob, R_gt = _problem("circular", noise=1.0, seed=9, views=10, window=3)
+    R0 = _l1_irls_start(p, prob)
+    args = (R0, prob.edge_views, prob.batch, prob.obs_ids)
+    tight = dict(step_tolerance=0.0, function_tolerance=0.0, max_iterations=6, epipolar_max_iterations=0)
+    full = grrm.optimize_global_rotations(*args, options=grrm.GRRMOptions(**tight))
+    costs = [full.initial_cost] + [h["cost"] for h in full.history]
+    relative = [(a - b) / b for a, b in zip(costs[:-1], costs[1:])]
+    assert len(relative) >= 3 and relative[1] > relative[2] > 0
+    cut = dict(tight, function_tolerance=float(np.sqrt(relative[1] * relative[2])))
+    stopped = grrm.optimize_global_rotations(*args, options=grrm.GRRMOptions(**cut))
+    assert stopped.iterations == 3 and stopped.converged and stopped.cost == full.history[2]["cost"]
+    ends = [grrm.optimize_global_rotations(*args, options=grrm.GRRMOptions(
+        initial_damping=mu, step_tolerance=1e-10, function_tolerance=0.0, max_iterations=100)) for mu in (1e-4, 1e-8)]
+    assert np.max(so3.geodesic_angle(ends[0].R_cam_from_world, ends[1].R_cam_from_world)) < 1e-8
