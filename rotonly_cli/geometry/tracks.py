@@ -87,15 +87,18 @@ def tracks_from_arrays(track_id: np.ndarray, view: np.ndarray, feature: np.ndarr
     return Tracks(track_id, view, feature, offsets, length, int(num_inconsistent))
 
 
-def node_numbers(keys: np.ndarray, key_space: int) -> tuple[np.ndarray, np.ndarray]:
+def node_numbers(keys: np.ndarray, key_space: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(the distinct ``keys`` sorted, each key's place among them) of non-negative integer
-    keys below ``key_space`` (keys of any shape; places int32 below 2^31 distinct keys).
+    keys below ``key_space`` (default: the largest key + 1; keys of any shape; places int32
+    below 2^31 distinct keys).
     np.unique and a binary search of every key, unless the key space is at most twice the
     keys (views x keypoints against the ends of a dense view graph's matches): then a
     presence mask over the key space and its running count, linear in the keys (the
     1000-view recipe's 40 M match ends: 7.4 -> 0.5 s; the mask and counts: ≤ 10 bytes per
     key beside them)."""
     keys = np.asarray(keys)
+    if key_space is None:
+        key_space = int(keys.max()) + 1 if keys.size else 0
     if 0 < key_space <= 2 * keys.size and key_space < 2**31:
         present = np.zeros(key_space, dtype=bool)
         present[keys] = True
@@ -147,7 +150,7 @@ def build_tracks(pair_keys: Sequence[tuple[int, int]], pair_matches: Sequence[np
                casting="unsafe")
         start = stop
     # the node list is sorted by (view, feature), each end numbered by its node
-    unique_keys, node_of_end = node_numbers(node_key, int(node_key.max()) + 1)
+    unique_keys, node_of_end = node_numbers(node_key)
     del node_key
     num_nodes = unique_keys.shape[0]
     graph = coo_matrix((np.ones(num_edges, dtype=np.int8),
@@ -330,7 +333,7 @@ def minority_keypoint_matches(node_keys: np.ndarray, num_feats: int) -> np.ndarr
     node_keys = np.asarray(node_keys, dtype=np.int64).reshape(-1, 2)
     if not len(node_keys):
         return np.zeros(0, dtype=bool)
-    nodes, node_of_end = node_numbers(node_keys, int(node_keys.max()) + 1)
+    nodes, node_of_end = node_numbers(node_keys)
     n = nodes.size
     _, label = connected_components(coo_matrix((np.ones(len(node_of_end), dtype=np.int8),
                                                 (node_of_end[:, 0], node_of_end[:, 1])), shape=(n, n)),

@@ -294,6 +294,14 @@ def robust_match_weights(R: np.ndarray, batch: pg.EdgeBatch, ps_weights: np.ndar
     return _cauchy_weights(sq, table, options, kind)
 
 
+def irls_match_weights(R: np.ndarray, batch: pg.EdgeBatch, kind: str = "cauchy") -> np.ndarray:
+    """Two IRLS rounds of :func:`robust_match_weights` (the first with unit θ, the second with
+    the first's weights in Pˢ): each match's robust weight in its edge's t (an edge's depend on
+    its own matches only)."""
+    first = robust_match_weights(R, batch, None, TRRMOptions(), kind=kind)
+    return robust_match_weights(R, batch, first, TRRMOptions(), kind=kind)
+
+
 def eight_point_rotations(batch: pg.EdgeBatch) -> np.ndarray:
     """(E, 2, 3, 3): per edge the two rotations of the linear 8-point essential matrix of all
     its matches (E = U diag(1, 1, 0) Vᵀ -> U W Vᵀ and U Wᵀ Vᵀ, signs fixed to det +1).

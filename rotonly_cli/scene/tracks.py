@@ -40,14 +40,13 @@ class MatchWeights:
 
 
 def robust_weights(R_ij: np.ndarray, batch) -> MatchWeights:
-    """The robust TRRM weights (two IRLS rounds, geometry.trrm.robust_match_weights) of the
+    """The robust TRRM weights (two IRLS rounds, geometry.trrm.irls_match_weights) of the
     matches of ``batch`` at the relative rotations ``R_ij``; an edge's depend on its own
     matches only."""
-    from rotonly_cli.geometry.trrm import TRRMOptions, robust_match_weights
+    from rotonly_cli.geometry.trrm import irls_match_weights
 
     with np.errstate(all="ignore"):
-        w = robust_match_weights(R_ij, batch, None, TRRMOptions())
-        return MatchWeights(robust_match_weights(R_ij, batch, w, TRRMOptions()))
+        return MatchWeights(irls_match_weights(R_ij, batch))
 
 
 def inlier_matches(graph: ViewGraph, normalized: dict[int, np.ndarray], edges: list[int],

@@ -480,20 +480,19 @@ def translation_weights(R_ij: np.ndarray, batch: pg.EdgeBatch | pg.ObservedMatch
                         e_hi: int | None = None) -> np.ndarray:
     """Each match's weight in its edge's t (Σ w θθᵀ), for the matches of edges [e_lo, e_hi)
     (default: all; ``R_ij`` of all the edges): two Huber IRLS rounds of its TRRM residual
-    (geometry/trrm.robust_match_weights, per edge), group by group of edges so that no
+    (geometry/trrm.irls_match_weights, per edge), group by group of edges so that no
     per-match table of all the matches is made at once (the numbers are per edge, but other
     groups move them by rounding: 1e-13° in GRRM's end at 1000 views, so a caller whose bits
     must not depend on its processes cuts the edges the same way every time, as
     GRRMSystem.translation_weights does)."""
-    from rotonly_cli.geometry.trrm import TRRMOptions, robust_match_weights
+    from rotonly_cli.geometry.trrm import irls_match_weights
 
     e_hi = batch.num_edges if e_hi is None else e_hi
     base = int(batch.offsets[e_lo])
     w = np.empty(int(batch.offsets[e_hi]) - base)
     for e0, e1, sub in pg.edge_group_batches(batch, e_lo=e_lo, e_hi=e_hi):
         m0, m1 = int(batch.offsets[e0]) - base, int(batch.offsets[e1]) - base
-        first = robust_match_weights(R_ij[e0:e1], sub, None, TRRMOptions(), kind="huber")
-        w[m0:m1] = robust_match_weights(R_ij[e0:e1], sub, first, TRRMOptions(), kind="huber")
+        w[m0:m1] = irls_match_weights(R_ij[e0:e1], sub, kind="huber")
     return w
 
 
